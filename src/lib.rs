@@ -1,0 +1,14 @@
+//! StegoNGP: 3D cryptographic steganography in Instant-NGP neural radiance fields.
+//!
+//! `ngp` is a CPU Instant-NGP engine that knows nothing of keys: the hash-grid encoding takes
+//! one index function per level. `stego` supplies keyed index functions, key files and
+//! multi-scene training. `synth` ray-traces generated scenes for tests and the demo.
+
+pub mod error;
+pub mod ngp;
+pub mod rng;
+pub mod stego;
+pub mod synth;
+pub mod util;
+
+pub use error::{Error, Result};

@@ -1,0 +1,54 @@
+//! The `stegongp` command-line program: one module per subcommand under `cli/`.
+
+mod cli;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "stegongp",
+    version,
+    about = "Hide 3D scenes in Instant-NGP models behind a secret key"
+)]
+struct Cli {
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Ray-trace a generated scene into the NeRF-synthetic format.
+    Synth(cli::synth::Args),
+    /// Train a model (plain, or cover + hidden scenes with keys).
+    Train(cli::train::Args),
+    /// Render a dataset's cameras with a model (the cover, or a hidden scene with --key).
+    Render(cli::render::Args),
+    /// PSNR / SSIM of a model on a dataset's held-out views.
+    Eval(cli::eval::Args),
+    /// Describe a model file.
+    Inspect(cli::inspect::Args),
+    /// Make a key file.
+    Keygen(cli::keygen::Args),
+    /// The whole story on generated scenes, no downloads.
+    Demo(cli::demo::Args),
+    /// Run one of the paper's experiments and write a report.
+    Experiment(cli::experiment::Args),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.cmd {
+        Cmd::Synth(a) => cli::synth::run(a),
+        Cmd::Train(a) => cli::train::run(a),
+        Cmd::Render(a) => cli::render::run(a),
+        Cmd::Eval(a) => cli::eval::run(a),
+        Cmd::Inspect(a) => cli::inspect::run(a),
+        Cmd::Keygen(a) => cli::keygen::run(a),
+        Cmd::Demo(a) => cli::demo::run(a),
+        Cmd::Experiment(a) => cli::experiment::run(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}
