@@ -1,1 +1,442 @@
-//! (to be written)
+//! The occupancy (density) grid that lets ray marching skip empty space: 128³ cells per
+//! cascade in Morton order, optical-thickness values with a 0.95 max-decay, a bitfield at
+//! `min(0.01, mean)` and OR-pooled mips — as instant-ngp keeps it (spec §3.5).
+//!
+//! The grid is per scene: the stego layer keeps one per scene it trains and rebuilds a
+//! hidden scene's grid from the network when rendering with a key.
+
+use crate::ngp::camera::Camera;
+use crate::rng::Pcg32;
+use rayon::prelude::*;
+
+pub const GRID_SIZE: u32 = 128;
+pub const N_CELLS: usize = (GRID_SIZE * GRID_SIZE * GRID_SIZE) as usize;
+/// Cells below this optical thickness count as empty.
+pub const MIN_OPTICAL_THICKNESS: f32 = 0.01;
+pub const DECAY: f32 = 0.95;
+/// `sqrt(3) / 1024`: the finest marching step, in units of the unit cube.
+pub const MIN_CONE_STEPSIZE: f32 = 1.732_050_8 / 1024.0;
+
+/// Spreads the low 10 bits of `v` to every third bit.
+#[inline]
+fn expand_bits(mut v: u32) -> u32 {
+    v &= 0x3ff;
+    v = (v | (v << 16)) & 0x0300_00ff;
+    v = (v | (v << 8)) & 0x0300_f00f;
+    v = (v | (v << 4)) & 0x030c_30c3;
+    v = (v | (v << 2)) & 0x0924_9249;
+    v
+}
+
+/// Morton index with x in bit 0 (instant-ngp's `morton3D`).
+#[inline]
+pub fn morton3d(x: u32, y: u32, z: u32) -> u32 {
+    expand_bits(x) | (expand_bits(y) << 1) | (expand_bits(z) << 2)
+}
+
+/// Inverse of [`morton3d`] for one axis: pass `idx >> axis`.
+#[inline]
+pub fn morton3d_invert(mut x: u32) -> u32 {
+    x &= 0x0924_9249;
+    x = (x | (x >> 2)) & 0x030c_30c3;
+    x = (x | (x >> 4)) & 0x0300_f00f;
+    x = (x | (x >> 8)) & 0x0300_00ff;
+    x = (x | (x >> 16)) & 0x0000_03ff;
+    x
+}
+
+/// Number of cascades for an aabb scale: `log2(aabb_scale) + 1`.
+pub fn n_cascades(aabb_scale: u32) -> usize {
+    (aabb_scale.max(1).ilog2() + 1) as usize
+}
+
+/// Which cascade a position falls in (`mip_from_pos`).
+#[inline]
+pub fn mip_from_pos(pos: [f32; 3], max_cascade: u32) -> u32 {
+    let m = (pos[0] - 0.5)
+        .abs()
+        .max((pos[1] - 0.5).abs())
+        .max((pos[2] - 0.5).abs());
+    // frexp exponent of m: m = f·2^e with f in [0.5, 1).
+    let e = if m == 0.0 {
+        0
+    } else {
+        ((m.to_bits() >> 23) & 0xff) as i32 - 126
+    };
+    (e + 1).clamp(0, max_cascade as i32) as u32
+}
+
+/// Cascade for a step of size `dt` at `pos` (`mip_from_dt`): big steps read coarse mips.
+#[inline]
+pub fn mip_from_dt(dt: f32, pos: [f32; 3], max_cascade: u32) -> u32 {
+    let mip = mip_from_pos(pos, max_cascade);
+    let d = dt * 2.0 * GRID_SIZE as f32;
+    if d < 1.0 {
+        return mip;
+    }
+    let e = ((d.to_bits() >> 23) & 0xff) as i32 - 126;
+    (mip as i32).clamp(e, max_cascade as i32) as u32
+}
+
+/// Morton cell of `pos` in cascade `mip`, or `None` outside it.
+#[inline]
+pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
+    let s = (-(mip as i32) as f32).exp2();
+    let g = GRID_SIZE as f32;
+    let mut i = [0i32; 3];
+    for d in 0..3 {
+        i[d] = (((pos[d] - 0.5) * s + 0.5) * g) as i32;
+        // `as i32` truncates toward zero like the reference's ivec3 conversion.
+        if !(0..GRID_SIZE as i32).contains(&i[d]) || ((pos[d] - 0.5) * s + 0.5) < 0.0 {
+            return None;
+        }
+    }
+    Some(morton3d(i[0] as u32, i[1] as u32, i[2] as u32))
+}
+
+/// The occupancy grid of one scene.
+#[derive(Clone, Debug)]
+pub struct OccupancyGrid {
+    pub n_cascades: usize,
+    /// Optical thickness per cell, `N_CELLS` per cascade, Morton order; −1 = never seen.
+    pub density: Vec<f32>,
+    /// One bit per cell per mip (mips ≥ 1 also hold the OR-pooled finer mip).
+    bitfield: Vec<u8>,
+    /// Mean of cascade 0, clamped at 0 per cell.
+    pub mean: f32,
+    /// Number of updates so far (seeds the reference's cell-selection hash).
+    pub ema_step: u32,
+}
+
+impl OccupancyGrid {
+    /// All cells marked seen with density 0 and every bit set, so the first update's
+    /// marching is unrestricted.
+    pub fn new(aabb_scale: u32) -> Self {
+        let nc = n_cascades(aabb_scale);
+        OccupancyGrid {
+            n_cascades: nc,
+            density: vec![0.0; N_CELLS * nc],
+            bitfield: vec![0xff; N_CELLS / 8 * nc],
+            mean: 0.0,
+            ema_step: 0,
+        }
+    }
+
+    /// A grid from stored values (e.g. a snapshot's `density_grid_binary`).
+    pub fn from_density(density: Vec<f32>) -> Option<Self> {
+        if density.is_empty() || density.len() % N_CELLS != 0 {
+            return None;
+        }
+        let nc = density.len() / N_CELLS;
+        let mut g = OccupancyGrid {
+            n_cascades: nc,
+            density,
+            bitfield: vec![0; N_CELLS / 8 * nc],
+            mean: 0.0,
+            ema_step: 0,
+        };
+        g.update_bitfield();
+        Some(g)
+    }
+
+    pub fn max_cascade(&self) -> u32 {
+        self.n_cascades as u32 - 1
+    }
+
+    /// Centre of the Morton cell `idx` of cascade `c`, in ngp space, plus the voxel size.
+    fn cell_origin(idx: u32, c: usize) -> ([f32; 3], f32) {
+        let s = (c as f32).exp2();
+        let g = GRID_SIZE as f32;
+        let p = [
+            morton3d_invert(idx) as f32,
+            morton3d_invert(idx >> 1) as f32,
+            morton3d_invert(idx >> 2) as f32,
+        ];
+        (
+            [
+                (p[0] / g - 0.5) * s + 0.5,
+                (p[1] / g - 0.5) * s + 0.5,
+                (p[2] / g - 0.5) * s + 0.5,
+            ],
+            s / g,
+        )
+    }
+
+    /// Marks every cell that no training camera sees (no corner projects inside an image,
+    /// in front of the camera) with −1, and the others 0 (`mark_untrained_density_grid`).
+    /// Lens distortion is ignored for this visibility test.
+    pub fn mark_untrained(&mut self, cameras: &[Camera]) {
+        let nc = self.n_cascades;
+        self.density
+            .par_chunks_mut(4096)
+            .enumerate()
+            .for_each(|(chunk, vals)| {
+                for (k, v) in vals.iter_mut().enumerate() {
+                    let i = chunk * 4096 + k;
+                    let (c, idx) = (i / N_CELLS, (i % N_CELLS) as u32);
+                    debug_assert!(c < nc);
+                    let (o, vs) = Self::cell_origin(idx, c);
+                    let seen = cameras.iter().any(|cam| {
+                        (0..8).any(|corner| {
+                            let p = [
+                                o[0] + vs * (corner & 1) as f32,
+                                o[1] + vs * ((corner >> 1) & 1) as f32,
+                                o[2] + vs * ((corner >> 2) & 1) as f32,
+                            ];
+                            projects_inside(cam, p)
+                        })
+                    });
+                    *v = if seen { 0.0 } else { -1.0 };
+                }
+            });
+        self.update_bitfield();
+    }
+
+    /// Cells to sample in one update at `step` (the reference's counts, times `fraction`).
+    pub fn update_sample_counts(&self, step: u32, fraction: f32) -> (usize, usize) {
+        let nc = self.n_cascades;
+        let scale = |n: usize| ((n as f32 * fraction).round() as usize).max(1024);
+        if step < 256 {
+            (scale(N_CELLS * nc), 0)
+        } else {
+            (scale(N_CELLS / 4 * nc), scale(N_CELLS / 4 * nc))
+        }
+    }
+
+    /// Picks the cells and random positions of one update (`generate_grid_samples_nerf_nonuniform`):
+    /// `n_uniform` among non-culled cells, `n_nonuniform` among occupied cells. Returns
+    /// (ngp-space positions, cell indices including the cascade offset).
+    pub fn sample_positions(
+        &self,
+        n_uniform: usize,
+        n_nonuniform: usize,
+        seed: u64,
+    ) -> (Vec<[f32; 3]>, Vec<u32>) {
+        let nc = self.n_cascades;
+        let step = self.ema_step;
+        let draw = |n: usize, thresh: f32, stream: u64| -> Vec<([f32; 3], u32)> {
+            (0..n)
+                .into_par_iter()
+                .map(|i| {
+                    let mut rng = Pcg32::new(seed ^ ((step as u64) << 32), stream * 0x1_0000_0000 + i as u64);
+                    let level = (rng.next_f32() * nc as f32) as usize % nc;
+                    let mut idx = 0u32;
+                    for j in 0..10u32 {
+                        idx = ((i as u32).wrapping_add(step.wrapping_mul(n as u32)))
+                            .wrapping_mul(56924617)
+                            .wrapping_add(j.wrapping_mul(19349663))
+                            .wrapping_add(96925573)
+                            % N_CELLS as u32;
+                        if self.density[idx as usize + level * N_CELLS] > thresh {
+                            break;
+                        }
+                    }
+                    let (o, vs) = Self::cell_origin(idx, level);
+                    let p = [
+                        o[0] + vs * rng.next_f32(),
+                        o[1] + vs * rng.next_f32(),
+                        o[2] + vs * rng.next_f32(),
+                    ];
+                    (p, idx + (level * N_CELLS) as u32)
+                })
+                .collect()
+        };
+        let mut all = draw(n_uniform, -0.01, 1);
+        all.extend(draw(n_nonuniform, MIN_OPTICAL_THICKNESS, 2));
+        all.into_iter().unzip()
+    }
+
+    /// Folds new density estimates in: each cell takes `max(old·0.95, max σ·Δt_min of its
+    /// samples)`, culled cells stay −1; then the mean and bitfield are recomputed.
+    pub fn splat(&mut self, cells: &[u32], log_density: &[f32]) {
+        let mut fresh = vec![0.0f32; self.density.len()];
+        for (&c, &ld) in cells.iter().zip(log_density) {
+            let t = ld.exp() * MIN_CONE_STEPSIZE;
+            let f = &mut fresh[c as usize];
+            if t > *f {
+                *f = t;
+            }
+        }
+        self.density
+            .par_iter_mut()
+            .zip(fresh.par_iter())
+            .for_each(|(d, &f)| {
+                if *d >= 0.0 {
+                    *d = (*d * DECAY).max(f);
+                }
+            });
+        self.ema_step += 1;
+        self.update_bitfield();
+    }
+
+    /// Threshold `min(0.01, mean)`, bit per cell, then OR-pool each mip into the next.
+    pub fn update_bitfield(&mut self) {
+        let sum: f64 = self.density[..N_CELLS]
+            .par_iter()
+            .map(|&v| v.max(0.0) as f64)
+            .sum();
+        self.mean = (sum / N_CELLS as f64) as f32;
+        let thresh = MIN_OPTICAL_THICKNESS.min(self.mean);
+        let density = &self.density;
+        self.bitfield
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(i, b)| {
+                let mut bits = 0u8;
+                for j in 0..8 {
+                    if density[i * 8 + j] > thresh {
+                        bits |= 1 << j;
+                    }
+                }
+                *b = bits;
+            });
+        let per_mip = N_CELLS / 8;
+        for level in 1..self.n_cascades {
+            let (fine, coarse) = self.bitfield.split_at_mut(level * per_mip);
+            let prev = &fine[(level - 1) * per_mip..];
+            let next = &mut coarse[..per_mip];
+            for i in 0..N_CELLS / 64 {
+                let mut bits = 0u8;
+                for j in 0..8 {
+                    if prev[i * 8 + j] != 0 {
+                        bits |= 1 << j;
+                    }
+                }
+                let q = GRID_SIZE / 8;
+                let x = morton3d_invert(i as u32) + q;
+                let y = morton3d_invert(i as u32 >> 1) + q;
+                let z = morton3d_invert(i as u32 >> 2) + q;
+                next[morton3d(x, y, z) as usize] |= bits;
+            }
+        }
+    }
+
+    #[inline]
+    pub fn is_occupied(&self, pos: [f32; 3], mip: u32) -> bool {
+        match cell_at(pos, mip) {
+            Some(idx) => {
+                let i = idx as usize + mip as usize * N_CELLS;
+                self.bitfield[i / 8] & (1 << (i % 8)) != 0
+            }
+            None => false,
+        }
+    }
+
+    /// Fraction of cascade-0 cells that are occupied.
+    pub fn occupied_fraction(&self) -> f64 {
+        let n: u32 = self.bitfield[..N_CELLS / 8]
+            .iter()
+            .map(|b| b.count_ones())
+            .sum();
+        n as f64 / N_CELLS as f64
+    }
+}
+
+/// Whether ngp-space point `p` is in front of `cam` and projects strictly inside its image.
+fn projects_inside(cam: &Camera, p: [f32; 3]) -> bool {
+    let m = &cam.c2w;
+    let d = [p[0] - m[0][3], p[1] - m[1][3], p[2] - m[2][3]];
+    // Camera-space coordinates: the rotation's transpose applied to d.
+    let x = m[0][0] * d[0] + m[1][0] * d[1] + m[2][0] * d[2];
+    let y = m[0][1] * d[0] + m[1][1] * d[1] + m[2][1] * d[2];
+    let z = m[0][2] * d[0] + m[1][2] * d[1] + m[2][2] * d[2];
+    let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+    if n == 0.0 || z / n < 1e-4 {
+        return false;
+    }
+    let u = (x / z * cam.fx + cam.cx) / cam.width as f32;
+    let v = (y / z * cam.fy + cam.cy) / cam.height as f32;
+    u > 0.0 && v > 0.0 && u < 1.0 && v < 1.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn morton_by_hand() {
+        assert_eq!(morton3d(1, 0, 0), 1);
+        assert_eq!(morton3d(0, 1, 0), 2);
+        assert_eq!(morton3d(0, 0, 1), 4);
+        assert_eq!(morton3d(3, 0, 0), 0b1001);
+        assert_eq!(morton3d(127, 127, 127), N_CELLS as u32 - 1);
+        for &(x, y, z) in &[(5u32, 17u32, 99u32), (127, 0, 64)] {
+            let m = morton3d(x, y, z);
+            assert_eq!(morton3d_invert(m), x);
+            assert_eq!(morton3d_invert(m >> 1), y);
+            assert_eq!(morton3d_invert(m >> 2), z);
+        }
+    }
+
+    #[test]
+    fn mips_and_cells() {
+        // frexp(0) has exponent 0, so the exact centre reads mip 1 (a reference quirk).
+        assert_eq!(mip_from_pos([0.5, 0.5, 0.5], 7), 1);
+        assert_eq!(mip_from_pos([0.5, 0.5, 0.5], 0), 0);
+        assert_eq!(mip_from_pos([0.501, 0.5, 0.5], 7), 0);
+        assert_eq!(mip_from_pos([0.9, 0.5, 0.5], 7), 0); // |0.4| < 0.5
+        assert_eq!(mip_from_pos([1.2, 0.5, 0.5], 7), 1); // 0.7 in [0.5, 1)
+        assert_eq!(mip_from_pos([2.4, 0.5, 0.5], 7), 2); // 1.9 ≤ 2
+        assert_eq!(mip_from_pos([2.6, 0.5, 0.5], 7), 3); // 2.1 > 2
+        assert_eq!(mip_from_pos([2.6, 0.5, 0.5], 1), 1);
+        assert_eq!(mip_from_dt(MIN_CONE_STEPSIZE, [0.6, 0.5, 0.5], 7), 0);
+        assert_eq!(mip_from_dt(4.0 / 128.0, [0.6, 0.5, 0.5], 7), 4); // dt·256 = 8 = 0.5·2^4
+        assert_eq!(cell_at([0.0, 0.0, 0.0], 0), Some(0));
+        assert_eq!(cell_at([0.999, 0.0, 0.0], 0), Some(morton3d(127, 0, 0)));
+        assert_eq!(cell_at([1.0001, 0.5, 0.5], 0), None);
+        assert_eq!(cell_at([-0.001, 0.5, 0.5], 0), None);
+        // Cascade 1 covers [0, 1] ∪ … = [-0.5, 1.5]: the cube's centre is its cell 64.
+        assert_eq!(cell_at([0.5, 0.5, 0.5], 1), Some(morton3d(64, 64, 64)));
+        assert_eq!(cell_at([-0.49, 0.5, 0.5], 1), Some(morton3d(0, 64, 64)));
+    }
+
+    #[test]
+    fn splat_max_decay_and_bitfield() {
+        let mut g = OccupancyGrid::new(1);
+        g.density.iter_mut().for_each(|d| *d = 0.0);
+        g.density[7] = -1.0;
+        g.density[3] = 1.0;
+        let ln = |t: f32| (t / MIN_CONE_STEPSIZE).ln();
+        g.splat(&[5, 7, 3, 5], &[ln(0.5), ln(9.0), ln(0.1), ln(0.2)]);
+        assert!((g.density[5] - 0.5).abs() < 1e-5); // max of its two samples
+        assert_eq!(g.density[7], -1.0); // culled stays culled
+        assert!((g.density[3] - 0.95).abs() < 1e-6); // decay beats the smaller sample
+        assert!(g.mean > 0.0 && g.mean < 1e-5);
+        // threshold = mean (< 0.01): cells 3 and 5 occupied, an empty one not.
+        let p = |idx: u32| {
+            let (o, vs) = OccupancyGrid::cell_origin(idx, 0);
+            [o[0] + vs / 2.0, o[1] + vs / 2.0, o[2] + vs / 2.0]
+        };
+        assert!(g.is_occupied(p(5), 0));
+        assert!(g.is_occupied(p(3), 0));
+        assert!(!g.is_occupied(p(6), 0));
+        assert!(!g.is_occupied(p(7), 0));
+    }
+
+    #[test]
+    fn cascades_pool_finer_bits() {
+        let mut g = OccupancyGrid::new(4);
+        assert_eq!(g.n_cascades, 3);
+        g.density.iter_mut().for_each(|d| *d = 0.0);
+        let c = morton3d(10, 20, 30) as usize;
+        g.density[c] = 1.0;
+        g.update_bitfield();
+        let pos = [(10.5) / 128.0, 20.5 / 128.0, 30.5 / 128.0];
+        assert!(g.is_occupied(pos, 0));
+        assert!(g.is_occupied(pos, 1), "mip 1 must contain the pooled fine bit");
+        assert!(g.is_occupied(pos, 2));
+        assert!(!g.is_occupied([0.9, 0.9, 0.9], 1));
+    }
+
+    #[test]
+    fn sampling_is_deterministic_and_in_cells() {
+        let g = OccupancyGrid::new(1);
+        let (p1, c1) = g.sample_positions(1000, 0, 3);
+        let (p2, c2) = g.sample_positions(1000, 0, 3);
+        assert_eq!(c1, c2);
+        assert_eq!(p1, p2);
+        for (p, &c) in p1.iter().zip(&c1) {
+            assert_eq!(cell_at(*p, 0), Some(c));
+        }
+    }
+}

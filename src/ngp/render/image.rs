@@ -1,0 +1,1 @@
+//! (image rendering, written next)
