@@ -269,6 +269,35 @@ impl OccupancyGrid {
         self.update_bitfield();
     }
 
+    /// A uniformly random point inside each given cell (index including the cascade offset).
+    pub fn points_in_cells(&self, cells: &[u32], seed: u64) -> Vec<[f32; 3]> {
+        cells
+            .par_iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                let mut rng = Pcg32::new(seed, i as u64);
+                let (o, vs) = Self::cell_origin(c % N_CELLS as u32, c as usize / N_CELLS);
+                [
+                    o[0] + vs * rng.next_f32(),
+                    o[1] + vs * rng.next_f32(),
+                    o[2] + vs * rng.next_f32(),
+                ]
+            })
+            .collect()
+    }
+
+    /// Raises cells to the optical thickness of their samples, without decay and without
+    /// recomputing the bitfield (call [`Self::update_bitfield`] when done).
+    pub fn splat_max(&mut self, cells: &[u32], log_density: &[f32]) {
+        for (&c, &ld) in cells.iter().zip(log_density) {
+            let t = ld.exp() * MIN_CONE_STEPSIZE;
+            let d = &mut self.density[c as usize];
+            if *d >= 0.0 && t > *d {
+                *d = t;
+            }
+        }
+    }
+
     /// Threshold `min(0.01, mean)`, bit per cell, then OR-pool each mip into the next.
     pub fn update_bitfield(&mut self) {
         let sum: f64 = self.density[..N_CELLS]

@@ -1,1 +1,8 @@
-//! (to be written)
+//! Training: the Adam + EMA optimizer and the trainer that ties rays, marching, the network
+//! and compositing together for one or more scenes sharing one set of weights.
+
+pub mod optimizer;
+pub mod trainer;
+
+pub use optimizer::{Optimizer, OptimizerConfig};
+pub use trainer::{Schedule, SceneSpec, StepStats, TrainConfig, Trainer};

@@ -1,0 +1,443 @@
+//! The trainer: one shared set of weights, one or more scenes, each with its own per-level
+//! index functions and its own occupancy grid. With one scene and the reference index this
+//! is plain Instant-NGP training; the stego layer only chooses the scenes and indices.
+//!
+//! A step: refresh the occupancy grids on the reference schedule, draw rays (equal chunks per
+//! image, uniform pixels at their centres, random background for RGBA data), march them,
+//! run the network, composite, take the Huber loss, backpropagate, one Adam step. Rays are
+//! split into one fixed range per worker, each with its own gradient buffer, summed in a
+//! fixed order: the result is deterministic for a seed and worker count.
+
+use super::optimizer::{Optimizer, OptimizerConfig};
+use crate::error::{Error, Result};
+use crate::ngp::data::Dataset;
+use crate::ngp::encoding::LevelIndices;
+use crate::ngp::network::ModelConfig;
+use crate::ngp::network::nerf::{CHUNK, NerfNetwork, Workspace};
+use crate::ngp::occupancy::OccupancyGrid;
+use crate::ngp::render::composite::{
+    TRAIN_MIN_TRANSMITTANCE, composite, composite_backward, huber_loss,
+};
+use crate::ngp::render::march::{MAX_SAMPLES_PER_RAY, Marcher, advance_n_steps};
+use crate::rng::Pcg32;
+use rayon::prelude::*;
+
+/// How the scenes of a multi-scene model share the steps.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Schedule {
+    /// Every batch holds rays of every scene (our default).
+    Mixed,
+    /// One scene per step, drawn at random (the StegoNGP paper's Algorithm 1).
+    RandomScene,
+}
+
+#[derive(Clone, Debug)]
+pub struct TrainConfig {
+    pub seed: u64,
+    /// Target number of trained (compacted) samples per step, per scene in a mixed batch.
+    pub batch_samples: u32,
+    /// Fraction of the reference's occupancy-update sample count (1 = reference).
+    pub occupancy_fraction: f32,
+    pub schedule: Schedule,
+    pub optimizer: OptimizerConfig,
+    /// Worker count (gradient partitions); 0 = one per core.
+    pub workers: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            seed: 0,
+            batch_samples: 1 << 18,
+            occupancy_fraction: 1.0,
+            schedule: Schedule::Mixed,
+            optimizer: OptimizerConfig::default(),
+            workers: 0,
+        }
+    }
+}
+
+/// A scene to train: its training images and the index functions it is stored under.
+pub struct SceneSpec {
+    pub dataset: Dataset,
+    pub indices: LevelIndices,
+}
+
+struct SceneState {
+    data: Dataset,
+    indices: LevelIndices,
+    grid: OccupancyGrid,
+    marcher: Marcher,
+    rays_per_batch: u32,
+    measured_samples: u32,
+}
+
+/// What one step did.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepStats {
+    pub step: u32,
+    /// Mean loss per ray (summed over the scenes trained this step).
+    pub loss: f32,
+    pub n_rays: u64,
+    /// Samples that contributed to the loss (the reference's compacted samples).
+    pub n_samples: u64,
+    /// Samples marched and run through the network (≥ n_samples).
+    pub n_marched: u64,
+    pub seconds: f64,
+}
+
+/// Per-worker scratch, allocated once and reused every step.
+struct Worker {
+    grad: Vec<f32>,
+    ws: Vec<Workspace>,
+    pos: Vec<[f32; 3]>,
+    dir: Vec<[f32; 3]>,
+    dt: Vec<f32>,
+    dist: Vec<f32>,
+    raw: Vec<[f32; 4]>,
+    d_raw: Vec<[f32; 4]>,
+    rays: Vec<RayRec>,
+    loss: f64,
+    n_samples: u64,
+    n_marched: u64,
+    n_rays: u64,
+}
+
+#[derive(Clone, Copy)]
+struct RayRec {
+    start: usize,
+    n: usize,
+    bg: [f32; 3],
+    target: [f32; 3],
+}
+
+/// Samples a worker marches before running the network on them.
+const GROUP_SAMPLES: usize = 4 * CHUNK;
+
+pub struct Trainer {
+    pub net: NerfNetwork,
+    pub params: Vec<f32>,
+    pub optimizer: Optimizer,
+    pub config: TrainConfig,
+    scenes: Vec<SceneState>,
+    workers: Vec<Worker>,
+    pub step: u32,
+}
+
+fn mix(a: u64, b: u64) -> u64 {
+    // splitmix64 of a combination: decorrelates (seed, step, scene) streams.
+    let mut z = a
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+        .wrapping_add(b)
+        .wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+impl Trainer {
+    pub fn new(model: ModelConfig, scenes: Vec<SceneSpec>, config: TrainConfig) -> Result<Self> {
+        if scenes.is_empty() {
+            return Err(Error::Config("no scene to train".into()));
+        }
+        let net = NerfNetwork::new(model)?;
+        let n_levels = net.layout.grid.levels.len();
+        let mut states = Vec::new();
+        for s in scenes {
+            if s.indices.len() != n_levels {
+                return Err(Error::Config(format!(
+                    "{} index functions for {} grid levels",
+                    s.indices.len(),
+                    n_levels
+                )));
+            }
+            if s.dataset.frames.is_empty() {
+                return Err(Error::format(&s.dataset.root, "no training images"));
+            }
+            if s.dataset.aabb_scale != model.aabb_scale {
+                return Err(Error::Config(format!(
+                    "{}: aabb_scale {} differs from the model's {}",
+                    s.dataset.root.display(),
+                    s.dataset.aabb_scale,
+                    model.aabb_scale
+                )));
+            }
+            let mut grid = OccupancyGrid::new(model.aabb_scale);
+            let cams: Vec<_> = s.dataset.frames.iter().map(|f| f.camera.clone()).collect();
+            grid.mark_untrained(&cams);
+            let rays = (config.batch_samples / 32).max(64);
+            states.push(SceneState {
+                data: s.dataset,
+                indices: s.indices,
+                grid,
+                marcher: Marcher::new(model.aabb_scale),
+                rays_per_batch: rays,
+                measured_samples: 0,
+            });
+        }
+        let params = net.init_params(config.seed);
+        let n_workers = if config.workers == 0 {
+            rayon::current_num_threads()
+        } else {
+            config.workers
+        };
+        let workers = (0..n_workers)
+            .map(|_| Worker {
+                grad: vec![0.0; params.len()],
+                ws: Vec::new(),
+                pos: Vec::new(),
+                dir: Vec::new(),
+                dt: Vec::new(),
+                dist: Vec::new(),
+                raw: Vec::new(),
+                d_raw: Vec::new(),
+                rays: Vec::new(),
+                loss: 0.0,
+                n_samples: 0,
+                n_marched: 0,
+                n_rays: 0,
+            })
+            .collect();
+        let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
+        Ok(Trainer {
+            net,
+            params,
+            optimizer,
+            config,
+            scenes: states,
+            workers,
+            step: 0,
+        })
+    }
+
+    pub fn n_scenes(&self) -> usize {
+        self.scenes.len()
+    }
+
+    /// The occupancy grid of scene `i` (0 = the cover).
+    pub fn grid(&self, i: usize) -> &OccupancyGrid {
+        &self.scenes[i].grid
+    }
+
+    /// Weights to render with and to publish: the debiased EMA.
+    pub fn inference_params(&self) -> Vec<f32> {
+        self.optimizer.ema_params(&self.params)
+    }
+
+    fn update_occupancy(&mut self) {
+        let step = self.step;
+        let interval = (step / 16).clamp(1, 16);
+        if step % interval != 0 {
+            return;
+        }
+        let fraction = self.config.occupancy_fraction;
+        let seed = self.config.seed;
+        for (si, s) in self.scenes.iter_mut().enumerate() {
+            let (nu, nn) = s.grid.update_sample_counts(step, fraction);
+            let (pos, cells) = s
+                .grid
+                .sample_positions(nu, nn, mix(seed, 0x6772_6964 + si as u64));
+            let warped: Vec<[f32; 3]> = pos.iter().map(|&p| s.marcher.warp(p)).collect();
+            let dens = density_batch(&self.net, &self.params, &s.indices, &warped);
+            s.grid.splat(&cells, &dens);
+        }
+    }
+
+    /// One training step.
+    pub fn train_step(&mut self) -> StepStats {
+        let t0 = std::time::Instant::now();
+        self.update_occupancy();
+        let step = self.step;
+        let scene_ids: Vec<usize> = match self.config.schedule {
+            Schedule::Mixed => (0..self.scenes.len()).collect(),
+            Schedule::RandomScene => {
+                let mut r = Pcg32::new(mix(self.config.seed, step as u64), 0x5ce7e);
+                vec![r.below(self.scenes.len() as u32) as usize]
+            }
+        };
+        let mut stats = StepStats {
+            step,
+            ..Default::default()
+        };
+        for &si in &scene_ids {
+            let scene = &self.scenes[si];
+            let n_rays = scene.rays_per_batch as usize;
+            let n_workers = self.workers.len();
+            let seed = mix(mix(self.config.seed, step as u64), si as u64 + 1);
+            let net = &self.net;
+            let params = &self.params;
+            self.workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
+                let r0 = n_rays * w / n_workers;
+                let r1 = n_rays * (w + 1) / n_workers;
+                worker.loss = 0.0;
+                worker.n_samples = 0;
+                worker.n_marched = 0;
+                worker.n_rays = 0;
+                train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
+            });
+            let mut loss = 0.0;
+            let mut used = 0;
+            for w in &self.workers {
+                loss += w.loss;
+                used += w.n_samples;
+                stats.n_marched += w.n_marched;
+                stats.n_rays += w.n_rays;
+            }
+            stats.loss += (loss / n_rays as f64) as f32;
+            stats.n_samples += used;
+            // Adapt rays per batch to the sample target (rounded to 64, as the reference to 256).
+            let scene = &mut self.scenes[si];
+            scene.measured_samples = used as u32;
+            let target = self.config.batch_samples as f64;
+            let rays = (n_rays as f64 * target / (used.max(1) as f64)).clamp(64.0, (1 << 18) as f64);
+            scene.rays_per_batch = ((rays as u32).div_ceil(64) * 64).max(64);
+        }
+        let mut grads: Vec<Vec<f32>> = self
+            .workers
+            .iter_mut()
+            .map(|w| std::mem::take(&mut w.grad))
+            .collect();
+        self.optimizer.step(&mut self.params, &mut grads);
+        for (w, g) in self.workers.iter_mut().zip(grads) {
+            w.grad = g;
+        }
+        self.step += 1;
+        stats.seconds = t0.elapsed().as_secs_f64();
+        stats
+    }
+}
+
+/// Log-densities at many network-space positions, in parallel chunks.
+pub fn density_batch(
+    net: &NerfNetwork,
+    params: &[f32],
+    indices: &LevelIndices,
+    pos: &[[f32; 3]],
+) -> Vec<f32> {
+    let mut out = vec![0.0f32; pos.len()];
+    out.par_chunks_mut(CHUNK * 8)
+        .zip(pos.par_chunks(CHUNK * 8))
+        .for_each_init(
+            || net.workspace(),
+            |ws, (o, p)| {
+                for (oc, pc) in o.chunks_mut(CHUNK).zip(p.chunks(CHUNK)) {
+                    net.density(params, indices, pc, ws, oc);
+                }
+            },
+        );
+    out
+}
+
+/// Marches, evaluates and backpropagates rays `range` of a batch of `n_rays` into the
+/// worker's gradient buffer.
+fn train_rays(
+    net: &NerfNetwork,
+    params: &[f32],
+    scene: &SceneState,
+    seed: u64,
+    range: std::ops::Range<usize>,
+    n_rays: usize,
+    w: &mut Worker,
+) {
+    let n_images = scene.data.frames.len();
+    let loss_norm = 1.0 / (3.0 * n_rays as f32);
+    let mut next = range.start;
+    while next < range.end {
+        w.pos.clear();
+        w.dir.clear();
+        w.dt.clear();
+        w.dist.clear();
+        w.rays.clear();
+        while next < range.end && w.pos.len() < GROUP_SAMPLES {
+            let i = next;
+            next += 1;
+            let mut rng = Pcg32::new(seed, i as u64);
+            let img = i * n_images / n_rays;
+            let frame = &scene.data.frames[img];
+            let (wd, ht) = (frame.image.width, frame.image.height);
+            let x = rng.below(wd);
+            let y = rng.below(ht);
+            let bg = if scene.data.has_alpha {
+                [rng.next_f32(), rng.next_f32(), rng.next_f32()]
+            } else {
+                [0.0; 3]
+            };
+            let ray = frame.camera.ray(x as f32 + 0.5, y as f32 + 0.5);
+            let Some((tmin, _)) = scene.marcher.intersect(ray.o, ray.d) else {
+                continue;
+            };
+            let t = advance_n_steps(tmin, scene.marcher.cone_angle, rng.next_f32());
+            let start = w.pos.len();
+            scene.marcher.march(
+                &scene.grid,
+                ray.o,
+                ray.d,
+                t,
+                MAX_SAMPLES_PER_RAY,
+                &mut w.pos,
+                &mut w.dt,
+                &mut w.dist,
+            );
+            let n = w.pos.len() - start;
+            if n == 0 {
+                continue;
+            }
+            w.dir.extend(std::iter::repeat_n(ray.d, n));
+            let target = frame.image.target_on(x, y, bg);
+            w.rays.push(RayRec {
+                start,
+                n,
+                bg,
+                target,
+            });
+        }
+        let total = w.pos.len();
+        if total == 0 {
+            continue;
+        }
+        let n_chunks = total.div_ceil(CHUNK);
+        while w.ws.len() < n_chunks {
+            w.ws.push(net.workspace());
+        }
+        w.raw.resize(total, [0.0; 4]);
+        w.d_raw.resize(total, [0.0; 4]);
+        for k in 0..n_chunks {
+            let r = k * CHUNK..((k + 1) * CHUNK).min(total);
+            net.forward(
+                params,
+                &scene.indices,
+                &w.pos[r.clone()],
+                &w.dir[r.clone()],
+                &mut w.ws[k],
+                &mut w.raw[r],
+            );
+        }
+        for ray in &w.rays {
+            let r = ray.start..ray.start + ray.n;
+            let c = composite(&w.raw[r.clone()], &w.dt[r.clone()], &w.dist[r.clone()], 1.0, TRAIN_MIN_TRANSMITTANCE);
+            let pred = [
+                c.rgb[0] + c.transmittance * ray.bg[0],
+                c.rgb[1] + c.transmittance * ray.bg[1],
+                c.rgb[2] + c.transmittance * ray.bg[2],
+            ];
+            let (loss, g) = huber_loss(pred, ray.target);
+            w.loss += (loss / 3.0) as f64;
+            let dl = [g[0] * loss_norm, g[1] * loss_norm, g[2] * loss_norm];
+            composite_backward(
+                &w.raw[r.clone()],
+                &w.dt[r.clone()],
+                ray.bg,
+                TRAIN_MIN_TRANSMITTANCE,
+                dl,
+                &mut w.d_raw[r],
+            );
+            w.n_samples += c.n_used as u64;
+            w.n_marched += ray.n as u64;
+            w.n_rays += 1;
+        }
+        for k in 0..n_chunks {
+            let r = k * CHUNK..((k + 1) * CHUNK).min(total);
+            net.backward(params, &scene.indices, &w.d_raw[r], &mut w.ws[k], &mut w.grad);
+        }
+    }
+}
