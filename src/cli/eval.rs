@@ -1,6 +1,79 @@
-#[derive(clap::Args, Debug)]
-pub struct Args {}
+use super::common::{Background, SplitArg, ensure_dir};
+use anyhow::{Result, bail};
+use std::path::PathBuf;
+use stegongp::ngp::data::{Dataset, LoadOptions, save_png_rgb};
+use stegongp::ngp::eval::{evaluate, spread_views};
+use stegongp::ngp::model::Model;
+use stegongp::ngp::render::image::RenderOptions;
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("not implemented yet")
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Model file (.ingp or .msgpack).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Dataset with the held-out views.
+    #[arg(long)]
+    pub data: PathBuf,
+    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
+    pub split: SplitArg,
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Evaluate at most this many views, spread over the split (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub views: usize,
+    #[arg(long, value_enum, default_value_t = Background::White)]
+    pub background: Background,
+    /// Key file: evaluate the hidden scene it unlocks.
+    #[arg(long)]
+    pub key: Option<PathBuf>,
+    /// Also write each rendering (and ground truth) as PNG into this directory.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Print one JSON object (psnr, ssim, n_views, per-view scores).
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    if a.downscale == 0 {
+        bail!("--downscale must be at least 1");
+    }
+    let model = Model::load(&a.model)?;
+    let data = Dataset::load(&a.data, a.split.into(), &LoadOptions { downscale: a.downscale })?;
+    let (indices, rebuilt) = super::scene_for_key(&model, a.key.as_deref())?;
+    let grid = rebuilt.as_ref().unwrap_or(&model.grid);
+    let view = model.view(&indices, grid);
+    if let Some(dir) = &a.out {
+        ensure_dir(dir)?;
+    }
+    let opts = RenderOptions {
+        background: a.background.rgb(),
+        ..Default::default()
+    };
+    let which = spread_views(data.frames.len(), a.views);
+    let mut io_err = None;
+    let r = evaluate(&view, &data, &opts, Some(&which), |i, img, gt| {
+        if let Some(dir) = &a.out {
+            let res = save_png_rgb(&dir.join(format!("rgb_{i:03}.png")), img.width, img.height, &img.rgb)
+                .and_then(|_| save_png_rgb(&dir.join(format!("gt_{i:03}.png")), img.width, img.height, gt));
+            if let Err(e) = res {
+                io_err.get_or_insert(e);
+            }
+        }
+        if !a.json {
+            eprintln!("view {i:3}: PSNR {:.2} dB", stegongp::ngp::metrics::psnr(&img.rgb, gt));
+        }
+    });
+    if let Some(e) = io_err {
+        return Err(e.into());
+    }
+    if a.json {
+        println!("{}", serde_json::to_string(&r)?);
+    } else {
+        println!(
+            "{} views: PSNR {:.3} dB, SSIM {:.4} ({:.1} s)",
+            r.n_views, r.psnr, r.ssim, r.seconds
+        );
+    }
+    Ok(())
 }

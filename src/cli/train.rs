@@ -1,6 +1,232 @@
-#[derive(clap::Args, Debug)]
-pub struct Args {}
+use super::common::{Background, check_model_path, progress};
+use anyhow::{Context, Result, bail};
+use serde::Serialize;
+use std::path::PathBuf;
+use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::encoding::reference_indices;
+use stegongp::ngp::encoding::GridConfig;
+use stegongp::ngp::eval::{evaluate, spread_views};
+use stegongp::ngp::model::Model;
+use stegongp::ngp::network::{ModelConfig, NerfLayout};
+use stegongp::ngp::render::image::RenderOptions;
+use stegongp::ngp::train::{Schedule, SceneSpec, TrainConfig, Trainer};
 
-pub fn run(_args: Args) -> anyhow::Result<()> {
-    anyhow::bail!("not implemented yet")
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScheduleArg {
+    /// Every batch mixes rays of all scenes.
+    Mixed,
+    /// One scene per step (the StegoNGP paper's Algorithm 1).
+    RandomScene,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Scene directory (NeRF-synthetic transforms_*.json or instant-ngp transforms.json).
+    pub scene: PathBuf,
+    /// Model file to write (.ingp or .msgpack).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Integer image downscale factor (area averaging).
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Training steps (default 1000 unless --minutes is given).
+    #[arg(long, conflicts_with = "minutes")]
+    pub steps: Option<u32>,
+    /// Train for this many minutes of wall-clock time (evaluation pauses excluded).
+    #[arg(long)]
+    pub minutes: Option<f64>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Target trained samples per step (the reference's 2^18 by default).
+    #[arg(long, default_value_t = 1 << 18)]
+    pub batch: u32,
+    /// Fraction of the reference's occupancy-grid update samples.
+    #[arg(long, default_value_t = 1.0)]
+    pub occupancy_fraction: f32,
+    /// Worker threads (gradient partitions); 0 = one per core.
+    #[arg(long, default_value_t = 0)]
+    pub workers: usize,
+    /// Hash-grid levels.
+    #[arg(long, default_value_t = 16)]
+    pub levels: u32,
+    /// Features per level.
+    #[arg(long, default_value_t = 2)]
+    pub features: u32,
+    /// log2 of the hash table size T.
+    #[arg(long, default_value_t = 19)]
+    pub log2_t: u32,
+    /// Hidden scene directory (repeat for several; each needs its own --key).
+    #[arg(long)]
+    pub hidden: Vec<PathBuf>,
+    /// Key file of the matching --hidden scene.
+    #[arg(long)]
+    pub key: Vec<PathBuf>,
+    #[arg(long, value_enum, default_value_t = ScheduleArg::Mixed)]
+    pub schedule: ScheduleArg,
+    /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
+    #[arg(long, value_delimiter = ',')]
+    pub checkpoints: Vec<f64>,
+    /// Test views used at checkpoints.
+    #[arg(long, default_value_t = 25)]
+    pub eval_views: usize,
+    #[arg(long, value_enum, default_value_t = Background::White)]
+    pub background: Background,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct Checkpoint {
+    minutes: f64,
+    step: u32,
+    psnr: f64,
+    ssim: f64,
+}
+
+#[derive(Serialize)]
+struct Summary {
+    model: PathBuf,
+    steps: u32,
+    train_seconds: f64,
+    final_loss: f32,
+    samples_per_second: f64,
+    marched_samples_per_second: f64,
+    steps_per_second: f64,
+    checkpoints: Vec<Checkpoint>,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    check_model_path(&a.out)?;
+    if a.hidden.len() != a.key.len() {
+        bail!(
+            "{} --hidden scene(s) but {} --key file(s): each hidden scene needs its own key",
+            a.hidden.len(),
+            a.key.len()
+        );
+    }
+    if a.downscale == 0 {
+        bail!("--downscale must be at least 1");
+    }
+    let opts = LoadOptions {
+        downscale: a.downscale,
+    };
+    let cover = Dataset::load(&a.scene, Split::Train, &opts)?;
+    let config = ModelConfig {
+        grid: GridConfig {
+            n_levels: a.levels,
+            n_features: a.features,
+            log2_hashmap_size: a.log2_t,
+            base_resolution: 16,
+        },
+        aabb_scale: cover.aabb_scale,
+    };
+    let layout = NerfLayout::new(config)?;
+    let mut scenes = vec![SceneSpec {
+        dataset: cover,
+        indices: reference_indices(&layout.grid),
+    }];
+    scenes.extend(super::stego_scenes(&a.hidden, &a.key, &layout, &opts, config.aabb_scale)?);
+    let eval_data = if a.checkpoints.is_empty() {
+        None
+    } else {
+        Some(Dataset::load(&a.scene, Split::Test, &opts).context("loading test views for --checkpoints")?)
+    };
+    let cfg = TrainConfig {
+        seed: a.seed,
+        batch_samples: a.batch,
+        occupancy_fraction: a.occupancy_fraction,
+        schedule: match a.schedule {
+            ScheduleArg::Mixed => Schedule::Mixed,
+            ScheduleArg::RandomScene => Schedule::RandomScene,
+        },
+        workers: a.workers,
+        ..Default::default()
+    };
+    let mut trainer = Trainer::new(config, scenes, cfg)?;
+    let budget_s = a.minutes.map(|m| m * 60.0);
+    let steps = a.steps.unwrap_or(if budget_s.is_some() { u32::MAX } else { 1000 });
+    let pb = if let Some(s) = budget_s {
+        progress(s.ceil() as u64, "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len}s {msg}")
+    } else {
+        progress(steps as u64, "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}")
+    };
+    let mut train_s = 0.0;
+    let (mut samples, mut marched) = (0u64, 0u64);
+    let mut loss_ema = 0.0f32;
+    let mut checkpoints = Vec::new();
+    let mut pending: Vec<f64> = a.checkpoints.clone();
+    pending.sort_by(|x, y| x.total_cmp(y));
+    while trainer.step < steps && budget_s.is_none_or(|b| train_s < b) {
+        let st = trainer.train_step();
+        train_s += st.seconds;
+        samples += st.n_samples;
+        marched += st.n_marched;
+        loss_ema = if trainer.step == 1 { st.loss } else { 0.95 * loss_ema + 0.05 * st.loss };
+        if budget_s.is_some() {
+            pb.set_position(train_s as u64);
+        } else {
+            pb.set_position(trainer.step as u64);
+        }
+        pb.set_message(format!(
+            "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s",
+            trainer.step,
+            loss_ema,
+            trainer.step as f64 / train_s,
+            samples as f64 / train_s / 1e3
+        ));
+        while let Some(&m) = pending.first() {
+            if train_s < m * 60.0 {
+                break;
+            }
+            pending.remove(0);
+            let data = eval_data.as_ref().expect("loaded with checkpoints");
+            let model = Model::from_trainer(&trainer, loss_ema);
+            let idx = reference_indices(&layout.grid);
+            let view = model.view(&idx, &model.grid);
+            let opts = RenderOptions {
+                background: a.background.rgb(),
+                ..Default::default()
+            };
+            let which = spread_views(data.frames.len(), a.eval_views);
+            let r = evaluate(&view, data, &opts, Some(&which), |_, _, _| {});
+            pb.println(format!(
+                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views)",
+                trainer.step, r.psnr, r.ssim, r.n_views
+            ));
+            checkpoints.push(Checkpoint {
+                minutes: m,
+                step: trainer.step,
+                psnr: r.psnr,
+                ssim: r.ssim,
+            });
+        }
+    }
+    pb.finish_and_clear();
+    let model = Model::from_trainer(&trainer, loss_ema);
+    model.save(&a.out)?;
+    let summary = Summary {
+        model: a.out.clone(),
+        steps: trainer.step,
+        train_seconds: train_s,
+        final_loss: loss_ema,
+        samples_per_second: samples as f64 / train_s,
+        marched_samples_per_second: marched as f64 / train_s,
+        steps_per_second: trainer.step as f64 / train_s,
+        checkpoints,
+    };
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        eprintln!(
+            "trained {} steps in {:.1} s ({:.2} steps/s, {:.0} k samples/s), loss {:.5}; wrote {}",
+            summary.steps,
+            summary.train_seconds,
+            summary.steps_per_second,
+            summary.samples_per_second / 1e3,
+            summary.final_loss,
+            a.out.display()
+        );
+    }
+    Ok(())
 }

@@ -4,7 +4,9 @@
 pub mod camera;
 pub mod data;
 pub mod encoding;
+pub mod eval;
 pub mod metrics;
+pub mod model;
 pub mod network;
 pub mod occupancy;
 pub mod render;

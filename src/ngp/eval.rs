@@ -1,0 +1,80 @@
+//! Held-out evaluation: render every camera of a split, PSNR and SSIM against the images
+//! composited on the same background (white by default, as the NeRF literature).
+
+use crate::ngp::data::Dataset;
+use crate::ngp::metrics::{psnr, ssim};
+use crate::ngp::render::image::{RenderOptions, RenderedImage, SceneView, render_image};
+use serde::Serialize;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewScore {
+    pub index: usize,
+    pub file_path: String,
+    pub psnr: f64,
+    pub ssim: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalResult {
+    pub psnr: f64,
+    pub ssim: f64,
+    pub n_views: usize,
+    pub views: Vec<ViewScore>,
+    pub seconds: f64,
+}
+
+/// The ground truth of a frame on `bg`, as an interleaved RGB float image.
+pub fn ground_truth(data: &Dataset, frame: usize, bg: [f32; 3]) -> Vec<f32> {
+    let img = &data.frames[frame].image;
+    let mut out = Vec::with_capacity((img.width * img.height * 3) as usize);
+    for y in 0..img.height {
+        for x in 0..img.width {
+            out.extend_from_slice(&img.target_on(x, y, bg));
+        }
+    }
+    out
+}
+
+/// Scores views `which` (all when `None`), calling `on_view` with each rendering.
+pub fn evaluate(
+    view: &SceneView,
+    data: &Dataset,
+    opts: &RenderOptions,
+    which: Option<&[usize]>,
+    mut on_view: impl FnMut(usize, &RenderedImage, &[f32]),
+) -> EvalResult {
+    let t0 = std::time::Instant::now();
+    let all: Vec<usize> = (0..data.frames.len()).collect();
+    let which = which.unwrap_or(&all);
+    let mut views = Vec::new();
+    for &i in which {
+        let frame = &data.frames[i];
+        let img = render_image(view, &frame.camera, opts);
+        let gt = ground_truth(data, i, opts.background);
+        let p = psnr(&img.rgb, &gt);
+        let s = ssim(&img.rgb, &gt, img.width as usize, img.height as usize);
+        on_view(i, &img, &gt);
+        views.push(ViewScore {
+            index: i,
+            file_path: frame.file_path.clone(),
+            psnr: p,
+            ssim: s,
+        });
+    }
+    let n = views.len().max(1) as f64;
+    EvalResult {
+        psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
+        ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
+        n_views: views.len(),
+        views,
+        seconds: t0.elapsed().as_secs_f64(),
+    }
+}
+
+/// `n` view indices spread evenly over `total` (all when n ≥ total).
+pub fn spread_views(total: usize, n: usize) -> Vec<usize> {
+    if n >= total || n == 0 {
+        return (0..total).collect();
+    }
+    (0..n).map(|k| k * total / n).collect()
+}
