@@ -5,6 +5,7 @@
 //! multi-scene training. `synth` ray-traces generated scenes for tests and the demo.
 
 pub mod error;
+pub mod experiments;
 pub mod ngp;
 pub mod rng;
 pub mod stego;

@@ -26,6 +26,10 @@ pub struct Args {
     /// Key file: evaluate the hidden scene it unlocks.
     #[arg(long)]
     pub key: Option<PathBuf>,
+    /// Diagnostic variant of --key: partial:P (first P of the m keys, rest Π), mixed:pi1k2k3,
+    /// mixed:pi1pi2k3, wrong[:SEED].
+    #[arg(long)]
+    pub key_variant: Option<String>,
     /// Also write each rendering (and ground truth) as PNG into this directory.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -40,7 +44,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let model = Model::load(&a.model)?;
     let data = Dataset::load(&a.data, a.split.into(), &LoadOptions { downscale: a.downscale })?;
-    let (indices, rebuilt) = super::scene_for_key(&model, a.key.as_deref())?;
+    let (indices, rebuilt) = super::scene_for_key(&model, a.key.as_deref(), a.key_variant.as_deref())?;
     let grid = rebuilt.as_ref().unwrap_or(&model.grid);
     let view = model.view(&indices, grid);
     if let Some(dir) = &a.out {

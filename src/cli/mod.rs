@@ -10,34 +10,127 @@ pub mod render;
 pub mod synth;
 pub mod train;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
-use stegongp::ngp::data::LoadOptions;
+use std::sync::Arc;
+use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::render::image::rebuild_occupancy;
+use stegongp::stego::{Key, Mixed, load_key};
 use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::NerfLayout;
 use stegongp::ngp::occupancy::OccupancyGrid;
 use stegongp::ngp::train::SceneSpec;
 
-/// The hidden scenes of a `train --hidden … --key …` call.
+/// The hidden scenes of a `train --hidden … --key …` call, each with its key's indices.
 pub fn stego_scenes(
     hidden: &[PathBuf],
     keys: &[PathBuf],
-    _layout: &NerfLayout,
-    _opts: &LoadOptions,
-    _aabb_scale: u32,
+    layout: &NerfLayout,
+    opts: &LoadOptions,
+    aabb_scale: u32,
 ) -> Result<Vec<SceneSpec>> {
-    if !hidden.is_empty() || !keys.is_empty() {
-        bail!("hidden scenes are not supported yet");
+    if hidden.len() != keys.len() {
+        bail!(
+            "{} --hidden scene(s) but {} --key file(s): each hidden scene needs its own key",
+            hidden.len(),
+            keys.len()
+        );
     }
-    Ok(Vec::new())
+    let mut loaded: Vec<(Key, &PathBuf)> = Vec::new();
+    let mut out = Vec::new();
+    for (h, kp) in hidden.iter().zip(keys) {
+        let key = load_key(kp)?;
+        key.validate_for(&layout.grid)
+            .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
+        if key.is_reference() {
+            bail!(
+                "{}: this key is the reference index Π, which is the cover's: the hidden scene would overwrite it",
+                kp.display()
+            );
+        }
+        if let Some((_, other)) = loaded.iter().find(|(k, _)| *k == key) {
+            bail!(
+                "{} and {}: two hidden scenes share one key and would overwrite each other",
+                kp.display(),
+                other.display()
+            );
+        }
+        let data = Dataset::load(h, Split::Train, opts)?;
+        if data.aabb_scale != aabb_scale {
+            bail!(
+                "{}: aabb_scale {} differs from the cover's {}; hidden scenes must share the cover's bounds (rescale the scene or its transforms)",
+                h.display(),
+                data.aabb_scale,
+                aabb_scale
+            );
+        }
+        out.push(SceneSpec {
+            dataset: Arc::new(data),
+            indices: key.level_indices(&layout.grid),
+        });
+        loaded.push((key, kp));
+    }
+    Ok(out)
+}
+
+/// Diagnostic variants of a key, for experiments by hand.
+#[derive(Clone, Debug)]
+pub enum KeyVariant {
+    Partial(f64),
+    Mixed(Mixed),
+    Wrong(u64),
+}
+
+pub fn parse_key_variant(s: &str) -> Result<KeyVariant> {
+    let (kind, val) = s.split_once(':').unwrap_or((s, ""));
+    Ok(match kind {
+        "partial" => {
+            let p: f64 = val
+                .trim_end_matches('%')
+                .parse()
+                .with_context(|| format!("--key-variant {s}: expected partial:FRACTION, e.g. partial:0.5"))?;
+            let p = if val.ends_with('%') { p / 100.0 } else { p };
+            if !(0.0..=1.0).contains(&p) {
+                bail!("--key-variant {s}: the fraction must be in [0, 1]");
+            }
+            KeyVariant::Partial(p)
+        }
+        "mixed" => match val {
+            "pi1k2k3" => KeyVariant::Mixed(Mixed::Pi1K2K3),
+            "pi1pi2k3" => KeyVariant::Mixed(Mixed::Pi1Pi2K3),
+            _ => bail!("--key-variant {s}: expected mixed:pi1k2k3 or mixed:pi1pi2k3"),
+        },
+        "wrong" => KeyVariant::Wrong(val.parse().unwrap_or(1)),
+        _ => bail!("--key-variant {s}: expected partial:P, mixed:pi1k2k3, mixed:pi1pi2k3 or wrong[:SEED]"),
+    })
 }
 
 /// Index functions and occupancy grid to render a model with: the reference index and the
-/// stored grid without a key; the key's indices and a grid rebuilt from the network with it.
-pub fn scene_for_key(model: &Model, key: Option<&Path>) -> Result<(LevelIndices, Option<OccupancyGrid>)> {
-    match key {
-        None => Ok((reference_indices(&model.net.layout.grid), None)),
-        Some(_) => bail!("--key is not supported yet"),
+/// stored grid without a key; with a key, its indices and a grid rebuilt from the network
+/// (a hidden scene's grid is never stored).
+pub fn scene_for_key(
+    model: &Model,
+    key: Option<&Path>,
+    variant: Option<&str>,
+) -> Result<(LevelIndices, Option<OccupancyGrid>)> {
+    let Some(kp) = key else {
+        if variant.is_some() {
+            bail!("--key-variant needs --key");
+        }
+        return Ok((reference_indices(&model.net.layout.grid), None));
+    };
+    let mut key = load_key(kp)?;
+    key.validate_for(&model.net.layout.grid)
+        .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
+    if let Some(v) = variant {
+        key = match parse_key_variant(v)? {
+            KeyVariant::Partial(p) => key.partial(p),
+            KeyVariant::Mixed(m) => key.mixed(m),
+            KeyVariant::Wrong(seed) => Key::wrong(seed, &key),
+        };
     }
+    let indices = key.level_indices(&model.net.layout.grid);
+    let grid = rebuild_occupancy(&model.net, &model.params, &indices, model.config.aabb_scale, 1, 0);
+    Ok((indices, Some(grid)))
 }

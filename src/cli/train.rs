@@ -123,7 +123,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let layout = NerfLayout::new(config)?;
     let mut scenes = vec![SceneSpec {
-        dataset: cover,
+        dataset: std::sync::Arc::new(cover),
         indices: reference_indices(&layout.grid),
     }];
     scenes.extend(super::stego_scenes(&a.hidden, &a.key, &layout, &opts, config.aabb_scale)?);

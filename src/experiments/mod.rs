@@ -1,0 +1,8 @@
+//! The StegoNGP paper's experiments, and ours: each trains the models it needs on the given
+//! (or generated) scenes, evaluates held-out views, and writes a Markdown + JSON report with
+//! PNG image grids into its output directory.
+
+pub mod report;
+pub mod runs;
+
+pub use runs::{ExpConfig, KeySchemeArg, run_experiment, EXPERIMENTS};
