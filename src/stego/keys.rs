@@ -1,0 +1,393 @@
+//! Keys: the `primes` scheme (the paper's) and the `prf` scheme (ours), the level → key
+//! group assignment, and the diagnostic variants used by key-sensitivity experiments.
+
+use super::primes::{self, is_prime};
+use crate::error::{Error, Result};
+use crate::ngp::encoding::index::REFERENCE_PRIMES;
+use crate::ngp::encoding::{GridLayout, LevelIndices};
+use crate::rng::Pcg32;
+
+/// Π, the reference (default) key: tcnn's CoherentPrime constants.
+pub const PI: [u64; 3] = [
+    REFERENCE_PRIMES[0] as u64,
+    REFERENCE_PRIMES[1] as u64,
+    REFERENCE_PRIMES[2] as u64,
+];
+
+/// Largest number of key groups (the grid has at most 32 levels).
+pub const MAX_GROUPS: usize = 32;
+
+/// How a keyed dense level (res³ ≤ T) indexes its table.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DenseMode {
+    /// Keyed permutation of the dense index: the hidden scene's cells stay collision-free.
+    #[default]
+    Permute,
+    /// Keyed hash modulo the level size (collides ~37% of the cells, leaves ~37% unused).
+    Hash,
+}
+
+impl DenseMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            DenseMode::Permute => "permute",
+            DenseMode::Hash => "hash",
+        }
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        match s {
+            "permute" => Some(DenseMode::Permute),
+            "hash" => Some(DenseMode::Hash),
+            _ => None,
+        }
+    }
+}
+
+/// The secret part of a key. `Debug` never prints key material.
+#[derive(Clone, PartialEq, Eq)]
+pub enum KeyScheme {
+    /// `m = keys.len()` prime triples; level l uses `keys[l mod m]`.
+    Primes { keys: Vec<[u64; 3]> },
+    /// A 256-bit secret; per-level subkeys are derived from it. `m` only groups levels for
+    /// partial disclosure (group j = levels with l mod m = j); the full key's index
+    /// functions do not depend on m.
+    Prf { secret: [u8; 32], m: usize },
+}
+
+impl std::fmt::Debug for KeyScheme {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            KeyScheme::Primes { keys } => f
+                .debug_struct("Primes")
+                .field("m", &keys.len())
+                .field("keys", &"<redacted>")
+                .finish(),
+            KeyScheme::Prf { m, .. } => f
+                .debug_struct("Prf")
+                .field("m", m)
+                .field("secret", &"<redacted>")
+                .finish(),
+        }
+    }
+}
+
+impl KeyScheme {
+    pub fn name(&self) -> &'static str {
+        match self {
+            KeyScheme::Primes { .. } => "primes",
+            KeyScheme::Prf { .. } => "prf",
+        }
+    }
+    pub fn m(&self) -> usize {
+        match self {
+            KeyScheme::Primes { keys } => keys.len(),
+            KeyScheme::Prf { m, .. } => *m,
+        }
+    }
+}
+
+/// How a passphrase-derived secret was made (informational; stored in the key file).
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct KdfInfo {
+    pub algorithm: String,
+    pub salt: String,
+    pub m_cost_kib: u32,
+    pub t_cost: u32,
+    pub p_cost: u32,
+}
+
+/// The key of one level group, as the index builder sees it.
+#[derive(Clone, Copy, PartialEq, Eq)]
+pub enum GroupKey {
+    Reference,
+    Primes([u64; 3]),
+    Prf([u8; 32]),
+}
+
+/// Which primes of Π a mixed key keeps (the paper's key-sensitivity figure).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mixed {
+    /// {π1, k2, k3}
+    Pi1K2K3,
+    /// {π1, π2, k3}
+    Pi1Pi2K3,
+}
+
+/// A key: scheme, dense-level mode, and (for diagnostic partial keys) the groups that fall
+/// back to the reference index.
+#[derive(Clone, PartialEq, Eq)]
+pub struct Key {
+    scheme: KeyScheme,
+    dense: DenseMode,
+    /// Bit j set: group j uses the reference index (a `prf` partial key).
+    reference_groups: u32,
+    kdf: Option<KdfInfo>,
+}
+
+impl std::fmt::Debug for Key {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Key")
+            .field("scheme", &self.scheme)
+            .field("dense", &self.dense)
+            .field("reference_groups", &self.reference_group_list())
+            .finish()
+    }
+}
+
+/// Checks one triple; `Err` carries the offending position (0-based) and reason.
+pub(crate) fn check_triple(t: &[u64; 3]) -> std::result::Result<(), (usize, String)> {
+    for (i, &k) in t.iter().enumerate() {
+        // π1 = 1 is not prime; Π's own entries are allowed so that Π and mixed keys can be
+        // written down.
+        if k != PI[i] && !is_prime(k) {
+            return Err((i, format!("{k} is not prime")));
+        }
+    }
+    Ok(())
+}
+
+fn check_m(m: usize) -> Result<()> {
+    if !(1..=MAX_GROUPS).contains(&m) {
+        return Err(Error::Key(format!(
+            "m = {m} key groups, expected 1..={MAX_GROUPS}"
+        )));
+    }
+    Ok(())
+}
+
+impl Key {
+    pub fn new(scheme: KeyScheme, dense: DenseMode) -> Result<Key> {
+        check_m(scheme.m())?;
+        if let KeyScheme::Primes { keys } = &scheme {
+            for (j, t) in keys.iter().enumerate() {
+                check_triple(t).map_err(|(i, msg)| Error::Key(format!("keys[{j}][{i}]: {msg}")))?;
+            }
+        }
+        Ok(Key {
+            scheme,
+            dense,
+            reference_groups: 0,
+            kdf: None,
+        })
+    }
+
+    /// Π on every level (primes, m = 1): exactly the reference index, dense levels included.
+    pub fn reference() -> Key {
+        Key {
+            scheme: KeyScheme::Primes { keys: vec![PI] },
+            dense: DenseMode::default(),
+            reference_groups: 0,
+            kdf: None,
+        }
+    }
+
+    pub fn scheme(&self) -> &KeyScheme {
+        &self.scheme
+    }
+    pub fn dense(&self) -> DenseMode {
+        self.dense
+    }
+    pub fn m(&self) -> usize {
+        self.scheme.m()
+    }
+    pub fn kdf(&self) -> Option<&KdfInfo> {
+        self.kdf.as_ref()
+    }
+    pub fn with_dense(mut self, dense: DenseMode) -> Key {
+        self.dense = dense;
+        self
+    }
+    pub(crate) fn with_kdf(mut self, kdf: Option<KdfInfo>) -> Key {
+        self.kdf = kdf;
+        self
+    }
+    pub(crate) fn with_reference_groups(mut self, groups: &[usize]) -> Result<Key> {
+        for &j in groups {
+            if j >= self.m() {
+                return Err(Error::Key(format!(
+                    "reference group {j} ≥ m = {}",
+                    self.m()
+                )));
+            }
+            self.reference_groups |= 1 << j;
+        }
+        Ok(self)
+    }
+    /// Groups that use the reference index although the key has material for them.
+    pub fn reference_group_list(&self) -> Vec<usize> {
+        (0..self.m())
+            .filter(|&j| self.reference_groups >> j & 1 == 1)
+            .collect()
+    }
+
+    /// Key group of level `l` (0-based): `l mod m` (the paper's j = ((l−1) mod m) + 1).
+    pub fn group_of_level(&self, l: usize) -> usize {
+        l % self.m()
+    }
+
+    /// What group `j` indexes with.
+    pub fn group(&self, j: usize) -> GroupKey {
+        if self.reference_groups >> j & 1 == 1 {
+            return GroupKey::Reference;
+        }
+        match &self.scheme {
+            KeyScheme::Primes { keys } if keys[j] == PI => GroupKey::Reference,
+            KeyScheme::Primes { keys } => GroupKey::Primes(keys[j]),
+            KeyScheme::Prf { secret, .. } => GroupKey::Prf(*secret),
+        }
+    }
+
+    pub(crate) fn group_for_level(&self, l: usize) -> GroupKey {
+        self.group(self.group_of_level(l))
+    }
+
+    /// True when every level uses the reference index.
+    pub fn is_reference(&self) -> bool {
+        (0..self.m()).all(|j| self.group(j) == GroupKey::Reference)
+    }
+
+    /// The m keys must fit the grid: 1 ≤ m ≤ L.
+    pub fn validate_for(&self, layout: &GridLayout) -> Result<()> {
+        let l = layout.levels.len();
+        if !(1..=l).contains(&self.m()) {
+            return Err(Error::Key(format!(
+                "the key has m = {} key groups but the grid has {l} levels (need 1 ≤ m ≤ {l})",
+                self.m()
+            )));
+        }
+        Ok(())
+    }
+
+    pub fn level_indices(&self, layout: &GridLayout) -> LevelIndices {
+        super::index::level_indices(self, layout)
+    }
+
+    /// Partial disclosure (paper §Multi-Key ablation): the first `round(p·m)` groups keep
+    /// their key, the others use Π. For `primes` the triples are replaced by Π, literally;
+    /// for `prf` the same groups of levels (l mod m ≥ round(p·m)) fall back to the
+    /// reference index, so both schemes disclose the same levels for the same (p, m).
+    pub fn partial(&self, fraction: f64) -> Key {
+        let m = self.m();
+        let keep = (fraction.clamp(0.0, 1.0) * m as f64).round() as usize;
+        let mut k = self.clone();
+        match &mut k.scheme {
+            KeyScheme::Primes { keys } => {
+                for t in keys.iter_mut().skip(keep) {
+                    *t = PI;
+                }
+            }
+            KeyScheme::Prf { .. } => {
+                for j in keep..m {
+                    k.reference_groups |= 1 << j;
+                }
+            }
+        }
+        k
+    }
+
+    /// Mixed keys. `primes`: {π1,k2,k3} / {π1,π2,k3} in every triple. `prf` analogue: the
+    /// first ⌊32/3⌋ / ⌊64/3⌋ bytes of the secret are replaced by zeros (the "default
+    /// secret"), i.e. a third / two thirds of the key material is wrong.
+    pub fn mixed(&self, which: Mixed) -> Key {
+        let n = match which {
+            Mixed::Pi1K2K3 => 1,
+            Mixed::Pi1Pi2K3 => 2,
+        };
+        let mut k = self.clone();
+        match &mut k.scheme {
+            KeyScheme::Primes { keys } => {
+                for t in keys.iter_mut() {
+                    t[..n].copy_from_slice(&PI[..n]);
+                }
+            }
+            KeyScheme::Prf { secret, .. } => {
+                for b in secret.iter_mut().take(32 * n / 3) {
+                    *b = 0;
+                }
+            }
+        }
+        k.kdf = None;
+        k
+    }
+
+    /// A random key of the same scheme, m and dense mode (deterministic in `seed`).
+    pub fn wrong(seed: u64, like: &Key) -> Key {
+        let mut rng = Pcg32::new(seed, 0x5717_6e67);
+        let mut next = move || Ok((rng.next_u32() as u64) << 32 | rng.next_u32() as u64);
+        let scheme = match &like.scheme {
+            KeyScheme::Primes { keys } => KeyScheme::Primes {
+                // A PCG stream never fails, so the fallback is unreachable.
+                keys: primes::random_prime_triples(keys.len(), &mut next)
+                    .unwrap_or_else(|_| vec![PI; keys.len()]),
+            },
+            KeyScheme::Prf { m, .. } => {
+                let mut secret = [0u8; 32];
+                for c in secret.chunks_mut(8) {
+                    c.copy_from_slice(&next().unwrap_or(0).to_le_bytes());
+                }
+                KeyScheme::Prf { secret, m: *m }
+            }
+        };
+        Key {
+            scheme,
+            dense: like.dense,
+            reference_groups: 0,
+            kdf: None,
+        }
+    }
+}
+
+/// `m` random triples of distinct primes in [1e7, 1e10] from the OS CSPRNG.
+pub fn generate_primes(m: usize) -> Result<Key> {
+    check_m(m)?;
+    let keys = primes::random_prime_triples(m, primes::os_u64)?;
+    Key::new(KeyScheme::Primes { keys }, DenseMode::default())
+}
+
+/// A random 256-bit secret from the OS CSPRNG, with `m` disclosure groups.
+pub fn generate_prf(m: usize) -> Result<Key> {
+    check_m(m)?;
+    let mut secret = [0u8; 32];
+    getrandom::fill(&mut secret)
+        .map_err(|e| Error::Other(format!("OS random number generator: {e}")))?;
+    Key::new(KeyScheme::Prf { secret, m }, DenseMode::default())
+}
+
+/// Argon2id cost: 64 MiB, 3 passes, 1 lane (release); tiny under `cfg(test)`.
+#[cfg(not(test))]
+pub const ARGON2_COST: (u32, u32, u32) = (64 * 1024, 3, 1);
+#[cfg(test)]
+pub const ARGON2_COST: (u32, u32, u32) = (256, 1, 1);
+
+/// Domain salt prepended to the user's salt, so the same passphrase gives unrelated
+/// secrets here and in any other Argon2id use.
+pub const PASSPHRASE_DOMAIN: &str = "stegongp/prf-key/v1";
+
+/// A `prf` key from a passphrase: `secret = Argon2id(pass, "stegongp/prf-key/v1\0" ‖ salt)`
+/// with [`ARGON2_COST`]. The same passphrase and salt always give the same key, so the
+/// key file can be recreated; a non-empty, per-model salt defeats precomputed tables.
+pub fn derive_prf_from_passphrase(pass: &str, salt: &str, m: usize) -> Result<Key> {
+    check_m(m)?;
+    if pass.is_empty() {
+        return Err(Error::Key("empty passphrase".into()));
+    }
+    let (mc, tc, pc) = ARGON2_COST;
+    let params = argon2::Params::new(mc, tc, pc, Some(32))
+        .map_err(|e| Error::Other(format!("argon2 parameters: {e}")))?;
+    let a = argon2::Argon2::new(argon2::Algorithm::Argon2id, argon2::Version::V0x13, params);
+    let mut full_salt = Vec::from(PASSPHRASE_DOMAIN.as_bytes());
+    full_salt.push(0);
+    full_salt.extend_from_slice(salt.as_bytes());
+    let mut secret = [0u8; 32];
+    a.hash_password_into(pass.as_bytes(), &full_salt, &mut secret)
+        .map_err(|e| Error::Other(format!("argon2id: {e}")))?;
+    let kdf = KdfInfo {
+        algorithm: "argon2id".into(),
+        salt: salt.into(),
+        m_cost_kib: mc,
+        t_cost: tc,
+        p_cost: pc,
+    };
+    Ok(Key::new(KeyScheme::Prf { secret, m }, DenseMode::default())?.with_kdf(Some(kdf)))
+}
