@@ -21,6 +21,7 @@ use crate::ngp::render::composite::{
 use crate::ngp::render::march::{MAX_SAMPLES_PER_RAY, Marcher, advance_n_steps};
 use crate::rng::Pcg32;
 use rayon::prelude::*;
+use std::sync::Arc;
 
 /// How the scenes of a multi-scene model share the steps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -59,12 +60,12 @@ impl Default for TrainConfig {
 
 /// A scene to train: its training images and the index functions it is stored under.
 pub struct SceneSpec {
-    pub dataset: Dataset,
+    pub dataset: Arc<Dataset>,
     pub indices: LevelIndices,
 }
 
 struct SceneState {
-    data: Dataset,
+    data: Arc<Dataset>,
     indices: LevelIndices,
     grid: OccupancyGrid,
     marcher: Marcher,
