@@ -1,9 +1,9 @@
 //! One module per subcommand.
-pub mod synth;
-pub mod train;
-pub mod render;
+pub mod demo;
 pub mod eval;
+pub mod experiment;
 pub mod inspect;
 pub mod keygen;
-pub mod demo;
-pub mod experiment;
+pub mod render;
+pub mod synth;
+pub mod train;
