@@ -1,8 +1,8 @@
 //! A summary of a model file: what it is and how it is configured. It describes only what
 //! any instant-ngp user can see in the file; it says nothing about hidden scenes.
 
+use super::n_cascades;
 use super::read::{Framing, from_msgpack, unframe};
-use super::{DENSITY_GRID_CELLS, n_cascades};
 use crate::error::{Error, Result};
 use crate::ngp::network::NerfLayout;
 use std::path::Path;
@@ -121,11 +121,5 @@ pub fn inspect(path: &Path) -> Result<SnapshotInfo> {
         loss: snap.loss,
         n_images: snap.dataset.as_ref().map_or(0, |d| d.images.len()),
         has_optimizer_state: snap.has_optimizer_state(),
-    })
-    .map(|i| {
-        debug_assert!(
-            i.density_grid_cells == 0 || i.density_grid_cells == DENSITY_GRID_CELLS * cascades
-        );
-        i
     })
 }

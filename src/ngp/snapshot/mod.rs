@@ -357,3 +357,6 @@ pub fn from_bytes(bytes: &[u8]) -> std::result::Result<Snapshot, String> {
     let (raw, _) = read::unframe(bytes)?;
     read::from_msgpack(&raw)
 }
+
+#[cfg(test)]
+mod tests;
