@@ -48,8 +48,13 @@ impl Model {
                 ),
             ));
         }
-        let grid = OccupancyGrid::from_density(snap.density_grid)
-            .ok_or_else(|| Error::format(path, "density_grid_binary has a wrong length"))?;
+        // An empty grid means "never populated" to the reference: march everywhere.
+        let grid = if snap.density_grid.is_empty() {
+            OccupancyGrid::new(snap.config.aabb_scale)
+        } else {
+            OccupancyGrid::from_density(snap.density_grid)
+                .ok_or_else(|| Error::format(path, "density_grid_binary has a wrong length"))?
+        };
         Ok(Model {
             config: snap.config,
             net,
