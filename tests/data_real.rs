@@ -143,3 +143,21 @@ fn fox_every_eighth_with_distortion() {
         "{q:?}"
     );
 }
+
+/// Full-size load time (run with `--ignored`): 100 frames of 800×800 RGBA8.
+#[test]
+#[ignore]
+fn lego_full_size_timing() {
+    let Some(dir) = data_dir("lego") else { return };
+    let t0 = Instant::now();
+    let train = Dataset::load(&dir, Split::Train, &LoadOptions::default()).unwrap();
+    let bytes: usize = train.frames.iter().map(|f| f.image.storage_bytes()).sum();
+    println!(
+        "lego train x1: {} frames, {} MB in {:.2?}",
+        train.frames.len(),
+        bytes >> 20,
+        t0.elapsed()
+    );
+    assert_eq!((train.width, train.height), (800, 800));
+    assert_eq!(bytes, 100 * 800 * 800 * 4);
+}
