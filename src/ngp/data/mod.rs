@@ -371,7 +371,8 @@ impl Dataset {
         aabb_for_scale(self.aabb_scale)
     }
 
-    /// The camera-level description of this dataset.
+    /// The camera-level description of this dataset. `Dataset` does not keep the JSON path
+    /// or the dropped frames: `json_path` is empty and `dropped` too (`load_cameras` has them).
     pub fn meta(&self) -> DatasetMeta {
         DatasetMeta {
             root: self.root.clone(),
