@@ -1,1 +1,241 @@
-//! (to be written)
+//! Image quality metrics as the NeRF literature computes them.
+
+/// PSNR cap: identical images would give +∞, which poisons means over a test set.
+pub const PSNR_MAX_DB: f64 = 100.0;
+
+/// Mean squared error of `pred` clipped to [0,1] against `gt`.
+pub fn mse(pred: &[f32], gt: &[f32]) -> f64 {
+    assert_eq!(pred.len(), gt.len(), "mse: length mismatch");
+    if pred.is_empty() {
+        return 0.0;
+    }
+    let s: f64 = pred
+        .iter()
+        .zip(gt)
+        .map(|(&p, &g)| {
+            let d = p.clamp(0.0, 1.0) as f64 - g as f64;
+            d * d
+        })
+        .sum();
+    s / pred.len() as f64
+}
+
+/// PSNR in dB of values in [0,1]: `10·log10(1/MSE)` with `pred` clipped to [0,1] (as the
+/// reference's `run.py`). Capped at [`PSNR_MAX_DB`] (100 dB) when MSE ≤ 1e-10, so it is
+/// never infinite. Panics if the lengths differ.
+pub fn psnr(pred: &[f32], gt: &[f32]) -> f64 {
+    let m = mse(pred, gt);
+    if m <= 1e-10 {
+        PSNR_MAX_DB
+    } else {
+        (-10.0 * m.log10()).min(PSNR_MAX_DB)
+    }
+}
+
+const SSIM_SIZE: usize = 11;
+const SSIM_SIGMA: f64 = 1.5;
+const SSIM_C1: f64 = 0.01 * 0.01;
+const SSIM_C2: f64 = 0.03 * 0.03;
+
+/// Normalised 1-D Gaussian taps at offsets −5..=5 (σ = 1.5): the separable factor of the
+/// 11×11 window of Wang et al. (MATLAB `fspecial`), skimage and the NeRF/mip-NeRF code.
+fn gaussian_taps() -> [f64; SSIM_SIZE] {
+    let mut t = [0.0; SSIM_SIZE];
+    let h = (SSIM_SIZE / 2) as f64;
+    for (i, v) in t.iter_mut().enumerate() {
+        let x = (i as f64 - h) / SSIM_SIGMA;
+        *v = (-0.5 * x * x).exp();
+    }
+    let s: f64 = t.iter().sum();
+    t.map(|v| v / s)
+}
+
+/// 'valid' separable filtering of a `w×h` single-channel plane.
+fn filter_valid(src: &[f64], w: usize, h: usize, taps: &[f64; SSIM_SIZE]) -> Vec<f64> {
+    let (ow, oh) = (w - SSIM_SIZE + 1, h - SSIM_SIZE + 1);
+    let mut rows = vec![0.0; ow * h];
+    for y in 0..h {
+        let r = &src[y * w..(y + 1) * w];
+        for x in 0..ow {
+            rows[y * ow + x] = taps.iter().zip(&r[x..]).map(|(t, v)| t * v).sum();
+        }
+    }
+    let mut out = vec![0.0; ow * oh];
+    for y in 0..oh {
+        for x in 0..ow {
+            out[y * ow + x] = (0..SSIM_SIZE)
+                .map(|k| taps[k] * rows[(y + k) * ow + x])
+                .sum();
+        }
+    }
+    out
+}
+
+/// SSIM of interleaved RGB images (`3·width·height` values; `pred` clipped to [0,1]):
+/// 11×11 Gaussian window σ = 1.5, K1 = 0.01, K2 = 0.03, L = 1, population (not sample)
+/// statistics, mean over the 'valid' region (windows fully inside the image) of each
+/// channel, then over channels. Returns NaN for images smaller than 11×11. Panics if the
+/// lengths do not match `width·height`.
+pub fn ssim(pred: &[f32], gt: &[f32], width: usize, height: usize) -> f64 {
+    assert_eq!(pred.len(), 3 * width * height, "ssim: pred length");
+    assert_eq!(gt.len(), 3 * width * height, "ssim: gt length");
+    if width < SSIM_SIZE || height < SSIM_SIZE {
+        return f64::NAN;
+    }
+    let taps = gaussian_taps();
+    let n = width * height;
+    let mut total = 0.0;
+    for c in 0..3 {
+        let x: Vec<f64> = (0..n)
+            .map(|i| pred[3 * i + c].clamp(0.0, 1.0) as f64)
+            .collect();
+        let y: Vec<f64> = (0..n).map(|i| gt[3 * i + c] as f64).collect();
+        let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
+        let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
+        let xy: Vec<f64> = x.iter().zip(&y).map(|(a, b)| a * b).collect();
+        let mx = filter_valid(&x, width, height, &taps);
+        let my = filter_valid(&y, width, height, &taps);
+        let sxx = filter_valid(&xx, width, height, &taps);
+        let syy = filter_valid(&yy, width, height, &taps);
+        let sxy = filter_valid(&xy, width, height, &taps);
+        let mut acc = 0.0;
+        for i in 0..mx.len() {
+            let (a, b) = (mx[i], my[i]);
+            // Rounding can make a variance slightly negative; clamp like mip-NeRF does.
+            let vx = (sxx[i] - a * a).max(0.0);
+            let vy = (syy[i] - b * b).max(0.0);
+            let cov = sxy[i] - a * b;
+            acc += ((2.0 * a * b + SSIM_C1) * (2.0 * cov + SSIM_C2))
+                / ((a * a + b * b + SSIM_C1) * (vx + vy + SSIM_C2));
+        }
+        total += acc / mx.len() as f64;
+    }
+    total / 3.0
+}
+
+#[cfg(test)]
+#[allow(clippy::needless_range_loop)]
+mod tests {
+    use super::*;
+    use crate::rng::Pcg32;
+
+    fn random_image(w: usize, h: usize, seed: u64) -> Vec<f32> {
+        let mut r = Pcg32::new(seed, 1);
+        (0..3 * w * h).map(|_| r.next_f32()).collect()
+    }
+
+    #[test]
+    fn psnr_of_known_mse() {
+        // Every value off by 0.1: MSE 0.01 → 20 dB.
+        let gt = vec![0.5f32; 30];
+        let pred = vec![0.6f32; 30];
+        assert!((psnr(&pred, &gt) - 20.0).abs() < 1e-5);
+        // Half the values off by 0.2: MSE 0.02 → 10·log10(50).
+        let pred: Vec<f32> = (0..30)
+            .map(|i| if i % 2 == 0 { 0.7 } else { 0.5 })
+            .collect();
+        assert!((psnr(&pred, &gt) - 10.0 * 50f64.log10()).abs() < 1e-5);
+        // Prediction is clipped: 1.5 counts as 1.0.
+        let one = vec![1.0f32; 4];
+        assert_eq!(psnr(&[1.5; 4], &one), PSNR_MAX_DB);
+        assert_eq!(psnr(&gt, &gt), PSNR_MAX_DB);
+        assert!((psnr(&[0.0; 4], &one) - 0.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn ssim_identity_and_symmetry() {
+        let (w, h) = (17, 13);
+        let a = random_image(w, h, 1);
+        let b = random_image(w, h, 2);
+        assert!((ssim(&a, &a, w, h) - 1.0).abs() < 1e-12);
+        let ab = ssim(&a, &b, w, h);
+        assert!((ab - ssim(&b, &a, w, h)).abs() < 1e-12);
+        assert!(ab < 0.2, "independent noise should score low: {ab}");
+        assert!(ssim(&a[..300], &b[..300], 10, 10).is_nan());
+    }
+
+    #[test]
+    fn ssim_of_constant_images() {
+        // All statistics vanish but the means: SSIM = (2ab + C1) / (a² + b² + C1).
+        let (w, h) = (12, 11);
+        let a = vec![0.3f32; 3 * w * h];
+        let b = vec![0.5f32; 3 * w * h];
+        let (x, y) = (0.3f32 as f64, 0.5f32 as f64);
+        let expect = (2.0 * x * y + SSIM_C1) / (x * x + y * y + SSIM_C1);
+        assert!((ssim(&a, &b, w, h) - expect).abs() < 1e-9);
+    }
+
+    #[test]
+    fn ssim_of_shifted_ramp() {
+        // x = ramp along the row, y = x + c. Variances and covariance are equal, so the
+        // contrast-structure term is 1, and the symmetric window's mean of a linear ramp is
+        // the centre value m: each window scores (2m(m+c) + C1) / (m² + (m+c)² + C1).
+        let (w, h, c) = (20usize, 12usize, 0.1f64);
+        let val = |x: usize| 0.1 + 0.03 * x as f64;
+        let mut a = Vec::new();
+        let mut b = Vec::new();
+        for _y in 0..h {
+            for x in 0..w {
+                for _ in 0..3 {
+                    a.push(val(x) as f32);
+                    b.push((val(x) + c) as f32);
+                }
+            }
+        }
+        let mut expect = 0.0;
+        let centres = 5..w - 5;
+        for x in centres.clone() {
+            let m = val(x);
+            expect += (2.0 * m * (m + c) + SSIM_C1) / (m * m + (m + c) * (m + c) + SSIM_C1);
+        }
+        expect /= centres.len() as f64;
+        let got = ssim(&b, &a, w, h);
+        assert!((got - expect).abs() < 1e-6, "{got} vs {expect}");
+    }
+
+    #[test]
+    fn ssim_matches_direct_2d_window() {
+        // A 12×11 image has exactly two valid windows; compute them with the explicit 2-D
+        // Gaussian kernel exp(−(dx²+dy²)/(2σ²)) / Σ, per channel, with no separable filtering.
+        let (w, h) = (12, 11);
+        let a = random_image(w, h, 7);
+        let b: Vec<f32> = a
+            .iter()
+            .enumerate()
+            .map(|(i, v)| 0.8 * v + 0.1 * ((i % 5) as f32) / 5.0)
+            .collect();
+        let mut kern = [[0.0f64; 11]; 11];
+        let mut s = 0.0;
+        for (dy, row) in kern.iter_mut().enumerate() {
+            for (dx, k) in row.iter_mut().enumerate() {
+                let (fx, fy) = (dx as f64 - 5.0, dy as f64 - 5.0);
+                *k = (-(fx * fx + fy * fy) / (2.0 * 1.5 * 1.5)).exp();
+                s += *k;
+            }
+        }
+        let mut total = 0.0;
+        for c in 0..3 {
+            for x0 in 0..2 {
+                let (mut mx, mut my, mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                for dy in 0..11 {
+                    for dx in 0..11 {
+                        let k = kern[dy][dx] / s;
+                        let i = 3 * (dy * w + x0 + dx) + c;
+                        let (p, q) = (a[i] as f64, b[i] as f64);
+                        mx += k * p;
+                        my += k * q;
+                        sxx += k * p * p;
+                        syy += k * q * q;
+                        sxy += k * p * q;
+                    }
+                }
+                let (vx, vy, cv) = (sxx - mx * mx, syy - my * my, sxy - mx * my);
+                total += ((2.0 * mx * my + SSIM_C1) * (2.0 * cv + SSIM_C2))
+                    / ((mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2));
+            }
+        }
+        let expect = total / 6.0;
+        assert!((ssim(&a, &b, w, h) - expect).abs() < 1e-9);
+        assert!(expect < 0.999 && expect > 0.5);
+    }
+}
