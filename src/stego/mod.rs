@@ -23,6 +23,8 @@ pub mod primes;
 pub mod strength;
 
 #[cfg(test)]
+mod bench;
+#[cfg(test)]
 mod tests;
 
 pub use keyfile::{load_key, parse_key, save_key};
