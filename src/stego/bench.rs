@@ -7,7 +7,7 @@ use crate::rng::Pcg32;
 use std::hint::black_box;
 use std::time::Instant;
 
-/// ns per `corners()` call through `dyn LevelIndex`, over random cells of `levels`.
+/// ns per `corners()` call through `dyn LevelIndex`, over random cells of `levels` (best of 7).
 fn ns_per_call(idx: &LevelIndices, layout: &GridLayout, levels: &[usize]) -> f64 {
     let mut rng = Pcg32::new(1, 2);
     let cells: Vec<(usize, [u32; 3])> = (0..4096)
@@ -19,16 +19,21 @@ fn ns_per_call(idx: &LevelIndices, layout: &GridLayout, levels: &[usize]) -> f64
         .collect();
     let mut out = [0u32; 8];
     let mut acc = 0u32;
-    let reps = 300;
-    let t = Instant::now();
-    for _ in 0..reps {
-        for &(l, c) in &cells {
-            idx[l].corners(black_box(c), &mut out);
-            acc = acc.wrapping_add(out[0] ^ out[7]);
+    let reps = 60;
+    // The best of several runs: the machine is shared, and noise only adds time.
+    let mut best = f64::INFINITY;
+    for _ in 0..7 {
+        let t = Instant::now();
+        for _ in 0..reps {
+            for &(l, c) in &cells {
+                idx[l].corners(black_box(c), &mut out);
+                acc = acc.wrapping_add(out[0] ^ out[7]);
+            }
         }
+        best = best.min(t.elapsed().as_nanos() as f64 / (reps * cells.len()) as f64);
     }
     black_box(acc);
-    t.elapsed().as_nanos() as f64 / (reps * cells.len()) as f64
+    best
 }
 
 #[test]

@@ -392,7 +392,7 @@ mod tests {
     #[test]
     fn vector_paths_agree_with_portable_lanes() {
         let init = PrfIndex::new([0x1234_5678_9abc_def0, 42], 8).init;
-        let m0: [u64; 8] = std::array::from_fn(|i| (i as u64) << 33 | i as u64 * 7);
+        let m0: [u64; 8] = std::array::from_fn(|i| ((i as u64) << 33) | (i as u64 * 7));
         let m1: [u64; 8] = std::array::from_fn(|i| 12 << 56 | (i as u64 * 99));
         assert_eq!(x8::siphash24(init, &m0, &m1), portable_x8(init, &m0, &m1));
         #[cfg(all(target_arch = "x86_64", target_feature = "avx2"))]
