@@ -336,7 +336,7 @@ fn prf_has_no_such_reduction_one_bit_changes_everything() {
 #[test]
 fn key_file_round_trip_and_permissions() {
     let dir = tempfile::tempdir().unwrap();
-    let keys = vec![
+    let keys = [
         primes_key(
             vec![K, PAPER_K1, [1, 2654435761, 10_000_121]],
             DenseMode::Hash,
@@ -429,7 +429,10 @@ fn bad_key_files_are_rejected_with_file_and_field() {
 #[test]
 fn generated_keys_are_primes_in_range_and_distinct() {
     fn trial(n: u64) -> bool {
-        n >= 2 && (2..).take_while(|d| d * d <= n).all(|d| n % d != 0)
+        n >= 2
+            && (2..)
+                .take_while(|d| d * d <= n)
+                .all(|d| !n.is_multiple_of(d))
     }
     let a = generate_primes(4).unwrap();
     let b = generate_primes(4).unwrap();
