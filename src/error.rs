@@ -3,13 +3,11 @@ use std::path::PathBuf;
 /// Library error. Every variant that comes from a file names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    #[error("{path}: {source}")]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    #[error("{path}: {msg}")]
+    // The I/O error is part of the message, not a chained source, so `{:#}` in the CLI
+    // does not print it twice.
+    #[error("{}: {err}", path.display())]
+    Io { path: PathBuf, err: std::io::Error },
+    #[error("{}: {msg}", path.display())]
     Format { path: PathBuf, msg: String },
     #[error("invalid configuration: {0}")]
     Config(String),
@@ -23,7 +21,7 @@ impl Error {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io {
             path: path.into(),
-            source,
+            err: source,
         }
     }
     pub fn format(path: impl Into<PathBuf>, msg: impl Into<String>) -> Self {

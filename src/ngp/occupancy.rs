@@ -164,7 +164,6 @@ impl OccupancyGrid {
 
     /// Marks every cell that no training camera sees (no corner projects inside an image,
     /// in front of the camera) with −1, and the others 0 (`mark_untrained_density_grid`).
-    /// Lens distortion is ignored for this visibility test.
     pub fn mark_untrained(&mut self, cameras: &[Camera]) {
         let nc = self.n_cascades;
         self.density
@@ -183,7 +182,13 @@ impl OccupancyGrid {
                                 o[1] + vs * ((corner >> 1) & 1) as f32,
                                 o[2] + vs * ((corner >> 2) & 1) as f32,
                             ];
-                            projects_inside(cam, p)
+                            // Without distortion the projection is injective: skip the
+                            // reference's ray round trip, which only guards distortion.
+                            if cam.distortion.is_some() {
+                                cam.sees(p)
+                            } else {
+                                projects_inside(cam, p)
+                            }
                         })
                     });
                     *v = if seen { 0.0 } else { -1.0 };
