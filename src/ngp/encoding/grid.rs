@@ -3,16 +3,25 @@
 //! table entries come from the level's [`LevelIndex`].
 //!
 //! Work is done level by level over a whole chunk: a first pass computes every sample's
-//! corner offsets and weights (kept in a [`GridCache`] for the backward pass), a second pass
-//! gathers with software prefetch a few samples ahead, so the random table reads overlap.
+//! corner offsets and weights (kept in a [`GridCache`] for the backward pass) and prefetches
+//! each corner as soon as it is known, so the misses overlap the index arithmetic; a second
+//! pass gathers from (by then) cached lines. A level of a 512-sample chunk touches at most
+//! 4096 lines (256 KB), which fits in L2. The backward scatter prefetches the next level's
+//! gradient lines while it writes the current one.
 //! Encodings are feature-major: feature `l·F + f` of sample `s` lives at `enc[(l·F+f)·ld + s]`.
 
 use super::index::{LevelIndex, LevelIndices};
 use super::layout::{GridLayout, LevelInfo};
 
 const CORNERS: usize = 8;
-/// Samples ahead of the current one whose corners are prefetched (cpu-performance-notes).
+/// Samples ahead of the current one whose corners are prefetched where no earlier pass
+/// could (cpu-performance-notes).
 const PREFETCH_AHEAD: usize = 16;
+/// Prefetch table lines in the corner pass rather than a few samples ahead in the gather:
+/// measured ~1.5x faster forward on the shared 2-core machine.
+const PREFETCH_IN_CORNERS: bool = true;
+/// Prefetch the next level's gradient lines during the scatter: ~+20 % fwd+bwd measured.
+const PREFETCH_NEXT_LEVEL: bool = true;
 
 #[inline(always)]
 fn prefetch(p: *const f32) {
@@ -78,6 +87,7 @@ pub fn cell_of(level: &LevelInfo, x: [f32; 3]) -> ([u32; 3], [f32; 3]) {
 
 /// Fills corner offsets and weights of one level for all samples.
 fn level_corners(
+    table: *const f32,
     level: &LevelInfo,
     index: &dyn LevelIndex,
     n_features: u32,
@@ -94,6 +104,11 @@ fn level_corners(
         for c in 0..CORNERS {
             bad |= e[c] >= level.size;
             o[c] = level.offset.wrapping_add(e[c]).wrapping_mul(n_features);
+        }
+        if PREFETCH_IN_CORNERS {
+            for &oc in o.iter() {
+                prefetch(table.wrapping_add(oc as usize));
+            }
         }
         let wx = [1.0 - frac[0], frac[0]];
         let wy = [1.0 - frac[1], frac[1]];
@@ -122,7 +137,7 @@ fn gather<const F: usize>(
 ) {
     let tp = table.as_ptr();
     for s in 0..n {
-        if s + PREFETCH_AHEAD < n {
+        if !PREFETCH_IN_CORNERS && s + PREFETCH_AHEAD < n {
             let ahead = &offs[(s + PREFETCH_AHEAD) * CORNERS..(s + PREFETCH_AHEAD + 1) * CORNERS];
             for &o in ahead {
                 prefetch(tp.wrapping_add(o as usize));
@@ -147,6 +162,9 @@ fn gather<const F: usize>(
     }
 }
 
+/// `next_level` holds the next level's corner offsets: their gradient lines are prefetched
+/// one level ahead (a whole level's lines fit in L2), which overlaps the scatter's misses far
+/// better than a few samples ahead.
 fn scatter<const F: usize>(
     grad: &mut [f32],
     offs: &[u32],
@@ -154,10 +172,15 @@ fn scatter<const F: usize>(
     n: usize,
     d_enc: &[f32],
     ld: usize,
+    next_level: Option<&[u32]>,
 ) {
     let gp = grad.as_ptr();
     for s in 0..n {
-        if s + PREFETCH_AHEAD < n {
+        if let Some(next) = next_level {
+            for &o in &next[s * CORNERS..(s + 1) * CORNERS] {
+                prefetch(gp.wrapping_add(o as usize));
+            }
+        } else if s + PREFETCH_AHEAD < n {
             let ahead = &offs[(s + PREFETCH_AHEAD) * CORNERS..(s + PREFETCH_AHEAD + 1) * CORNERS];
             for &o in ahead {
                 prefetch(gp.wrapping_add(o as usize));
@@ -203,7 +226,15 @@ pub fn forward(
     for (l, level) in layout.levels.iter().enumerate() {
         let offs = &mut cache.offs[l * cap * CORNERS..(l * cap + n) * CORNERS];
         let weights = &mut cache.weights[l * cap * CORNERS..(l * cap + n) * CORNERS];
-        level_corners(level, &*indices[l], nf as u32, pos, offs, weights);
+        level_corners(
+            table.as_ptr(),
+            level,
+            &*indices[l],
+            nf as u32,
+            pos,
+            offs,
+            weights,
+        );
         let out = &mut enc[l * nf * ld..(l + 1) * nf * ld];
         match nf {
             1 => gather::<1>(table, offs, weights, n, out, ld),
@@ -234,11 +265,13 @@ pub fn backward(
         let offs = &cache.offs[l * cap * CORNERS..(l * cap + n) * CORNERS];
         let weights = &cache.weights[l * cap * CORNERS..(l * cap + n) * CORNERS];
         let g = &d_enc[l * nf * ld..(l + 1) * nf * ld];
+        let next = (PREFETCH_NEXT_LEVEL && l + 1 < nl)
+            .then(|| &cache.offs[(l + 1) * cap * CORNERS..((l + 1) * cap + n) * CORNERS]);
         match nf {
-            1 => scatter::<1>(grad_table, offs, weights, n, g, ld),
-            2 => scatter::<2>(grad_table, offs, weights, n, g, ld),
-            4 => scatter::<4>(grad_table, offs, weights, n, g, ld),
-            8 => scatter::<8>(grad_table, offs, weights, n, g, ld),
+            1 => scatter::<1>(grad_table, offs, weights, n, g, ld, next),
+            2 => scatter::<2>(grad_table, offs, weights, n, g, ld, next),
+            4 => scatter::<4>(grad_table, offs, weights, n, g, ld, next),
+            8 => scatter::<8>(grad_table, offs, weights, n, g, ld, next),
             _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
         }
     }
