@@ -462,6 +462,26 @@ mod tests {
         assert!(checked[0] > 50 && checked[1] > 50, "checked {checked:?}");
     }
 
+    struct OutOfRange;
+    impl LevelIndex for OutOfRange {
+        fn index(&self, _: u32, _: u32, _: u32) -> u32 {
+            u32::MAX
+        }
+    }
+
+    #[test]
+    #[should_panic(expected = "returned an entry >= level size")]
+    fn rejects_an_index_outside_its_level() {
+        let g = small();
+        let table = random_table(&g, 1);
+        let idx: LevelIndices = (0..4)
+            .map(|_| std::sync::Arc::new(OutOfRange) as std::sync::Arc<dyn LevelIndex>)
+            .collect();
+        let mut cache = GridCache::new(&g, 4);
+        let mut enc = vec![0f32; 8 * 4];
+        forward(&g, &table, &idx, &random_pos(3, 1), &mut cache, &mut enc, 4);
+    }
+
     #[test]
     fn backward_accumulates() {
         let g = small();

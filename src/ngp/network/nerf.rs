@@ -394,9 +394,10 @@ mod tests {
             let net = NerfNetwork::new(cfg).unwrap();
             let params = test_params(&net, 1);
             let idx = reference_indices(&net.layout.grid);
-            let (pos, dir) = samples(300, 2);
+            // A full chunk, so the last row/column of every scratch buffer is exercised.
+            let (pos, dir) = samples(CHUNK, 2);
             let mut ws = net.workspace();
-            let mut out = vec![[0f32; 4]; 300];
+            let mut out = vec![[0f32; 4]; CHUNK];
             net.forward(&params, &idx, &pos, &dir, &mut ws, &mut out);
             for s in 0..pos.len() {
                 let want = naive_forward(&net, &params, &idx, pos[s], dir[s]);
@@ -410,13 +411,13 @@ mod tests {
                 }
             }
             let mut ws2 = net.workspace();
-            let mut out2 = vec![[0f32; 4]; 300];
+            let mut out2 = vec![[0f32; 4]; CHUNK];
             net.forward(&params, &idx, &pos, &dir, &mut ws2, &mut out2);
             assert_eq!(out, out2);
             // Density-only path agrees with forward's 4th output.
-            let mut dens = vec![0f32; 300];
+            let mut dens = vec![0f32; CHUNK];
             net.density(&params, &idx, &pos, &mut ws, &mut dens);
-            for s in 0..300 {
+            for s in 0..CHUNK {
                 assert!((dens[s] - out[s][3]).abs() <= 1e-5 * (1.0 + out[s][3].abs()));
             }
         }
@@ -570,6 +571,19 @@ mod tests {
             assert_eq!(loss(&params, &mut ws2), base, "param {p} should not matter");
             params[p] -= 0.5;
         }
+    }
+
+    #[test]
+    fn empty_chunk_is_a_no_op() {
+        let net = small_net();
+        let params = test_params(&net, 41);
+        let idx = reference_indices(&net.layout.grid);
+        let mut ws = net.workspace();
+        net.forward(&params, &idx, &[], &[], &mut ws, &mut []);
+        let mut grad = vec![0f32; net.layout.n_params];
+        net.backward(&params, &idx, &[], &mut ws, &mut grad);
+        assert!(grad.iter().all(|&g| g.to_bits() == 0));
+        net.density(&params, &idx, &[], &mut ws, &mut []);
     }
 
     #[test]
