@@ -162,9 +162,7 @@ mod tests {
         let res: Vec<u32> = g.levels.iter().map(|l| l.resolution).collect();
         assert_eq!(
             res,
-            [
-                16, 23, 31, 43, 59, 81, 112, 154, 213, 295, 407, 562, 777, 1073, 1483, 2048
-            ]
+            [16, 23, 31, 43, 59, 81, 112, 154, 213, 295, 407, 562, 777, 1073, 1483, 2048]
         );
         let sizes: Vec<u32> = g.levels.iter().take(6).map(|l| l.size).collect();
         assert_eq!(sizes, [4096, 12168, 29792, 79512, 205384, 524288]);

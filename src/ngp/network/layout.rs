@@ -121,6 +121,9 @@ mod tests {
         })
         .unwrap();
         assert_eq!(l8.n_params, 11_692_032);
-        assert_eq!(l.color_mlp.matrices(), vec![(64, 32), (64, 64), (16, 64)]);
+        assert_eq!(
+            l.color_mlp.matrices(),
+            vec![(64, 32), (64, 64), (16, 64)]
+        );
     }
 }
