@@ -93,6 +93,9 @@ struct Summary {
     samples_per_second: f64,
     marched_samples_per_second: f64,
     steps_per_second: f64,
+    occupancy_seconds: f64,
+    rays_seconds: f64,
+    optimizer_seconds: f64,
     checkpoints: Vec<Checkpoint>,
 }
 
@@ -154,6 +157,7 @@ pub fn run(a: Args) -> Result<()> {
     let mut train_s = 0.0;
     let (mut samples, mut marched) = (0u64, 0u64);
     let mut loss_ema = 0.0f32;
+    let mut phase = [0.0f64; 3];
     let mut checkpoints = Vec::new();
     let mut pending: Vec<f64> = a.checkpoints.clone();
     pending.sort_by(|x, y| x.total_cmp(y));
@@ -162,6 +166,9 @@ pub fn run(a: Args) -> Result<()> {
         train_s += st.seconds;
         samples += st.n_samples;
         marched += st.n_marched;
+        phase[0] += st.occupancy_seconds;
+        phase[1] += st.rays_seconds;
+        phase[2] += st.optimizer_seconds;
         loss_ema = if trainer.step == 1 { st.loss } else { 0.95 * loss_ema + 0.05 * st.loss };
         if budget_s.is_some() {
             pb.set_position(train_s as u64);
@@ -213,6 +220,9 @@ pub fn run(a: Args) -> Result<()> {
         samples_per_second: samples as f64 / train_s,
         marched_samples_per_second: marched as f64 / train_s,
         steps_per_second: trainer.step as f64 / train_s,
+        occupancy_seconds: phase[0],
+        rays_seconds: phase[1],
+        optimizer_seconds: phase[2],
         checkpoints,
     };
     if a.json {

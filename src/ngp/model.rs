@@ -8,7 +8,8 @@ use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::render::image::SceneView;
 use crate::ngp::render::march::Marcher;
-use crate::ngp::snapshot::{self, Snapshot};
+use crate::ngp::data::Dataset;
+use crate::ngp::snapshot::{self, DatasetImage, Lens, Snapshot, SnapshotDataset};
 use crate::ngp::train::Trainer;
 use std::path::Path;
 
@@ -20,6 +21,11 @@ pub struct Model {
     pub grid: OccupancyGrid,
     pub training_step: u32,
     pub loss: f32,
+    /// The cover's training cameras (what instant-ngp stores under `nerf.dataset`); never a
+    /// hidden scene's.
+    pub dataset: Option<SnapshotDataset>,
+    /// Rays per batch, trained and marched samples of the cover's last step.
+    pub batch_counters: (u32, u32, u32),
 }
 
 impl Model {
@@ -32,6 +38,8 @@ impl Model {
             grid: t.grid(0).clone(),
             training_step: t.step,
             loss,
+            dataset: Some(snapshot_dataset(t.dataset(0))),
+            batch_counters: t.batch_counters(0),
         }
     }
 
@@ -62,6 +70,12 @@ impl Model {
             grid,
             training_step: snap.training_step,
             loss: snap.loss,
+            dataset: snap.dataset,
+            batch_counters: (
+                snap.rays_per_batch,
+                snap.measured_batch_size,
+                snap.measured_batch_size_before_compaction,
+            ),
         })
     }
 
@@ -69,6 +83,12 @@ impl Model {
         let mut s = Snapshot::new(self.config, self.params.clone(), self.grid.density.clone());
         s.training_step = self.training_step;
         s.loss = self.loss;
+        s.dataset = self.dataset.clone();
+        (
+            s.rays_per_batch,
+            s.measured_batch_size,
+            s.measured_batch_size_before_compaction,
+        ) = self.batch_counters;
         s
     }
 
@@ -90,4 +110,32 @@ impl Model {
             marcher: self.marcher(),
         }
     }
+}
+
+/// What instant-ngp stores about the training images: paths as given in the transforms
+/// file, resolution, focal length, principal point, lens and the ngp-space pose.
+pub fn snapshot_dataset(data: &Dataset) -> SnapshotDataset {
+    let images = data
+        .frames
+        .iter()
+        .map(|f| {
+            let c = &f.camera;
+            let mut img = DatasetImage::new([c.width as i32, c.height as i32], [c.fx, c.fy], c.c2w);
+            img.principal_point = [c.cx / c.width as f32, c.cy / c.height as f32];
+            if let Some(d) = c.distortion {
+                img.lens = Lens::OpenCv {
+                    k1: d.k1,
+                    k2: d.k2,
+                    p1: d.p1,
+                    p2: d.p2,
+                };
+            }
+            img
+        })
+        .collect();
+    let paths = data.frames.iter().map(|f| f.file_path.clone()).collect();
+    let mut ds = SnapshotDataset::new(paths, images, data.aabb_scale);
+    ds.scale = data.scale;
+    ds.offset = data.offset;
+    ds
 }

@@ -71,6 +71,7 @@ struct SceneState {
     marcher: Marcher,
     rays_per_batch: u32,
     measured_samples: u32,
+    measured_marched: u32,
 }
 
 /// What one step did.
@@ -85,6 +86,11 @@ pub struct StepStats {
     /// Samples marched and run through the network (≥ n_samples).
     pub n_marched: u64,
     pub seconds: f64,
+    /// Time spent refreshing occupancy grids, in rays (march + network + loss), and in the
+    /// optimizer, within `seconds`.
+    pub occupancy_seconds: f64,
+    pub rays_seconds: f64,
+    pub optimizer_seconds: f64,
 }
 
 /// Per-worker scratch, allocated once and reused every step.
@@ -174,6 +180,7 @@ impl Trainer {
                 marcher: Marcher::new(model.aabb_scale),
                 rays_per_batch: rays,
                 measured_samples: 0,
+                measured_marched: 0,
             });
         }
         let params = net.init_params(config.seed);
@@ -220,6 +227,17 @@ impl Trainer {
         &self.scenes[i].grid
     }
 
+    /// The training images of scene `i` (0 = the cover).
+    pub fn dataset(&self, i: usize) -> &Dataset {
+        &self.scenes[i].data
+    }
+
+    /// Scene `i`'s (rays per batch, trained samples, marched samples) of the last step.
+    pub fn batch_counters(&self, i: usize) -> (u32, u32, u32) {
+        let s = &self.scenes[i];
+        (s.rays_per_batch, s.measured_samples, s.measured_marched)
+    }
+
     /// Weights to render with and to publish: the debiased EMA.
     pub fn inference_params(&self) -> Vec<f32> {
         self.optimizer.ema_params(&self.params)
@@ -248,6 +266,7 @@ impl Trainer {
     pub fn train_step(&mut self) -> StepStats {
         let t0 = std::time::Instant::now();
         self.update_occupancy();
+        let t_occ = t0.elapsed().as_secs_f64();
         let step = self.step;
         let scene_ids: Vec<usize> = match self.config.schedule {
             Schedule::Mixed => (0..self.scenes.len()).collect(),
@@ -277,22 +296,25 @@ impl Trainer {
                 train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
             });
             let mut loss = 0.0;
-            let mut used = 0;
+            let (mut used, mut marched) = (0, 0);
             for w in &self.workers {
                 loss += w.loss;
                 used += w.n_samples;
-                stats.n_marched += w.n_marched;
+                marched += w.n_marched;
                 stats.n_rays += w.n_rays;
             }
+            stats.n_marched += marched;
             stats.loss += (loss / n_rays as f64) as f32;
             stats.n_samples += used;
             // Adapt rays per batch to the sample target (rounded to 64, as the reference to 256).
             let scene = &mut self.scenes[si];
             scene.measured_samples = used as u32;
+            scene.measured_marched = marched as u32;
             let target = self.config.batch_samples as f64;
             let rays = (n_rays as f64 * target / (used.max(1) as f64)).clamp(64.0, (1 << 18) as f64);
             scene.rays_per_batch = ((rays as u32).div_ceil(64) * 64).max(64);
         }
+        let t_rays = t0.elapsed().as_secs_f64();
         let mut grads: Vec<Vec<f32>> = self
             .workers
             .iter_mut()
@@ -304,6 +326,9 @@ impl Trainer {
         }
         self.step += 1;
         stats.seconds = t0.elapsed().as_secs_f64();
+        stats.occupancy_seconds = t_occ;
+        stats.rays_seconds = t_rays - t_occ;
+        stats.optimizer_seconds = stats.seconds - t_rays;
         stats
     }
 }
