@@ -1,0 +1,399 @@
+//! Analytic geometry and procedural materials: spheres, axis-aligned boxes, vertical
+//! cylinders and discs, shaded with Lambert + ambient under one directional light, with
+//! shadows. World coordinates are Blender's: z up, metres, everything inside |x|,|y|,|z| < 1.3.
+
+pub type V3 = [f32; 3];
+
+#[inline]
+pub fn add(a: V3, b: V3) -> V3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+#[inline]
+pub fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+#[inline]
+pub fn mul(a: V3, s: f32) -> V3 {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+#[inline]
+pub fn dot(a: V3, b: V3) -> f32 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+#[inline]
+pub fn cross(a: V3, b: V3) -> V3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+#[inline]
+pub fn normalize(a: V3) -> V3 {
+    mul(a, 1.0 / dot(a, a).sqrt())
+}
+
+/// How a surface is coloured at a hit point (world position, normal).
+#[derive(Clone, Copy, Debug)]
+pub enum Material {
+    Solid(V3),
+    /// Checkerboard of two colours with a cell size.
+    Checker(V3, V3, f32),
+    /// Hue stripes along z with a frequency.
+    HueStripes(f32),
+    /// Hue from the angle around the z axis plus dark helix lines.
+    Helix,
+    /// Grid lines of a colour on a base colour.
+    Grid(V3, V3, f32),
+    /// Hue gradient along x (the text scene).
+    HueAlongX(f32, f32),
+}
+
+#[derive(Clone, Copy, Debug)]
+pub enum Shape {
+    Sphere {
+        c: V3,
+        r: f32,
+    },
+    Box {
+        lo: V3,
+        hi: V3,
+    },
+    /// Vertical cylinder with caps, axis along z.
+    Cylinder {
+        c: V3,
+        r: f32,
+        z0: f32,
+        z1: f32,
+    },
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct Object {
+    pub shape: Shape,
+    pub material: Material,
+    pub specular: f32,
+}
+
+pub struct Scene {
+    pub objects: Vec<Object>,
+    /// Bounding box of everything, for a quick miss test.
+    pub lo: V3,
+    pub hi: V3,
+    pub light: V3,
+}
+
+pub struct Hit {
+    pub t: f32,
+    pub p: V3,
+    pub n: V3,
+    pub obj: usize,
+}
+
+fn hsv(h: f32, s: f32, v: f32) -> V3 {
+    let h = h.rem_euclid(1.0) * 6.0;
+    let i = h.floor();
+    let f = h - i;
+    let (p, q, t) = (v * (1.0 - s), v * (1.0 - s * f), v * (1.0 - s * (1.0 - f)));
+    match i as i32 {
+        0 => [v, t, p],
+        1 => [q, v, p],
+        2 => [p, v, t],
+        3 => [p, q, v],
+        4 => [t, p, v],
+        _ => [v, p, q],
+    }
+}
+
+fn slab(o: V3, inv: V3, lo: V3, hi: V3) -> Option<(f32, f32, usize, usize)> {
+    let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+    let (mut a0, mut a1) = (0, 0);
+    for k in 0..3 {
+        let mut a = (lo[k] - o[k]) * inv[k];
+        let mut b = (hi[k] - o[k]) * inv[k];
+        if a > b {
+            std::mem::swap(&mut a, &mut b);
+        }
+        if a > t0 {
+            t0 = a;
+            a0 = k;
+        }
+        if b < t1 {
+            t1 = b;
+            a1 = k;
+        }
+    }
+    (t0 <= t1 && t1 > 0.0).then_some((t0, t1, a0, a1))
+}
+
+impl Shape {
+    /// Nearest hit with t > eps: (t, outward normal).
+    pub fn intersect(&self, o: V3, d: V3, inv: V3) -> Option<(f32, V3)> {
+        const EPS: f32 = 1e-4;
+        match *self {
+            Shape::Sphere { c, r } => {
+                let oc = sub(o, c);
+                let b = dot(oc, d);
+                let disc = b * b - (dot(oc, oc) - r * r);
+                if disc < 0.0 {
+                    return None;
+                }
+                let s = disc.sqrt();
+                let t = if -b - s > EPS {
+                    -b - s
+                } else if -b + s > EPS {
+                    -b + s
+                } else {
+                    return None;
+                };
+                Some((t, normalize(sub(add(o, mul(d, t)), c))))
+            }
+            Shape::Box { lo, hi } => {
+                let (t0, t1, a0, a1) = slab(o, inv, lo, hi)?;
+                let (t, axis, outside) = if t0 > EPS {
+                    (t0, a0, true)
+                } else if t1 > EPS {
+                    (t1, a1, false)
+                } else {
+                    return None;
+                };
+                let mut n = [0.0; 3];
+                n[axis] = if outside {
+                    -d[axis].signum()
+                } else {
+                    d[axis].signum()
+                };
+                Some((t, n))
+            }
+            Shape::Cylinder { c, r, z0, z1 } => {
+                let mut best: Option<(f32, V3)> = None;
+                let (ox, oy) = (o[0] - c[0], o[1] - c[1]);
+                let a = d[0] * d[0] + d[1] * d[1];
+                if a > 1e-12 {
+                    let b = ox * d[0] + oy * d[1];
+                    let disc = b * b - a * (ox * ox + oy * oy - r * r);
+                    if disc >= 0.0 {
+                        let s = disc.sqrt();
+                        for t in [(-b - s) / a, (-b + s) / a] {
+                            let z = o[2] + t * d[2];
+                            if t > EPS && z >= z0 && z <= z1 && best.is_none_or(|(bt, _)| t < bt) {
+                                let p = add(o, mul(d, t));
+                                best = Some((t, normalize([p[0] - c[0], p[1] - c[1], 0.0])));
+                            }
+                        }
+                    }
+                }
+                for (zc, nz) in [(z0, -1.0f32), (z1, 1.0)] {
+                    let t = (zc - o[2]) * inv[2];
+                    if t > EPS && t.is_finite() {
+                        let p = add(o, mul(d, t));
+                        let (dx, dy) = (p[0] - c[0], p[1] - c[1]);
+                        if dx * dx + dy * dy <= r * r && best.is_none_or(|(bt, _)| t < bt) {
+                            best = Some((t, [0.0, 0.0, nz]));
+                        }
+                    }
+                }
+                best
+            }
+        }
+    }
+}
+
+impl Material {
+    pub fn albedo(&self, p: V3) -> V3 {
+        match *self {
+            Material::Solid(c) => c,
+            Material::Checker(a, b, s) => {
+                let k = (p[0] / s).floor() as i32
+                    + (p[1] / s).floor() as i32
+                    + (p[2] / s).floor() as i32;
+                if k.rem_euclid(2) == 0 { a } else { b }
+            }
+            Material::HueStripes(f) => hsv(p[2] * f, 0.75, 0.95),
+            Material::Helix => {
+                let ang = p[1].atan2(p[0]) / std::f32::consts::TAU;
+                let line = ((ang * 6.0 + p[2] * 4.0).rem_euclid(1.0) < 0.18) as i32 as f32;
+                mul(hsv(ang + 0.1, 0.6, 0.9), 1.0 - 0.7 * line)
+            }
+            Material::Grid(base, line, s) => {
+                let on = (0..3).any(|k| (p[k] / s).rem_euclid(1.0) < 0.12);
+                if on { line } else { base }
+            }
+            Material::HueAlongX(lo, hi) => hsv(0.8 * (p[0] - lo) / (hi - lo), 0.8, 0.95),
+        }
+    }
+}
+
+impl Scene {
+    pub fn new(objects: Vec<Object>, light: V3) -> Self {
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        for o in &objects {
+            let (a, b) = match o.shape {
+                Shape::Sphere { c, r } => (sub(c, [r; 3]), add(c, [r; 3])),
+                Shape::Box { lo, hi } => (lo, hi),
+                Shape::Cylinder { c, r, z0, z1 } => {
+                    ([c[0] - r, c[1] - r, z0], [c[0] + r, c[1] + r, z1])
+                }
+            };
+            for k in 0..3 {
+                lo[k] = lo[k].min(a[k]);
+                hi[k] = hi[k].max(b[k]);
+            }
+        }
+        Scene {
+            objects,
+            lo,
+            hi,
+            light: normalize(light),
+        }
+    }
+
+    pub fn intersect(&self, o: V3, d: V3) -> Option<Hit> {
+        let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        slab(o, inv, self.lo, self.hi)?;
+        let mut best: Option<Hit> = None;
+        for (i, ob) in self.objects.iter().enumerate() {
+            if let Some((t, n)) = ob.shape.intersect(o, d, inv) {
+                if best.as_ref().is_none_or(|b| t < b.t) {
+                    best = Some(Hit {
+                        t,
+                        p: add(o, mul(d, t)),
+                        n,
+                        obj: i,
+                    });
+                }
+            }
+        }
+        best
+    }
+
+    /// Colour seen along a ray, or `None` for background.
+    pub fn shade(&self, o: V3, d: V3) -> Option<V3> {
+        let h = self.intersect(o, d)?;
+        let ob = &self.objects[h.obj];
+        let albedo = ob.material.albedo(h.p);
+        let ndl = dot(h.n, self.light).max(0.0);
+        let lit = if ndl > 0.0
+            && self
+                .intersect(add(h.p, mul(h.n, 1e-3)), self.light)
+                .is_some()
+        {
+            0.0
+        } else {
+            ndl
+        };
+        let mut c = mul(albedo, 0.35 + 0.65 * lit);
+        if ob.specular > 0.0 && lit > 0.0 {
+            let r = sub(mul(h.n, 2.0 * dot(h.n, self.light)), self.light);
+            let s = ob.specular * dot(r, mul(d, -1.0)).max(0.0).powi(24);
+            c = add(c, [s; 3]);
+        }
+        Some([c[0].min(1.0), c[1].min(1.0), c[2].min(1.0)])
+    }
+}
+
+/// The object scene: a checkered platform with a striped sphere, a gridded box, a helix
+/// cylinder and a small glossy sphere.
+pub fn object_scene() -> Scene {
+    let objs = vec![
+        Object {
+            shape: Shape::Cylinder {
+                c: [0.0, 0.0, 0.0],
+                r: 1.15,
+                z0: -0.75,
+                z1: -0.62,
+            },
+            material: Material::Checker([0.92, 0.9, 0.85], [0.25, 0.3, 0.45], 0.23),
+            specular: 0.0,
+        },
+        Object {
+            shape: Shape::Sphere {
+                c: [0.38, 0.3, -0.2],
+                r: 0.42,
+            },
+            material: Material::HueStripes(2.5),
+            specular: 0.5,
+        },
+        Object {
+            shape: Shape::Box {
+                lo: [-0.85, -0.55, -0.62],
+                hi: [-0.25, 0.05, -0.02],
+            },
+            material: Material::Grid([0.95, 0.75, 0.2], [0.5, 0.15, 0.1], 0.15),
+            specular: 0.0,
+        },
+        Object {
+            shape: Shape::Cylinder {
+                c: [0.25, -0.55, 0.0],
+                r: 0.2,
+                z0: -0.62,
+                z1: 0.55,
+            },
+            material: Material::Helix,
+            specular: 0.0,
+        },
+        Object {
+            shape: Shape::Sphere {
+                c: [-0.45, 0.55, -0.42],
+                r: 0.2,
+            },
+            material: Material::Solid([0.2, 0.75, 0.35]),
+            specular: 0.8,
+        },
+        Object {
+            shape: Shape::Box {
+                lo: [-0.15, 0.5, -0.62],
+                hi: [0.2, 0.85, -0.3],
+            },
+            material: Material::Checker([0.85, 0.2, 0.3], [0.95, 0.95, 0.95], 0.09),
+            specular: 0.0,
+        },
+    ];
+    Scene::new(objs, [0.5, -0.4, 0.8])
+}
+
+/// 3D text: each line of glyphs stands upright in the x–z plane (readable from −y), every
+/// run of filled glyph cells an extruded box, coloured along x.
+pub fn text_scene(lines: &[Vec<char>]) -> Scene {
+    use super::font::{GLYPH_H, GLYPH_W, glyph};
+    let cols = lines.iter().map(|l| l.len()).max().unwrap_or(1).max(1);
+    let cell_cols = cols * (GLYPH_W + 1) - 1;
+    let cell_rows = lines.len() * (GLYPH_H + 2) - 2;
+    // Fit into |x| ≤ 1.15 and |z| ≤ 0.9.
+    let s = (2.3 / cell_cols as f32).min(1.8 / cell_rows as f32);
+    let (x0, z0) = (-(cell_cols as f32) * s / 2.0, cell_rows as f32 * s / 2.0);
+    let depth = (0.35f32).min(4.0 * s);
+    let mut objs = Vec::new();
+    for (li, line) in lines.iter().enumerate() {
+        let pad = (cols - line.len()) * (GLYPH_W + 1) / 2;
+        for (ci, &ch) in line.iter().enumerate() {
+            let g = glyph(ch).expect("validated");
+            for (r, row) in g.iter().enumerate() {
+                let bytes = row.as_bytes();
+                let mut c = 0;
+                while c < GLYPH_W {
+                    if bytes[c] != b'#' {
+                        c += 1;
+                        continue;
+                    }
+                    let start = c;
+                    while c < GLYPH_W && bytes[c] == b'#' {
+                        c += 1;
+                    }
+                    let gx = (pad + ci * (GLYPH_W + 1) + start) as f32;
+                    let gz = (li * (GLYPH_H + 2) + r) as f32;
+                    objs.push(Object {
+                        shape: Shape::Box {
+                            lo: [x0 + gx * s, -depth / 2.0, z0 - (gz + 1.0) * s],
+                            hi: [x0 + (gx + (c - start) as f32) * s, depth / 2.0, z0 - gz * s],
+                        },
+                        material: Material::HueAlongX(x0, -x0),
+                        specular: 0.0,
+                    });
+                }
+            }
+        }
+    }
+    Scene::new(objs, [0.3, -0.6, 0.75])
+}
