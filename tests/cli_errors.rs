@@ -32,15 +32,37 @@ fn train_rejects_bad_datasets_without_writing_a_model() {
     let m = model.to_str().unwrap();
     // Missing directory.
     let missing = d.path().join("nope");
-    fails_with(&stegongp(&["train", missing.to_str().unwrap(), "--out", m, "--steps", "1"]), &["nope"]);
+    fails_with(
+        &stegongp(&[
+            "train",
+            missing.to_str().unwrap(),
+            "--out",
+            m,
+            "--steps",
+            "1",
+        ]),
+        &["nope"],
+    );
     // Malformed JSON.
     let bad = d.path().join("bad");
-    write(&bad.join("transforms_train.json"), "{ \"camera_angle_x\": 0.5, \"frames\": [ ");
-    fails_with(&stegongp(&["train", bad.to_str().unwrap(), "--out", m, "--steps", "1"]), &["transforms_train.json"]);
+    write(
+        &bad.join("transforms_train.json"),
+        "{ \"camera_angle_x\": 0.5, \"frames\": [ ",
+    );
+    fails_with(
+        &stegongp(&["train", bad.to_str().unwrap(), "--out", m, "--steps", "1"]),
+        &["transforms_train.json"],
+    );
     // Zero frames.
     let empty = d.path().join("empty");
-    write(&empty.join("transforms_train.json"), "{ \"camera_angle_x\": 0.5, \"frames\": [] }");
-    fails_with(&stegongp(&["train", empty.to_str().unwrap(), "--out", m, "--steps", "1"]), &["transforms_train.json"]);
+    write(
+        &empty.join("transforms_train.json"),
+        "{ \"camera_angle_x\": 0.5, \"frames\": [] }",
+    );
+    fails_with(
+        &stegongp(&["train", empty.to_str().unwrap(), "--out", m, "--steps", "1"]),
+        &["transforms_train.json"],
+    );
     // Missing image.
     let noimg = d.path().join("noimg");
     write(
@@ -48,7 +70,10 @@ fn train_rejects_bad_datasets_without_writing_a_model() {
         r#"{ "camera_angle_x": 0.5, "frames": [ { "file_path": "./train/r_0",
             "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]] } ] }"#,
     );
-    fails_with(&stegongp(&["train", noimg.to_str().unwrap(), "--out", m, "--steps", "1"]), &["r_0"]);
+    fails_with(
+        &stegongp(&["train", noimg.to_str().unwrap(), "--out", m, "--steps", "1"]),
+        &["r_0"],
+    );
     // NaN pose (JSON has no NaN literal; a string where a number belongs is the same error class).
     let nan = d.path().join("nan");
     write(
@@ -56,7 +81,10 @@ fn train_rejects_bad_datasets_without_writing_a_model() {
         r#"{ "camera_angle_x": 0.5, "frames": [ { "file_path": "./train/r_0",
             "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,"x"],[0,0,0,1]] } ] }"#,
     );
-    fails_with(&stegongp(&["train", nan.to_str().unwrap(), "--out", m, "--steps", "1"]), &["transforms_train.json"]);
+    fails_with(
+        &stegongp(&["train", nan.to_str().unwrap(), "--out", m, "--steps", "1"]),
+        &["transforms_train.json"],
+    );
     // Non-rigid pose.
     let shear = d.path().join("shear");
     write(
@@ -64,18 +92,48 @@ fn train_rejects_bad_datasets_without_writing_a_model() {
         r#"{ "camera_angle_x": 0.5, "frames": [ { "file_path": "./train/r_0",
             "transform_matrix": [[2,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]] } ] }"#,
     );
-    fails_with(&stegongp(&["train", shear.to_str().unwrap(), "--out", m, "--steps", "1"]), &["transforms_train.json"]);
+    fails_with(
+        &stegongp(&["train", shear.to_str().unwrap(), "--out", m, "--steps", "1"]),
+        &["transforms_train.json"],
+    );
     assert!(!model.exists(), "no model may be written on failure");
     // Wrong model extension is refused before any work.
-    fails_with(&stegongp(&["train", bad.to_str().unwrap(), "--out", "x.bin"]), &["x.bin"]);
+    fails_with(
+        &stegongp(&["train", bad.to_str().unwrap(), "--out", "x.bin"]),
+        &["x.bin"],
+    );
     // A key without a hidden scene.
-    fails_with(&stegongp(&["train", bad.to_str().unwrap(), "--out", m, "--key", "k.json"]), &["--key"]);
-    assert_eq!(std::fs::read_dir(d.path()).unwrap().filter(|e| e.as_ref().unwrap().path().is_file()).count(), 0);
+    fails_with(
+        &stegongp(&[
+            "train",
+            bad.to_str().unwrap(),
+            "--out",
+            m,
+            "--key",
+            "k.json",
+        ]),
+        &["--key"],
+    );
+    assert_eq!(
+        std::fs::read_dir(d.path())
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().path().is_file())
+            .count(),
+        0
+    );
 }
 
 #[test]
 fn unknown_option_values_are_refused() {
-    let out = stegongp(&["eval", "--model", "m.ingp", "--data", ".", "--background", "pink"]);
+    let out = stegongp(&[
+        "eval",
+        "--model",
+        "m.ingp",
+        "--data",
+        ".",
+        "--background",
+        "pink",
+    ]);
     fails_with(&out, &["pink"]);
     let out = stegongp(&["synth", "--scene", "castle", "--out", "x"]);
     fails_with(&out, &["castle"]);
@@ -90,14 +148,25 @@ fn unreadable_model_files_name_the_file() {
     std::fs::create_dir_all(&data).unwrap();
     for (name, bytes) in [
         ("empty.ingp", Vec::new()),
-        ("noise.ingp", (0..4000u32).map(|i| (i * 2654435761u32 >> 13) as u8).collect()),
+        (
+            "noise.ingp",
+            (0..4000u32)
+                .map(|i| (i * 2654435761u32 >> 13) as u8)
+                .collect(),
+        ),
         ("truncated.ingp", vec![0x1f, 0x8b, 8, 0, 0, 0]),
         ("foreign.msgpack", vec![0x93, 1, 2, 3]),
     ] {
         let p = d.path().join(name);
         std::fs::write(&p, bytes).unwrap();
         for cmd in ["eval", "render"] {
-            let mut args = vec![cmd, "--model", p.to_str().unwrap(), "--data", data.to_str().unwrap()];
+            let mut args = vec![
+                cmd,
+                "--model",
+                p.to_str().unwrap(),
+                "--data",
+                data.to_str().unwrap(),
+            ];
             if cmd == "render" {
                 args.extend(["--out", "/nonexistent/should-not-be-created"]);
             }

@@ -53,7 +53,14 @@ fn psnr_of(model: &Model, key: Option<&Key>, test: &Dataset) -> f64 {
     let rebuilt = key.map(|_| rebuild_occupancy(&model.net, &model.params, &idx, 1, 1, 0));
     let view = model.view(&idx, rebuilt.as_ref().unwrap_or(&model.grid));
     let which = spread_views(test.frames.len(), 4);
-    evaluate(&view, test, &RenderOptions::default(), Some(&which), |_, _, _| {}).psnr
+    evaluate(
+        &view,
+        test,
+        &RenderOptions::default(),
+        Some(&which),
+        |_, _, _| {},
+    )
+    .psnr
 }
 
 #[test]
@@ -96,7 +103,10 @@ fn plain_training_reaches_threshold_and_is_deterministic() {
         a.train_step();
         b.train_step();
     }
-    assert!(a.params == b.params, "same seed must give identical weights");
+    assert!(
+        a.params == b.params,
+        "same seed must give identical weights"
+    );
     let (ma, mb) = (Model::from_trainer(&a, 0.0), Model::from_trainer(&b, 0.0));
     assert_eq!(psnr_of(&ma, None, &test), psnr_of(&mb, None, &test));
 }
@@ -132,7 +142,9 @@ fn stego_model_hides_scene_behind_key() {
     let hidden = psnr_of(&model, Some(&key), &htest);
     let hidden_no_key = psnr_of(&model, None, &htest);
     let wrong = psnr_of(&model, Some(&Key::wrong(9, &key)), &htest);
-    eprintln!("cover {cover:.2}, hidden with key {hidden:.2}, without {hidden_no_key:.2}, wrong key {wrong:.2}");
+    eprintln!(
+        "cover {cover:.2}, hidden with key {hidden:.2}, without {hidden_no_key:.2}, wrong key {wrong:.2}"
+    );
     assert!(cover > 20.0, "cover {cover:.2}");
     assert!(hidden > 20.0, "hidden with key {hidden:.2}");
     // Without the key the hidden views are rendered as the cover: far from the text.

@@ -12,7 +12,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::snapshot::to_bytes;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::stego::{Key, generate_prf, generate_primes, KeyScheme};
+use stegongp::stego::{Key, KeyScheme, generate_prf, generate_primes};
 
 /// A tiny in-memory scene: cameras on a ring looking at the centre, a coloured gradient.
 fn tiny_scene(name: &str, tint: u8) -> Dataset {
@@ -24,7 +24,11 @@ fn tiny_scene(name: &str, tint: u8) -> Dataset {
             // Camera axes (ngp): forward towards the centre, down = -y, right = down × forward.
             let f = [-a.cos(), 0.0, -a.sin()];
             let d = [0.0, -1.0, 0.0];
-            let r = [d[1] * f[2] - d[2] * f[1], d[2] * f[0] - d[0] * f[2], d[0] * f[1] - d[1] * f[0]];
+            let r = [
+                d[1] * f[2] - d[2] * f[1],
+                d[2] * f[0] - d[0] * f[2],
+                d[0] * f[1] - d[1] * f[0],
+            ];
             let c2w = [
                 [r[0], d[0], f[0], pos[0]],
                 [r[1], d[1], f[1], pos[1]],
@@ -127,7 +131,10 @@ fn stego_file_matches_plain_file_and_holds_no_key() {
         let (sa, sb) = (shape(&a), shape(&b));
         // Loss and timings are numbers; the shapes (keys, types, lengths) must agree.
         assert_eq!(sa, sb, "msgpack structure must match");
-        assert!(!contains(&stego, b"secret_scene"), "hidden dataset leaked into the file");
+        assert!(
+            !contains(&stego, b"secret_scene"),
+            "hidden dataset leaked into the file"
+        );
         match key.scheme() {
             KeyScheme::Prf { secret, .. } => {
                 assert!(!contains(&stego, secret));

@@ -48,14 +48,19 @@ pub fn check_model_path(path: &Path) -> Result<()> {
     }
     if let Some(dir) = path.parent() {
         if !dir.as_os_str().is_empty() && !dir.is_dir() {
-            bail!("{}: directory {} does not exist", path.display(), dir.display());
+            bail!(
+                "{}: directory {} does not exist",
+                path.display(),
+                dir.display()
+            );
         }
     }
     Ok(())
 }
 
 pub fn ensure_dir(dir: &Path) -> Result<()> {
-    std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create directory", dir.display()))
+    std::fs::create_dir_all(dir)
+        .with_context(|| format!("{}: cannot create directory", dir.display()))
 }
 
 pub fn progress(len: u64, template: &str) -> ProgressBar {

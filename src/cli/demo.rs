@@ -90,7 +90,10 @@ pub fn run(a: Args) -> Result<()> {
         ..Default::default()
     };
     let mut trainer = Trainer::new(config, scenes, cfg)?;
-    let pb = super::common::progress(a.steps as u64, "{spinner} training cover + hidden [{elapsed_precise}] {bar:30} {pos}/{len} {msg}");
+    let pb = super::common::progress(
+        a.steps as u64,
+        "{spinner} training cover + hidden [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
+    );
     let (mut secs, mut samples, mut loss) = (0.0, 0u64, 0.0);
     for _ in 0..a.steps {
         let st = trainer.train_step();
@@ -98,7 +101,10 @@ pub fn run(a: Args) -> Result<()> {
         samples += st.n_samples;
         loss = st.loss;
         pb.inc(1);
-        pb.set_message(format!("loss {loss:.4} {:.0}k samples/s", samples as f64 / secs / 1e3));
+        pb.set_message(format!(
+            "loss {loss:.4} {:.0}k samples/s",
+            samples as f64 / secs / 1e3
+        ));
     }
     pb.finish_and_clear();
     let model_path = a.out.join("model.ingp");
@@ -124,16 +130,37 @@ pub fn run(a: Args) -> Result<()> {
     let images = a.out.join("images");
     ensure_dir(&images)?;
     for (label, k, data) in cases {
-        let idx = k.map(|k| k.level_indices(&model.net.layout.grid)).unwrap_or_else(|| pi.clone());
-        let rebuilt = k.map(|_| rebuild_occupancy(&model.net, &model.params, &idx, model.config.aabb_scale, 1, a.seed));
+        let idx = k
+            .map(|k| k.level_indices(&model.net.layout.grid))
+            .unwrap_or_else(|| pi.clone());
+        let rebuilt = k.map(|_| {
+            rebuild_occupancy(
+                &model.net,
+                &model.params,
+                &idx,
+                model.config.aabb_scale,
+                1,
+                a.seed,
+            )
+        });
         let view = model.view(&idx, rebuilt.as_ref().unwrap_or(&model.grid));
         let mut first = None;
         let r = evaluate(&view, data, &ropts, Some(&views), |_, img, _| {
             first.get_or_insert_with(|| img.rgb.clone());
         });
         let img = first.unwrap_or_default();
-        let name = label.split(' ').take(2).collect::<Vec<_>>().join("_").replace(['→', '/'], "");
-        save_png_rgb(&images.join(format!("{name}.png")), data.width, data.height, &img)?;
+        let name = label
+            .split(' ')
+            .take(2)
+            .collect::<Vec<_>>()
+            .join("_")
+            .replace(['→', '/'], "");
+        save_png_rgb(
+            &images.join(format!("{name}.png")),
+            data.width,
+            data.height,
+            &img,
+        )?;
         tiles.push(img);
         rows.push((label, r.psnr, r.ssim));
     }
@@ -141,14 +168,29 @@ pub fn run(a: Args) -> Result<()> {
     tiles.insert(0, ground_truth(&cover_test, views[0], [1.0; 3]));
     let grid_path = a.out.join("demo.png");
     save_grid(&grid_path, &tiles, cover_test.width, cover_test.height, 3)?;
-    println!("\nStegoNGP demo: one Instant-NGP model, {} steps ({:.0} s training, {:.0}k samples/s)", a.steps, secs, samples as f64 / secs / 1e3);
+    println!(
+        "\nStegoNGP demo: one Instant-NGP model, {} steps ({:.0} s training, {:.0}k samples/s)",
+        a.steps,
+        secs,
+        samples as f64 / secs / 1e3
+    );
     println!("{:<28} {:>9} {:>7}", "rendering", "PSNR dB", "SSIM");
     for (label, p, s) in &rows {
         println!("{label:<28} {p:>9.2} {s:>7.3}");
     }
-    println!("\nmodel: {} (a plain instant-ngp snapshot; no key inside)", model_path.display());
+    println!(
+        "\nmodel: {} (a plain instant-ngp snapshot; no key inside)",
+        model_path.display()
+    );
     println!("key:   {} (owner-only)", key_path.display());
-    println!("figure: {} — cover GT, hidden GT, no key, no key vs text, key, wrong key", grid_path.display());
-    println!("images: {}; total {:.0} s", images.display(), t0.elapsed().as_secs_f64());
+    println!(
+        "figure: {} — cover GT, hidden GT, no key, no key vs text, key, wrong key",
+        grid_path.display()
+    );
+    println!(
+        "images: {}; total {:.0} s",
+        images.display(),
+        t0.elapsed().as_secs_f64()
+    );
     Ok(())
 }

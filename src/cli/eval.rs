@@ -43,8 +43,15 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--downscale must be at least 1");
     }
     let model = Model::load(&a.model)?;
-    let data = Dataset::load(&a.data, a.split.into(), &LoadOptions { downscale: a.downscale })?;
-    let (indices, rebuilt) = super::scene_for_key(&model, a.key.as_deref(), a.key_variant.as_deref())?;
+    let data = Dataset::load(
+        &a.data,
+        a.split.into(),
+        &LoadOptions {
+            downscale: a.downscale,
+        },
+    )?;
+    let (indices, rebuilt) =
+        super::scene_for_key(&model, a.key.as_deref(), a.key_variant.as_deref())?;
     let grid = rebuilt.as_ref().unwrap_or(&model.grid);
     let view = model.view(&indices, grid);
     if let Some(dir) = &a.out {
@@ -58,14 +65,29 @@ pub fn run(a: Args) -> Result<()> {
     let mut io_err = None;
     let r = evaluate(&view, &data, &opts, Some(&which), |i, img, gt| {
         if let Some(dir) = &a.out {
-            let res = save_png_rgb(&dir.join(format!("rgb_{i:03}.png")), img.width, img.height, &img.rgb)
-                .and_then(|_| save_png_rgb(&dir.join(format!("gt_{i:03}.png")), img.width, img.height, gt));
+            let res = save_png_rgb(
+                &dir.join(format!("rgb_{i:03}.png")),
+                img.width,
+                img.height,
+                &img.rgb,
+            )
+            .and_then(|_| {
+                save_png_rgb(
+                    &dir.join(format!("gt_{i:03}.png")),
+                    img.width,
+                    img.height,
+                    gt,
+                )
+            });
             if let Err(e) = res {
                 io_err.get_or_insert(e);
             }
         }
         if !a.json {
-            eprintln!("view {i:3}: PSNR {:.2} dB", stegongp::ngp::metrics::psnr(&img.rgb, gt));
+            eprintln!(
+                "view {i:3}: PSNR {:.2} dB",
+                stegongp::ngp::metrics::psnr(&img.rgb, gt)
+            );
         }
     });
     if let Some(e) = io_err {

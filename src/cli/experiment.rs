@@ -59,7 +59,11 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     if !EXPERIMENTS.contains(&a.name.as_str()) {
-        bail!("unknown experiment '{}': one of {}", a.name, EXPERIMENTS.join(", "));
+        bail!(
+            "unknown experiment '{}': one of {}",
+            a.name,
+            EXPERIMENTS.join(", ")
+        );
     }
     std::fs::create_dir_all(&a.out)?;
     let data = a.out.join("data");
@@ -90,7 +94,11 @@ pub fn run(a: Args) -> Result<()> {
         let n = if a.name == "multi-hidden" { 4 } else { 1 };
         for i in 0..n {
             let text = ["(c) StegoNGP", "SECRET 2", "HIDDEN #3", "KEY 4 ONLY"][i];
-            hidden.push(gen_scene(&format!("hidden_text_{}", i + 1), SceneKind::Text(text.into()), 10 + i as u64)?);
+            hidden.push(gen_scene(
+                &format!("hidden_text_{}", i + 1),
+                SceneKind::Text(text.into()),
+                10 + i as u64,
+            )?);
         }
     }
     let cfg = ExpConfig {
@@ -113,7 +121,11 @@ pub fn run(a: Args) -> Result<()> {
             SchemeArg::Prf => KeySchemeArg::Prf,
             SchemeArg::Primes => KeySchemeArg::Primes,
         },
-        schedule: if a.random_scene { Schedule::RandomScene } else { Schedule::Mixed },
+        schedule: if a.random_scene {
+            Schedule::RandomScene
+        } else {
+            Schedule::Mixed
+        },
         verbose: true,
     };
     let report = run_experiment(&a.name, &cfg)?;

@@ -14,13 +14,13 @@ use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
-use stegongp::ngp::render::image::rebuild_occupancy;
-use stegongp::stego::{Key, Mixed, load_key};
 use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::NerfLayout;
 use stegongp::ngp::occupancy::OccupancyGrid;
+use stegongp::ngp::render::image::rebuild_occupancy;
 use stegongp::ngp::train::SceneSpec;
+use stegongp::stego::{Key, Mixed, load_key};
 
 /// The hidden scenes of a `train --hidden … --key …` call, each with its key's indices.
 pub fn stego_scenes(
@@ -86,10 +86,9 @@ pub fn parse_key_variant(s: &str) -> Result<KeyVariant> {
     let (kind, val) = s.split_once(':').unwrap_or((s, ""));
     Ok(match kind {
         "partial" => {
-            let p: f64 = val
-                .trim_end_matches('%')
-                .parse()
-                .with_context(|| format!("--key-variant {s}: expected partial:FRACTION, e.g. partial:0.5"))?;
+            let p: f64 = val.trim_end_matches('%').parse().with_context(|| {
+                format!("--key-variant {s}: expected partial:FRACTION, e.g. partial:0.5")
+            })?;
             let p = if val.ends_with('%') { p / 100.0 } else { p };
             if !(0.0..=1.0).contains(&p) {
                 bail!("--key-variant {s}: the fraction must be in [0, 1]");
@@ -102,7 +101,9 @@ pub fn parse_key_variant(s: &str) -> Result<KeyVariant> {
             _ => bail!("--key-variant {s}: expected mixed:pi1k2k3 or mixed:pi1pi2k3"),
         },
         "wrong" => KeyVariant::Wrong(val.parse().unwrap_or(1)),
-        _ => bail!("--key-variant {s}: expected partial:P, mixed:pi1k2k3, mixed:pi1pi2k3 or wrong[:SEED]"),
+        _ => bail!(
+            "--key-variant {s}: expected partial:P, mixed:pi1k2k3, mixed:pi1pi2k3 or wrong[:SEED]"
+        ),
     })
 }
 
@@ -131,6 +132,13 @@ pub fn scene_for_key(
         };
     }
     let indices = key.level_indices(&model.net.layout.grid);
-    let grid = rebuild_occupancy(&model.net, &model.params, &indices, model.config.aabb_scale, 1, 0);
+    let grid = rebuild_occupancy(
+        &model.net,
+        &model.params,
+        &indices,
+        model.config.aabb_scale,
+        1,
+        0,
+    );
     Ok((indices, Some(grid)))
 }

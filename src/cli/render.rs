@@ -40,8 +40,15 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--downscale must be at least 1");
     }
     let model = Model::load(&a.model)?;
-    let data = Dataset::load(&a.data, a.split.into(), &LoadOptions { downscale: a.downscale })?;
-    let (indices, rebuilt) = super::scene_for_key(&model, a.key.as_deref(), a.key_variant.as_deref())?;
+    let data = Dataset::load(
+        &a.data,
+        a.split.into(),
+        &LoadOptions {
+            downscale: a.downscale,
+        },
+    )?;
+    let (indices, rebuilt) =
+        super::scene_for_key(&model, a.key.as_deref(), a.key_variant.as_deref())?;
     let grid = rebuilt.as_ref().unwrap_or(&model.grid);
     let view = model.view(&indices, grid);
     ensure_dir(&a.out)?;
@@ -50,14 +57,29 @@ pub fn run(a: Args) -> Result<()> {
         ..Default::default()
     };
     let which = spread_views(data.frames.len(), a.views);
-    let pb = progress(which.len() as u64, "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} views {msg}");
+    let pb = progress(
+        which.len() as u64,
+        "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} views {msg}",
+    );
     for &i in &which {
         let img = render_image(&view, &data.frames[i].camera, &opts);
         let (w, h) = (img.width, img.height);
         save_png_rgb(&a.out.join(format!("rgb_{i:03}.png")), w, h, &img.rgb)?;
         let max_depth = img.depth.iter().cloned().fold(0.0f32, f32::max).max(1e-6);
-        save_png_gray(&a.out.join(format!("depth_{i:03}.png")), w, h, &img.depth, max_depth)?;
-        save_png_gray(&a.out.join(format!("opacity_{i:03}.png")), w, h, &img.opacity, 1.0)?;
+        save_png_gray(
+            &a.out.join(format!("depth_{i:03}.png")),
+            w,
+            h,
+            &img.depth,
+            max_depth,
+        )?;
+        save_png_gray(
+            &a.out.join(format!("opacity_{i:03}.png")),
+            w,
+            h,
+            &img.opacity,
+            1.0,
+        )?;
         pb.inc(1);
     }
     pb.finish_and_clear();

@@ -3,13 +3,13 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::PathBuf;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
-use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::encoding::GridConfig;
+use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::ngp::train::{Schedule, SceneSpec, TrainConfig, Trainer};
+use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ScheduleArg {
@@ -129,11 +129,20 @@ pub fn run(a: Args) -> Result<()> {
         dataset: std::sync::Arc::new(cover),
         indices: reference_indices(&layout.grid),
     }];
-    scenes.extend(super::stego_scenes(&a.hidden, &a.key, &layout, &opts, config.aabb_scale)?);
+    scenes.extend(super::stego_scenes(
+        &a.hidden,
+        &a.key,
+        &layout,
+        &opts,
+        config.aabb_scale,
+    )?);
     let eval_data = if a.checkpoints.is_empty() {
         None
     } else {
-        Some(Dataset::load(&a.scene, Split::Test, &opts).context("loading test views for --checkpoints")?)
+        Some(
+            Dataset::load(&a.scene, Split::Test, &opts)
+                .context("loading test views for --checkpoints")?,
+        )
     };
     let cfg = TrainConfig {
         seed: a.seed,
@@ -148,11 +157,19 @@ pub fn run(a: Args) -> Result<()> {
     };
     let mut trainer = Trainer::new(config, scenes, cfg)?;
     let budget_s = a.minutes.map(|m| m * 60.0);
-    let steps = a.steps.unwrap_or(if budget_s.is_some() { u32::MAX } else { 1000 });
+    let steps = a
+        .steps
+        .unwrap_or(if budget_s.is_some() { u32::MAX } else { 1000 });
     let pb = if let Some(s) = budget_s {
-        progress(s.ceil() as u64, "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len}s {msg}")
+        progress(
+            s.ceil() as u64,
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len}s {msg}",
+        )
     } else {
-        progress(steps as u64, "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}")
+        progress(
+            steps as u64,
+            "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}",
+        )
     };
     let mut train_s = 0.0;
     let (mut samples, mut marched) = (0u64, 0u64);
@@ -169,7 +186,11 @@ pub fn run(a: Args) -> Result<()> {
         phase[0] += st.occupancy_seconds;
         phase[1] += st.rays_seconds;
         phase[2] += st.optimizer_seconds;
-        loss_ema = if trainer.step == 1 { st.loss } else { 0.95 * loss_ema + 0.05 * st.loss };
+        loss_ema = if trainer.step == 1 {
+            st.loss
+        } else {
+            0.95 * loss_ema + 0.05 * st.loss
+        };
         if budget_s.is_some() {
             pb.set_position(train_s as u64);
         } else {

@@ -5,4 +5,4 @@
 pub mod report;
 pub mod runs;
 
-pub use runs::{ExpConfig, KeySchemeArg, run_experiment, EXPERIMENTS};
+pub use runs::{EXPERIMENTS, ExpConfig, KeySchemeArg, run_experiment};

@@ -33,7 +33,13 @@ impl Table {
             return s + "(no rows)\n";
         };
         let cols: Vec<&String> = first.keys().collect();
-        s += &format!("| {} |\n", cols.iter().map(|c| c.as_str()).collect::<Vec<_>>().join(" | "));
+        s += &format!(
+            "| {} |\n",
+            cols.iter()
+                .map(|c| c.as_str())
+                .collect::<Vec<_>>()
+                .join(" | ")
+        );
         s += &format!("|{}\n", "---|".repeat(cols.len()));
         for r in &self.rows {
             let cells: Vec<String> = cols
@@ -88,7 +94,9 @@ impl Report {
         });
         write_atomic(
             &dir.join("report.json"),
-            serde_json::to_string_pretty(&json).unwrap_or_default().as_bytes(),
+            serde_json::to_string_pretty(&json)
+                .unwrap_or_default()
+                .as_bytes(),
         )
     }
 }

@@ -9,7 +9,7 @@ use crate::ngp::model::Model;
 use crate::ngp::network::{ModelConfig, NerfLayout};
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::render::image::{RenderOptions, rebuild_occupancy};
-use crate::ngp::train::{Schedule, SceneSpec, TrainConfig, Trainer};
+use crate::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use crate::stego::{Key, Mixed, generate_prf, generate_primes, key_strength};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -171,17 +171,30 @@ impl Ctx<'_> {
         let grid: &OccupancyGrid = if key.is_reference() {
             &model.grid
         } else {
-            rebuilt = rebuild_occupancy(&model.net, &model.params, &indices, model.config.aabb_scale, 1, self.cfg.seed);
+            rebuilt = rebuild_occupancy(
+                &model.net,
+                &model.params,
+                &indices,
+                model.config.aabb_scale,
+                1,
+                self.cfg.seed,
+            );
             &rebuilt
         };
         let view = model.view(&indices, grid);
         let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
         let mut first = None;
-        let r = evaluate(&view, &scene.test, &self.render_opts(), Some(&which), |_, img, _| {
-            if first.is_none() {
-                first = Some(img.rgb.clone());
-            }
-        });
+        let r = evaluate(
+            &view,
+            &scene.test,
+            &self.render_opts(),
+            Some(&which),
+            |_, img, _| {
+                if first.is_none() {
+                    first = Some(img.rgb.clone());
+                }
+            },
+        );
         (r, first.unwrap_or_default())
     }
 
@@ -231,7 +244,9 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
         return Ok(report);
     }
     if cfg.hidden.is_empty() {
-        return Err(Error::Config("this experiment needs at least one hidden scene".into()));
+        return Err(Error::Config(
+            "this experiment needs at least one hidden scene".into(),
+        ));
     }
     let ctx = Ctx {
         cfg,
@@ -284,7 +299,20 @@ fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         ctx.cfg.scheme.name()
     ));
     let (w, hgt) = ctx.size();
-    save_grid(&ctx.cfg.out.join("fidelity.png"), &[ctx.gt(&ctx.cover), img_pc, img_sc, ctx.gt(h), img_ph, img_sh], w, hgt, 3)?;
+    save_grid(
+        &ctx.cfg.out.join("fidelity.png"),
+        &[
+            ctx.gt(&ctx.cover),
+            img_pc,
+            img_sc,
+            ctx.gt(h),
+            img_ph,
+            img_sh,
+        ],
+        w,
+        hgt,
+        3,
+    )?;
     report.figures.push(("fidelity.png".into(), "Rows: cover, hidden. Columns: ground truth, plain model, stego model (cover without key, hidden with key).".into()));
     Ok(())
 }
@@ -299,11 +327,28 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         let variants = [
             ("default Π", pi.clone()),
             ("secret key", key.clone()),
-            (if scheme == KeySchemeArg::Primes { "{π1,k2,k3}" } else { "1/3 of secret zeroed" }, key.mixed(Mixed::Pi1K2K3)),
-            (if scheme == KeySchemeArg::Primes { "{π1,π2,k3}" } else { "2/3 of secret zeroed" }, key.mixed(Mixed::Pi1Pi2K3)),
+            (
+                if scheme == KeySchemeArg::Primes {
+                    "{π1,k2,k3}"
+                } else {
+                    "1/3 of secret zeroed"
+                },
+                key.mixed(Mixed::Pi1K2K3),
+            ),
+            (
+                if scheme == KeySchemeArg::Primes {
+                    "{π1,π2,k3}"
+                } else {
+                    "2/3 of secret zeroed"
+                },
+                key.mixed(Mixed::Pi1Pi2K3),
+            ),
             ("wrong key", Key::wrong(ctx.cfg.seed ^ 0xbad, &key)),
         ];
-        let mut t = Table::new(&format!("Key sensitivity, {} scheme: PSNR of each rendering against both scenes", scheme.name()));
+        let mut t = Table::new(&format!(
+            "Key sensitivity, {} scheme: PSNR of each rendering against both scenes",
+            scheme.name()
+        ));
         let mut tiles = vec![ctx.gt(&ctx.cover), ctx.gt(h)];
         for (label, k) in &variants {
             let (vs_hidden, img) = ctx.score(&stego.model, k, h);
@@ -316,8 +361,14 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         let (w, hgt) = ctx.size();
         let file = format!("key_sensitivity_{}.png", scheme.name());
         save_grid(&ctx.cfg.out.join(&file), &tiles, w, hgt, tiles.len())?;
-        report.figures.push((file, format!("{}: cover GT, hidden GT, then renderings with: {}", scheme.name(),
-            variants.iter().map(|v| v.0).collect::<Vec<_>>().join(", "))));
+        report.figures.push((
+            file,
+            format!(
+                "{}: cover GT, hidden GT, then renderings with: {}",
+                scheme.name(),
+                variants.iter().map(|v| v.0).collect::<Vec<_>>().join(", ")
+            ),
+        ));
     }
     Ok(())
 }
@@ -326,7 +377,9 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
     let fractions = [0.0, 0.25, 0.5, 0.75, 1.0];
-    let mut t = Table::new("Partial key disclosure: hidden-scene PSNR when the first p % of the m keys are given (the rest replaced by Π)");
+    let mut t = Table::new(
+        "Partial key disclosure: hidden-scene PSNR when the first p % of the m keys are given (the rest replaced by Π)",
+    );
     let (w, hgt) = ctx.size();
     for scheme in [KeySchemeArg::Primes, KeySchemeArg::Prf] {
         for m in [4usize, 8, 16] {
@@ -335,7 +388,11 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
             }
             let key = scheme.generate(m)?;
             ctx.log(&format!("partial-keys: {} m = {m}", scheme.name()));
-            let stego = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi), (h, &key)], &format!("{} m={m}", scheme.name()))?;
+            let stego = ctx.train(
+                ctx.cfg.grid,
+                &[(&ctx.cover, &pi), (h, &key)],
+                &format!("{} m={m}", scheme.name()),
+            )?;
             let (wrong, _) = ctx.score(&stego.model, &Key::wrong(ctx.cfg.seed ^ 0x77, &key), h);
             let mut row = serde_json::Map::new();
             row.insert("scheme".into(), json!(scheme.name()));
@@ -350,7 +407,13 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
             t.push(serde_json::Value::Object(row));
             let file = format!("partial_{}_m{m}.png", scheme.name());
             save_grid(&ctx.cfg.out.join(&file), &tiles, w, hgt, tiles.len())?;
-            report.figures.push((file, format!("{} m = {m}: 0, 25, 50, 75, 100 % of the keys", scheme.name())));
+            report.figures.push((
+                file,
+                format!(
+                    "{} m = {m}: 0, 25, 50, 75, 100 % of the keys",
+                    scheme.name()
+                ),
+            ));
         }
     }
     report.tables.push(t);
@@ -364,7 +427,9 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let (w, hgt) = ctx.size();
     let mut tiles = vec![];
     for phi in 1..=4usize {
-        let keys: Vec<Key> = (0..phi).map(|_| ctx.cfg.scheme.generate(1)).collect::<Result<_>>()?;
+        let keys: Vec<Key> = (0..phi)
+            .map(|_| ctx.cfg.scheme.generate(1))
+            .collect::<Result<_>>()?;
         let mut scenes: Vec<(&Scene, &Key)> = vec![(&ctx.cover, &pi)];
         for (i, k) in keys.iter().enumerate() {
             scenes.push((ctx.hidden(i), k));
@@ -385,12 +450,18 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
                 tiles.push(img);
             }
         }
-        row.insert("hidden mean".into(), json!(hs.iter().sum::<f64>() / hs.len() as f64));
+        row.insert(
+            "hidden mean".into(),
+            json!(hs.iter().sum::<f64>() / hs.len() as f64),
+        );
         t.push(serde_json::Value::Object(row));
     }
     report.tables.push(t);
     save_grid(&ctx.cfg.out.join("multi_hidden.png"), &tiles, w, hgt, 2)?;
-    report.figures.push(("multi_hidden.png".into(), "Rows Φ = 1..4: the cover without key, hidden scene 1 with its key".into()));
+    report.figures.push((
+        "multi_hidden.png".into(),
+        "Rows Φ = 1..4: the cover without key, hidden scene 1 with its key".into(),
+    ));
     Ok(())
 }
 
@@ -405,7 +476,11 @@ fn table_size(ctx: &Ctx, report: &mut Report) -> Result<()> {
             ..ctx.cfg.grid
         };
         ctx.log(&format!("table-size: T = 2^{log2_t}"));
-        let m = ctx.train(grid, &[(&ctx.cover, &pi), (h, &key)], &format!("T=2^{log2_t}"))?;
+        let m = ctx.train(
+            grid,
+            &[(&ctx.cover, &pi), (h, &key)],
+            &format!("T=2^{log2_t}"),
+        )?;
         let (c, _) = ctx.score(&m.model, &pi, &ctx.cover);
         let (hs, _) = ctx.score(&m.model, &key, h);
         t.push(json!({"T": format!("2^{log2_t}"), "params": m.model.net.layout.n_params, "cover_psnr": c.psnr,
@@ -424,12 +499,17 @@ fn key_strength_report(cfg: &ExpConfig, report: &mut Report) -> Result<()> {
     for (label, key) in [
         ("primes m=1", generate_primes(1)?),
         ("primes m=4", generate_primes(4)?),
-        ("primes m=16", generate_primes(16.min(cfg.grid.n_levels as usize))?),
+        (
+            "primes m=16",
+            generate_primes(16.min(cfg.grid.n_levels as usize))?,
+        ),
         ("prf", generate_prf(1)?),
     ] {
         let s = key_strength(&key, &layout.grid);
-        t.push(json!({"key": label, "scheme": s.scheme, "m": s.m, "total_bits": s.total_bits,
-            "per_level_oracle_bits": s.oracle_bits, "paper_claim_bits": s.paper_claim_bits}));
+        t.push(
+            json!({"key": label, "scheme": s.scheme, "m": s.m, "total_bits": s.total_bits,
+            "per_level_oracle_bits": s.oracle_bits, "paper_claim_bits": s.paper_claim_bits}),
+        );
     }
     report.tables.push(t);
     report.notes.push("total_bits: brute-force work for the whole key set; per_level_oracle_bits: work when each level group can be attacked on its own (the paper's partial-key table shows PSNR rises with each correct key, which is such an oracle for `primes`).".into());

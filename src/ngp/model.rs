@@ -2,13 +2,13 @@
 //! occupancy grid, stored as an instant-ngp snapshot.
 
 use crate::error::{Error, Result};
+use crate::ngp::data::Dataset;
 use crate::ngp::encoding::LevelIndices;
 use crate::ngp::network::ModelConfig;
 use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::render::image::SceneView;
 use crate::ngp::render::march::Marcher;
-use crate::ngp::data::Dataset;
 use crate::ngp::snapshot::{self, DatasetImage, Lens, Snapshot, SnapshotDataset};
 use crate::ngp::train::Trainer;
 use std::path::Path;

@@ -223,7 +223,10 @@ impl OccupancyGrid {
             (0..n)
                 .into_par_iter()
                 .map(|i| {
-                    let mut rng = Pcg32::new(seed ^ ((step as u64) << 32), stream * 0x1_0000_0000 + i as u64);
+                    let mut rng = Pcg32::new(
+                        seed ^ ((step as u64) << 32),
+                        stream * 0x1_0000_0000 + i as u64,
+                    );
                     let level = (rng.next_f32() * nc as f32) as usize % nc;
                     let mut idx = 0u32;
                     for j in 0..10u32 {
@@ -312,18 +315,15 @@ impl OccupancyGrid {
         self.mean = (sum / N_CELLS as f64) as f32;
         let thresh = MIN_OPTICAL_THICKNESS.min(self.mean);
         let density = &self.density;
-        self.bitfield
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(i, b)| {
-                let mut bits = 0u8;
-                for j in 0..8 {
-                    if density[i * 8 + j] > thresh {
-                        bits |= 1 << j;
-                    }
+        self.bitfield.par_iter_mut().enumerate().for_each(|(i, b)| {
+            let mut bits = 0u8;
+            for j in 0..8 {
+                if density[i * 8 + j] > thresh {
+                    bits |= 1 << j;
                 }
-                *b = bits;
-            });
+            }
+            *b = bits;
+        });
         let per_mip = N_CELLS / 8;
         for level in 1..self.n_cascades {
             let (fine, coarse) = self.bitfield.split_at_mut(level * per_mip);
@@ -457,7 +457,10 @@ mod tests {
         g.update_bitfield();
         let pos = [(10.5) / 128.0, 20.5 / 128.0, 30.5 / 128.0];
         assert!(g.is_occupied(pos, 0));
-        assert!(g.is_occupied(pos, 1), "mip 1 must contain the pooled fine bit");
+        assert!(
+            g.is_occupied(pos, 1),
+            "mip 1 must contain the pooled fine bit"
+        );
         assert!(g.is_occupied(pos, 2));
         assert!(!g.is_occupied([0.9, 0.9, 0.9], 1));
     }

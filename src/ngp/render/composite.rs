@@ -156,7 +156,13 @@ mod tests {
         assert!((c.transmittance - (1.0 - alpha)).abs() < 1e-6);
         assert_eq!(c.n_used, 1);
         // A ray stops once T < min: the second sample is not used.
-        let c = composite(&[[0.0, 0.0, 0.0, 10.0], [5.0; 4]], &[1.0, 1.0], &[1.0, 2.0], 1.0, 1e-4);
+        let c = composite(
+            &[[0.0, 0.0, 0.0, 10.0], [5.0; 4]],
+            &[1.0, 1.0],
+            &[1.0, 2.0],
+            1.0,
+            1e-4,
+        );
         assert_eq!(c.n_used, 1);
     }
 

@@ -3,7 +3,7 @@
 //! drops below a threshold, over a background colour.
 
 use super::composite::composite;
-use super::march::Marcher;
+use super::march::{Marcher, advance_n_steps};
 use crate::ngp::camera::Camera;
 use crate::ngp::encoding::LevelIndices;
 use crate::ngp::network::nerf::{CHUNK, NerfNetwork};
@@ -77,7 +77,18 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
         .zip(opacity.par_chunks_mut(rows))
         .enumerate()
         .map_init(
-            || (view.net.workspace(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new()),
+            || {
+                (
+                    view.net.workspace(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                    Vec::new(),
+                )
+            },
             |(ws, live, pos, dir, dts, dist, raw, owner), (task, ((rgb, depth), opacity))| {
                 let first = task * rows;
                 live.clear();
@@ -86,11 +97,15 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                     let (x, y) = ((p % w as usize) as f32 + 0.5, (p / w as usize) as f32 + 0.5);
                     let ray = cam.ray(x, y);
                     if let Some((t0, _)) = view.marcher.intersect(ray.o, ray.d) {
+                        // Start half a step inside the box: the entry point itself may
+                        // round to just outside it and end the ray at once (the reference
+                        // also starts at a fractional step).
+                        let t = advance_n_steps(t0, view.marcher.cone_angle, 0.5);
                         live.push(LiveRay {
                             pixel: k,
                             o: ray.o,
                             d: ray.d,
-                            t: t0,
+                            t,
                             tr: 1.0,
                             rgb: [0.0; 3],
                             depth: 0.0,
@@ -129,13 +144,26 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                     raw.resize(pos.len(), [0.0f32; 4]);
                     for (k, (p, d)) in pos.chunks(CHUNK).zip(dir.chunks(CHUNK)).enumerate() {
                         let s = k * CHUNK;
-                        view.net.forward(view.params, view.indices, p, d, ws, &mut raw[s..s + p.len()]);
+                        view.net.forward(
+                            view.params,
+                            view.indices,
+                            p,
+                            d,
+                            ws,
+                            &mut raw[s..s + p.len()],
+                        );
                     }
                     n_samples += pos.len() as u64;
                     for &(li, start, got) in owner.iter() {
                         let r = &mut live[li];
                         let s = start..start + got;
-                        let c = composite(&raw[s.clone()], &dts[s.clone()], &dist[s], r.tr, opts.min_transmittance);
+                        let c = composite(
+                            &raw[s.clone()],
+                            &dts[s.clone()],
+                            &dist[s],
+                            r.tr,
+                            opts.min_transmittance,
+                        );
                         for k in 0..3 {
                             r.rgb[k] += c.rgb[k];
                         }

@@ -208,13 +208,31 @@ mod tests {
         // Along +x through the centre: the cube is 1 long, so 1/step ≈ 591 samples.
         let (t0, _) = m.intersect([-1.0, 0.5, 0.5], [1.0, 0.0, 0.0]).unwrap();
         assert!((t0 - 1.0).abs() < 1e-6);
-        let r = m.march(&grid, [-1.0, 0.5, 0.5], [1.0, 0.0, 0.0], t0, 2000, &mut p, &mut dt, &mut ts);
+        let r = m.march(
+            &grid,
+            [-1.0, 0.5, 0.5],
+            [1.0, 0.0, 0.0],
+            t0,
+            2000,
+            &mut p,
+            &mut dt,
+            &mut ts,
+        );
         assert!(r.is_none());
         assert_eq!(p.len(), (1.0 / MIN_CONE_STEPSIZE).floor() as usize + 1);
         assert!(p.iter().all(|q| (0.0..=1.0).contains(&q[0])));
         // The sample budget is honoured and marching resumes where it stopped.
         let (mut p2, mut dt2, mut ts2) = (vec![], vec![], vec![]);
-        let r = m.march(&grid, [-1.0, 0.5, 0.5], [1.0, 0.0, 0.0], t0, 10, &mut p2, &mut dt2, &mut ts2);
+        let r = m.march(
+            &grid,
+            [-1.0, 0.5, 0.5],
+            [1.0, 0.0, 0.0],
+            t0,
+            10,
+            &mut p2,
+            &mut dt2,
+            &mut ts2,
+        );
         assert_eq!(p2.len(), 10);
         assert!((r.unwrap() - (t0 + 10.0 * MIN_CONE_STEPSIZE)).abs() < 1e-5);
     }
@@ -229,7 +247,16 @@ mod tests {
         grid.density[cell] = 1.0;
         grid.update_bitfield();
         let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
-        m.march(&grid, [-1.0, 0.502, 0.502], [1.0, 0.0, 0.0], 1.0, 2000, &mut p, &mut dt, &mut ts);
+        m.march(
+            &grid,
+            [-1.0, 0.502, 0.502],
+            [1.0, 0.0, 0.0],
+            1.0,
+            2000,
+            &mut p,
+            &mut dt,
+            &mut ts,
+        );
         // 1/128 / step = 4.6 → 4 or 5 samples, all inside the cell.
         assert!((4..=5).contains(&p.len()), "{} samples", p.len());
         assert!(p.iter().all(|q| q[0] >= 0.5 && q[0] < 65.0 / 128.0));

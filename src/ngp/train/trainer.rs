@@ -286,15 +286,18 @@ impl Trainer {
             let seed = mix(mix(self.config.seed, step as u64), si as u64 + 1);
             let net = &self.net;
             let params = &self.params;
-            self.workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
-                let r0 = n_rays * w / n_workers;
-                let r1 = n_rays * (w + 1) / n_workers;
-                worker.loss = 0.0;
-                worker.n_samples = 0;
-                worker.n_marched = 0;
-                worker.n_rays = 0;
-                train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
-            });
+            self.workers
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(w, worker)| {
+                    let r0 = n_rays * w / n_workers;
+                    let r1 = n_rays * (w + 1) / n_workers;
+                    worker.loss = 0.0;
+                    worker.n_samples = 0;
+                    worker.n_marched = 0;
+                    worker.n_rays = 0;
+                    train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
+                });
             let mut loss = 0.0;
             let (mut used, mut marched) = (0, 0);
             for w in &self.workers {
@@ -311,7 +314,8 @@ impl Trainer {
             scene.measured_samples = used as u32;
             scene.measured_marched = marched as u32;
             let target = self.config.batch_samples as f64;
-            let rays = (n_rays as f64 * target / (used.max(1) as f64)).clamp(64.0, (1 << 18) as f64);
+            let rays =
+                (n_rays as f64 * target / (used.max(1) as f64)).clamp(64.0, (1 << 18) as f64);
             scene.rays_per_batch = ((rays as u32).div_ceil(64) * 64).max(64);
         }
         let t_rays = t0.elapsed().as_secs_f64();
@@ -440,7 +444,13 @@ fn train_rays(
         }
         for ray in &w.rays {
             let r = ray.start..ray.start + ray.n;
-            let c = composite(&w.raw[r.clone()], &w.dt[r.clone()], &w.dist[r.clone()], 1.0, TRAIN_MIN_TRANSMITTANCE);
+            let c = composite(
+                &w.raw[r.clone()],
+                &w.dt[r.clone()],
+                &w.dist[r.clone()],
+                1.0,
+                TRAIN_MIN_TRANSMITTANCE,
+            );
             let pred = [
                 c.rgb[0] + c.transmittance * ray.bg[0],
                 c.rgb[1] + c.transmittance * ray.bg[1],
@@ -463,7 +473,13 @@ fn train_rays(
         }
         for k in 0..n_chunks {
             let r = k * CHUNK..((k + 1) * CHUNK).min(total);
-            net.backward(params, &scene.indices, &w.d_raw[r], &mut w.ws[k], &mut w.grad);
+            net.backward(
+                params,
+                &scene.indices,
+                &w.d_raw[r],
+                &mut w.ws[k],
+                &mut w.grad,
+            );
         }
     }
 }
