@@ -15,6 +15,14 @@ use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 const RES: u32 = 40;
 
+/// The paper's grid with a 2^16 table: the same code paths (dense and hashed levels) at an
+/// eighth of the parameters, so the tests fit CI's two cores.
+fn model_config() -> ModelConfig {
+    let mut c = ModelConfig::default();
+    c.grid.log2_hashmap_size = 16;
+    c
+}
+
 fn scene(dir: &std::path::Path, kind: SceneKind, seed: u64) -> (Dataset, Dataset) {
     generate(
         &SynthOptions {
@@ -38,7 +46,7 @@ fn scene(dir: &std::path::Path, kind: SceneKind, seed: u64) -> (Dataset, Dataset
 fn config() -> TrainConfig {
     TrainConfig {
         seed: 7,
-        batch_samples: 1 << 13,
+        batch_samples: 1 << 15,
         occupancy_fraction: 1.0 / 32.0,
         ..Default::default()
     }
@@ -68,7 +76,7 @@ fn plain_training_reaches_threshold_and_is_deterministic() {
     let dir = tempfile::tempdir().unwrap();
     let (train, test) = scene(dir.path(), SceneKind::Object, 3);
     let train = Arc::new(train);
-    let cfg = ModelConfig::default();
+    let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
     let make = || {
         Trainer::new(
@@ -91,10 +99,11 @@ fn plain_training_reaches_threshold_and_is_deterministic() {
     let model = Model::from_trainer(&t, 0.0);
     let p = psnr_of(&model, None, &test);
     eprintln!("untrained {p0:.2} dB, trained {p:.2} dB");
-    // An untrained model renders a grey haze (~10 dB on white); 250 small steps must
-    // reconstruct the object's shape and colours on held-out views.
-    assert!(p > 22.0, "trained PSNR {p:.2} dB");
-    assert!(p > p0 + 8.0);
+    // An untrained model renders a grey haze (8 dB on white); 250 steps reach ~22 dB on
+    // these held-out views (measured), so 19 dB leaves margin for run-to-run noise while
+    // failing any broken gradient, marching or compositing path.
+    assert!(p > 19.0, "trained PSNR {p:.2} dB");
+    assert!(p > p0 + 10.0);
 
     // Same seed, same steps: bit-identical weights and rendering.
     let mut a = make();
@@ -116,7 +125,7 @@ fn stego_model_hides_scene_behind_key() {
     let dir = tempfile::tempdir().unwrap();
     let (ctrain, ctest) = scene(&dir.path().join("cover"), SceneKind::Object, 3);
     let (htrain, htest) = scene(&dir.path().join("hidden"), SceneKind::Text("HI".into()), 4);
-    let cfg = ModelConfig::default();
+    let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
     let key = generate_prf(1).unwrap();
     let mut t = Trainer::new(
@@ -145,9 +154,10 @@ fn stego_model_hides_scene_behind_key() {
     eprintln!(
         "cover {cover:.2}, hidden with key {hidden:.2}, without {hidden_no_key:.2}, wrong key {wrong:.2}"
     );
-    assert!(cover > 20.0, "cover {cover:.2}");
+    // Measured: cover ~22 dB, hidden with key ~25 dB, without key ~8 dB, wrong key ~11 dB.
+    assert!(cover > 18.0, "cover {cover:.2}");
     assert!(hidden > 20.0, "hidden with key {hidden:.2}");
-    // Without the key the hidden views are rendered as the cover: far from the text.
-    assert!(hidden > hidden_no_key + 5.0);
-    assert!(hidden > wrong + 5.0);
+    // Without the key the hidden views show the cover, with a wrong key noise.
+    assert!(hidden > hidden_no_key + 8.0);
+    assert!(hidden > wrong + 8.0);
 }

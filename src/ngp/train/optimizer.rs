@@ -48,13 +48,47 @@ pub struct Optimizer {
     v: Vec<f32>,
     steps: Vec<u32>,
     ema: Vec<f32>,
+    /// Per group of [`GROUP`] parameters: the step its EMA was last brought up to date.
+    /// Untouched groups keep constant weights, so their EMA catches up lazily in closed form.
+    ema_step: Vec<u32>,
     /// Global step count (number of `step` calls).
     pub step: u32,
     /// `sqrt(1 − β2^t) / (1 − β1^t)` for t = 0..=step.
     correction: Vec<f32>,
+    /// `ema_decay^k` for k = 0..=step.
+    decay_pow: Vec<f32>,
 }
 
+/// Parameters per touched-bitmap bit: hashed levels scatter a batch over most 64-float
+/// lines, so only a fine granularity lets untouched entries be skipped.
+pub const GROUP: usize = 4;
 const BLOCK: usize = 1 << 14;
+
+/// One bit per [`GROUP`] parameters: which groups a worker's gradient touched.
+#[derive(Clone, Debug, Default)]
+pub struct Touched {
+    bits: Vec<u64>,
+}
+
+impl Touched {
+    pub fn new(n_params: usize) -> Self {
+        Touched {
+            bits: vec![0; n_params.div_ceil(GROUP).div_ceil(64)],
+        }
+    }
+    #[inline]
+    pub fn mark(&mut self, param: usize) {
+        let g = param / GROUP;
+        self.bits[g / 64] |= 1 << (g % 64);
+    }
+    #[inline]
+    fn get(&self, group: usize) -> bool {
+        self.bits[group / 64] >> (group % 64) & 1 != 0
+    }
+    pub fn clear(&mut self) {
+        self.bits.fill(0);
+    }
+}
 
 impl Optimizer {
     pub fn new(config: OptimizerConfig, n_params: usize, n_matrix: usize) -> Self {
@@ -65,8 +99,10 @@ impl Optimizer {
             v: vec![0.0; n_params],
             steps: vec![0; n_params],
             ema: vec![0.0; n_params],
+            ema_step: vec![0; n_params.div_ceil(GROUP)],
             step: 0,
             correction: vec![0.0],
+            decay_pow: vec![1.0],
         }
     }
 
@@ -81,9 +117,17 @@ impl Optimizer {
         lr
     }
 
-    /// One update. `grads` are per-thread gradient buffers (summed in order, then zeroed).
-    pub fn step(&mut self, params: &mut [f32], grads: &mut [Vec<f32>]) {
+    /// One update. `grads` are per-worker gradient buffers (summed in order, then zeroed);
+    /// `touched` says which groups of each buffer may be non-zero (`None`: all of them).
+    /// Groups no worker touched are skipped entirely (beyond the MLP weights).
+    pub fn step(
+        &mut self,
+        params: &mut [f32],
+        grads: &mut [Vec<f32>],
+        touched: Option<&[Touched]>,
+    ) {
         let c = self.config;
+        let lr = self.learning_rate();
         self.step += 1;
         let t = self.step as usize;
         while self.correction.len() <= t {
@@ -91,16 +135,16 @@ impl Optimizer {
             let b1 = 1.0 - (c.beta1 as f64).powi(k);
             let b2 = 1.0 - (c.beta2 as f64).powi(k);
             self.correction.push((b2.sqrt() / b1) as f32);
+            self.decay_pow.push((c.ema_decay as f64).powi(k) as f32);
         }
-        let lr = {
-            self.step -= 1;
-            let lr = self.learning_rate();
-            self.step += 1;
-            lr
-        };
+        let step = self.step;
         let correction = &self.correction;
+        let decay_pow = &self.decay_pow;
         let n_matrix = self.n_matrix;
         let n = params.len();
+        for g in grads.iter() {
+            assert_eq!(g.len(), n, "gradient buffer size");
+        }
         // Raw pointers let each block take disjoint slices of every gradient buffer.
         let grad_ptrs: Vec<usize> = grads.iter_mut().map(|g| g.as_mut_ptr() as usize).collect();
         params
@@ -109,44 +153,57 @@ impl Optimizer {
             .zip(self.v.par_chunks_mut(BLOCK))
             .zip(self.steps.par_chunks_mut(BLOCK))
             .zip(self.ema.par_chunks_mut(BLOCK))
+            .zip(self.ema_step.par_chunks_mut(BLOCK / GROUP))
             .enumerate()
-            .for_each(|(b, ((((w, m), v), st), ema))| {
+            .for_each(|(b, (((((w, m), v), st), ema), es))| {
                 let start = b * BLOCK;
                 let len = w.len();
                 debug_assert!(start + len <= n);
-                // SAFETY: blocks are disjoint and each buffer has n elements.
-                let gs: Vec<&mut [f32]> = grad_ptrs
+                // SAFETY: blocks are disjoint and every buffer holds n elements (asserted).
+                let mut gs: Vec<&mut [f32]> = grad_ptrs
                     .iter()
                     .map(|&p| unsafe {
                         std::slice::from_raw_parts_mut((p as *mut f32).add(start), len)
                     })
                     .collect();
-                for i in 0..len {
-                    let mut g = 0.0f32;
-                    for gb in gs.iter() {
-                        g += gb[i];
+                for (gi, g0) in (0..len).step_by(GROUP).enumerate() {
+                    let group = start / GROUP + gi;
+                    let g1 = (g0 + GROUP).min(len);
+                    let matrix = start + g0 < n_matrix;
+                    let active = matrix || touched.is_none_or(|ts| ts.iter().any(|t| t.get(group)));
+                    if !active {
+                        continue;
                     }
-                    let global = start + i;
-                    let matrix = global < n_matrix;
-                    if matrix || g != 0.0 {
-                        if matrix {
-                            g += c.l2_reg * w[i];
+                    // Bring the EMA up to the previous step: w was constant since es[gi].
+                    let lag = (step - 1 - es[gi]) as usize;
+                    if lag > 0 {
+                        let k = decay_pow[lag];
+                        for i in g0..g1 {
+                            ema[i] = w[i] + (ema[i] - w[i]) * k;
                         }
-                        st[i] += 1;
-                        m[i] = c.beta1 * m[i] + (1.0 - c.beta1) * g;
-                        v[i] = c.beta2 * v[i] + (1.0 - c.beta2) * g * g;
-                        let lr_eff = lr * correction[st[i] as usize];
-                        w[i] -= lr_eff * m[i] / (v[i].sqrt() + c.epsilon);
                     }
-                    ema[i] = c.ema_decay * ema[i] + (1.0 - c.ema_decay) * w[i];
-                }
-                for gb in gs {
-                    gb.fill(0.0);
+                    es[gi] = step;
+                    for i in g0..g1 {
+                        let mut g = 0.0f32;
+                        for gb in gs.iter_mut() {
+                            g += gb[i];
+                            gb[i] = 0.0;
+                        }
+                        let is_matrix = start + i < n_matrix;
+                        if is_matrix || g != 0.0 {
+                            if is_matrix {
+                                g += c.l2_reg * w[i];
+                            }
+                            st[i] += 1;
+                            m[i] = c.beta1 * m[i] + (1.0 - c.beta1) * g;
+                            v[i] = c.beta2 * v[i] + (1.0 - c.beta2) * g * g;
+                            let lr_eff = lr * correction[st[i] as usize];
+                            w[i] -= lr_eff * m[i] / (v[i].sqrt() + c.epsilon);
+                        }
+                        ema[i] = c.ema_decay * ema[i] + (1.0 - c.ema_decay) * w[i];
+                    }
                 }
             });
-        for g in grads.iter() {
-            debug_assert_eq!(g.len(), n);
-        }
     }
 
     /// The debiased EMA of the weights: what renders and what a snapshot stores.
@@ -156,7 +213,19 @@ impl Optimizer {
         }
         let debias = 1.0 - (self.config.ema_decay as f64).powi(self.step as i32);
         let k = (1.0 / debias) as f32;
-        self.ema.par_iter().map(|&e| e * k).collect()
+        let mut out = vec![0.0f32; params.len()];
+        out.par_chunks_mut(GROUP)
+            .zip(self.ema.par_chunks(GROUP))
+            .zip(params.par_chunks(GROUP))
+            .zip(self.ema_step.par_iter())
+            .for_each(|(((o, e), w), &es)| {
+                let lag = (self.step - es) as usize;
+                let d = self.decay_pow[lag];
+                for i in 0..o.len() {
+                    o[i] = (w[i] + (e[i] - w[i]) * d) * k;
+                }
+            });
+        out
     }
 }
 
@@ -173,7 +242,7 @@ mod tests {
         let mut opt = Optimizer::new(cfg, 3, 1);
         let mut w = vec![1.0f32, 2.0, 3.0];
         let mut grads = vec![vec![0.5f32, 0.0, 0.25], vec![0.5f32, 0.0, 0.25]];
-        opt.step(&mut w, &mut grads);
+        opt.step(&mut w, &mut grads, None);
         // First Adam step moves each parameter by lr·g/|g| = 0.01 against the gradient.
         assert!((w[0] - 0.99).abs() < 1e-6, "{}", w[0]);
         assert_eq!(w[1], 2.0, "zero-gradient grid entry must stay untouched");
@@ -182,7 +251,7 @@ mod tests {
         assert_eq!(opt.steps, vec![1, 0, 1]);
         // A matrix parameter is updated even with zero gradient (and counts the step).
         let mut grads = vec![vec![0.0f32; 3]];
-        opt.step(&mut w, &mut grads);
+        opt.step(&mut w, &mut grads, None);
         assert_eq!(opt.steps, vec![2, 0, 1]);
         // EMA debiased after 2 steps: weights near 0.99 → EMA ≈ weights.
         let e = opt.ema_params(&w);
@@ -198,13 +267,49 @@ mod tests {
         };
         let mut opt = Optimizer::new(cfg, 1, 0);
         let mut w = vec![0.0f32];
-        opt.step(&mut w, &mut [vec![1.0]]);
-        opt.step(&mut w, &mut [vec![-1.0]]);
+        opt.step(&mut w, &mut [vec![1.0]], None);
+        opt.step(&mut w, &mut [vec![-1.0]], None);
         // By hand: m2 = 0.9·0.1 − 0.1 = −0.01, v2 = 0.99·0.01 + 0.01 = 0.0199,
         // lr_eff = 0.01·sqrt(1 − 0.99²)/(1 − 0.9²), step = lr_eff·m2/sqrt(v2).
         let lr_eff = 0.01 * (1.0f64 - 0.99f64.powi(2)).sqrt() / (1.0 - 0.81);
         let want = -0.01 - lr_eff * (-0.01) / 0.0199f64.sqrt();
         assert!((w[0] as f64 - want).abs() < 1e-6, "{} vs {want}", w[0]);
+    }
+
+    #[test]
+    fn touched_groups_and_lazy_ema_match_the_dense_update() {
+        // 4 groups; matrix = first 10 params. Worker 0 touches group 2, worker 1 nothing.
+        let n = 4 * GROUP;
+        let cfg = OptimizerConfig::default();
+        let mut dense = Optimizer::new(cfg, n, 10);
+        let mut sparse = Optimizer::new(cfg, n, 10);
+        let mut wd: Vec<f32> = (0..n).map(|i| (i as f32 * 0.37).sin()).collect();
+        let mut ws = wd.clone();
+        for step in 0..5 {
+            let mut g0 = vec![0.0f32; n];
+            for i in [3usize, 2 * GROUP + 5, 2 * GROUP + 6] {
+                g0[i] = 0.1 * (step as f32 + 1.0) * if i % 2 == 0 { 1.0 } else { -1.0 };
+            }
+            let mut t0 = Touched::new(n);
+            t0.mark(3);
+            t0.mark(2 * GROUP + 5);
+            let t1 = Touched::new(n);
+            let mut gd = vec![g0.clone(), vec![0.0; n]];
+            let mut gs = vec![g0, vec![0.0; n]];
+            dense.step(&mut wd, &mut gd, None);
+            sparse.step(&mut ws, &mut gs, Some(&[t0, t1]));
+            assert!(gs.iter().all(|g| g.iter().all(|&x| x == 0.0)));
+        }
+        assert_eq!(wd, ws);
+        let (ed, es) = (dense.ema_params(&wd), sparse.ema_params(&ws));
+        for i in 0..n {
+            assert!(
+                (ed[i] - es[i]).abs() <= 1e-6 * ed[i].abs().max(1.0),
+                "param {i}: {} vs {}",
+                ed[i],
+                es[i]
+            );
+        }
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! split into one fixed range per worker, each with its own gradient buffer, summed in a
 //! fixed order: the result is deterministic for a seed and worker count.
 
-use super::optimizer::{Optimizer, OptimizerConfig};
+use super::optimizer::{Optimizer, OptimizerConfig, Touched};
 use crate::error::{Error, Result};
 use crate::ngp::data::Dataset;
 use crate::ngp::encoding::LevelIndices;
@@ -96,6 +96,7 @@ pub struct StepStats {
 /// Per-worker scratch, allocated once and reused every step.
 struct Worker {
     grad: Vec<f32>,
+    touched: Touched,
     ws: Vec<Workspace>,
     pos: Vec<[f32; 3]>,
     dir: Vec<[f32; 3]>,
@@ -104,6 +105,10 @@ struct Worker {
     raw: Vec<[f32; 4]>,
     d_raw: Vec<[f32; 4]>,
     rays: Vec<RayRec>,
+    wave_pos: Vec<[f32; 3]>,
+    wave_owner: Vec<(usize, usize)>,
+    wave_dens: Vec<f32>,
+    ray_state: Vec<(f32, usize, bool)>,
     loss: f64,
     n_samples: u64,
     n_marched: u64,
@@ -192,6 +197,7 @@ impl Trainer {
         let workers = (0..n_workers)
             .map(|_| Worker {
                 grad: vec![0.0; params.len()],
+                touched: Touched::new(params.len()),
                 ws: Vec::new(),
                 pos: Vec::new(),
                 dir: Vec::new(),
@@ -200,6 +206,10 @@ impl Trainer {
                 raw: Vec::new(),
                 d_raw: Vec::new(),
                 rays: Vec::new(),
+                wave_pos: Vec::new(),
+                wave_owner: Vec::new(),
+                wave_dens: Vec::new(),
+                ray_state: Vec::new(),
                 loss: 0.0,
                 n_samples: 0,
                 n_marched: 0,
@@ -324,9 +334,17 @@ impl Trainer {
             .iter_mut()
             .map(|w| std::mem::take(&mut w.grad))
             .collect();
-        self.optimizer.step(&mut self.params, &mut grads);
-        for (w, g) in self.workers.iter_mut().zip(grads) {
+        let touched: Vec<Touched> = self
+            .workers
+            .iter_mut()
+            .map(|w| std::mem::take(&mut w.touched))
+            .collect();
+        self.optimizer
+            .step(&mut self.params, &mut grads, Some(&touched));
+        for ((w, g), mut t) in self.workers.iter_mut().zip(grads).zip(touched) {
             w.grad = g;
+            t.clear();
+            w.touched = t;
         }
         self.step += 1;
         stats.seconds = t0.elapsed().as_secs_f64();
@@ -358,6 +376,91 @@ pub fn density_batch(
     out
 }
 
+/// Samples evaluated per live ray per density wave.
+const WAVE: usize = 12;
+
+/// Finds where each ray of the group stops (transmittance < 1e-4) with density-only
+/// evaluations in waves along the rays, so that the full network forward and backward run
+/// only on samples that reach the loss — the reference's compaction, without evaluating
+/// every marched sample. Leaves the number of used samples in `ray_state[r].1`.
+fn find_termination(net: &NerfNetwork, params: &[f32], scene: &SceneState, w: &mut Worker) {
+    w.ray_state.clear();
+    w.ray_state
+        .extend(w.rays.iter().map(|_| (1.0f32, 0usize, false)));
+    if w.ws.is_empty() {
+        w.ws.push(net.workspace());
+    }
+    loop {
+        w.wave_pos.clear();
+        w.wave_owner.clear();
+        for (r, ray) in w.rays.iter().enumerate() {
+            let (_, next, done) = w.ray_state[r];
+            if done {
+                continue;
+            }
+            let m = WAVE.min(ray.n - next);
+            let s = ray.start + next;
+            w.wave_pos.extend_from_slice(&w.pos[s..s + m]);
+            w.wave_owner.push((r, m));
+        }
+        if w.wave_pos.is_empty() {
+            break;
+        }
+        w.wave_dens.resize(w.wave_pos.len(), 0.0);
+        for (k, chunk) in w.wave_pos.chunks(CHUNK).enumerate() {
+            let o = k * CHUNK;
+            net.density(
+                params,
+                &scene.indices,
+                chunk,
+                &mut w.ws[0],
+                &mut w.wave_dens[o..o + chunk.len()],
+            );
+        }
+        let mut at = 0;
+        for &(r, m) in &w.wave_owner {
+            let ray = w.rays[r];
+            let st = &mut w.ray_state[r];
+            for j in 0..m {
+                let sigma = w.wave_dens[at + j].exp();
+                let alpha = 1.0 - (-sigma * w.dt[ray.start + st.1]).exp();
+                st.0 *= 1.0 - alpha;
+                st.1 += 1;
+                if st.0 < TRAIN_MIN_TRANSMITTANCE {
+                    st.2 = true;
+                    break;
+                }
+            }
+            if st.1 == ray.n {
+                st.2 = true;
+            }
+            at += m;
+        }
+    }
+}
+
+/// Keeps only each ray's used samples, moving them down in place.
+fn compact(w: &mut Worker) {
+    let mut out = 0;
+    for (r, ray) in w.rays.iter_mut().enumerate() {
+        let used = w.ray_state[r].1;
+        for j in 0..used {
+            let (from, to) = (ray.start + j, out + j);
+            w.pos[to] = w.pos[from];
+            w.dir[to] = w.dir[from];
+            w.dt[to] = w.dt[from];
+            w.dist[to] = w.dist[from];
+        }
+        ray.start = out;
+        ray.n = used;
+        out += used;
+    }
+    w.pos.truncate(out);
+    w.dir.truncate(out);
+    w.dt.truncate(out);
+    w.dist.truncate(out);
+}
+
 /// Marches, evaluates and backpropagates rays `range` of a batch of `n_rays` into the
 /// worker's gradient buffer.
 fn train_rays(
@@ -370,6 +473,8 @@ fn train_rays(
     w: &mut Worker,
 ) {
     let n_images = scene.data.frames.len();
+    let n_levels = net.layout.grid.levels.len();
+    let grid_offset = net.layout.grid_offset;
     let loss_norm = 1.0 / (3.0 * n_rays as f32);
     let mut next = range.start;
     while next < range.end {
@@ -421,10 +526,14 @@ fn train_rays(
                 target,
             });
         }
-        let total = w.pos.len();
-        if total == 0 {
+        if w.pos.is_empty() {
             continue;
         }
+        let marched = w.pos.len();
+        find_termination(net, params, scene, w);
+        compact(w);
+        w.n_marched += marched as u64;
+        let total = w.pos.len();
         let n_chunks = total.div_ceil(CHUNK);
         while w.ws.len() < n_chunks {
             w.ws.push(net.workspace());
@@ -468,7 +577,6 @@ fn train_rays(
                 &mut w.d_raw[r],
             );
             w.n_samples += c.n_used as u64;
-            w.n_marched += ray.n as u64;
             w.n_rays += 1;
         }
         for k in 0..n_chunks {
@@ -480,6 +588,15 @@ fn train_rays(
                 &mut w.ws[k],
                 &mut w.grad,
             );
+            // Tell the optimizer which grid entries may have a gradient.
+            let ws = &w.ws[k];
+            for level in 0..n_levels {
+                for smp in 0..ws.len() {
+                    for &off in ws.grid_corner_offsets(level, smp) {
+                        w.touched.mark(grid_offset + off as usize);
+                    }
+                }
+            }
         }
     }
 }
