@@ -218,10 +218,16 @@ pub fn run(a: Args) -> Result<()> {
             };
             let which = spread_views(data.frames.len(), a.eval_views);
             let r = evaluate(&view, data, &opts, Some(&which), |_, _, _| {});
-            pb.println(format!(
+            let line = format!(
                 "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views)",
                 trainer.step, r.psnr, r.ssim, r.n_views
-            ));
+            );
+            // A hidden bar (no terminal) swallows println: write the line ourselves.
+            if pb.is_hidden() {
+                eprintln!("{line}");
+            } else {
+                pb.println(line);
+            }
             checkpoints.push(Checkpoint {
                 minutes: m,
                 step: trainer.step,
