@@ -151,7 +151,7 @@ fn unreadable_model_files_name_the_file() {
         (
             "noise.ingp",
             (0..4000u32)
-                .map(|i| (i * 2654435761u32 >> 13) as u8)
+                .map(|i| ((i * 2654435761u32) >> 13) as u8)
                 .collect(),
         ),
         ("truncated.ingp", vec![0x1f, 0x8b, 8, 0, 0, 0]),

@@ -46,14 +46,15 @@ pub fn check_model_path(path: &Path) -> Result<()> {
             path.display()
         ),
     }
-    if let Some(dir) = path.parent() {
-        if !dir.as_os_str().is_empty() && !dir.is_dir() {
-            bail!(
-                "{}: directory {} does not exist",
-                path.display(),
-                dir.display()
-            );
-        }
+    if let Some(dir) = path.parent()
+        && !dir.as_os_str().is_empty()
+        && !dir.is_dir()
+    {
+        bail!(
+            "{}: directory {} does not exist",
+            path.display(),
+            dir.display()
+        );
     }
     Ok(())
 }

@@ -124,7 +124,7 @@ impl OccupancyGrid {
 
     /// A grid from stored values (e.g. a snapshot's `density_grid_binary`).
     pub fn from_density(density: Vec<f32>) -> Option<Self> {
-        if density.is_empty() || density.len() % N_CELLS != 0 {
+        if density.is_empty() || !density.len().is_multiple_of(N_CELLS) {
             return None;
         }
         let nc = density.len() / N_CELLS;

@@ -254,15 +254,15 @@ impl Scene {
         slab(o, inv, self.lo, self.hi)?;
         let mut best: Option<Hit> = None;
         for (i, ob) in self.objects.iter().enumerate() {
-            if let Some((t, n)) = ob.shape.intersect(o, d, inv) {
-                if best.as_ref().is_none_or(|b| t < b.t) {
-                    best = Some(Hit {
-                        t,
-                        p: add(o, mul(d, t)),
-                        n,
-                        obj: i,
-                    });
-                }
+            if let Some((t, n)) = ob.shape.intersect(o, d, inv)
+                && best.as_ref().is_none_or(|b| t < b.t)
+            {
+                best = Some(Hit {
+                    t,
+                    p: add(o, mul(d, t)),
+                    n,
+                    obj: i,
+                });
             }
         }
         best

@@ -191,8 +191,10 @@ mod tests {
 
     #[test]
     fn rejects_bad_config() {
-        let mut c = GridConfig::default();
-        c.n_features = 3;
+        let mut c = GridConfig {
+            n_features: 3,
+            ..Default::default()
+        };
         assert!(GridLayout::new(c, 1).is_err());
         c = GridConfig::default();
         c.n_levels = 0;

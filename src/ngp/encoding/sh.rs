@@ -136,10 +136,10 @@ mod tests {
             }
         }
         let area = 4.0 * std::f64::consts::PI / n as f64;
-        for a in 0..16 {
-            for b in 0..16 {
+        for (a, row) in gram.iter().enumerate() {
+            for (b, &g) in row.iter().enumerate() {
                 let want = if a == b { 1.0 } else { 0.0 };
-                let got = gram[a][b] * area;
+                let got = g * area;
                 assert!((got - want).abs() < 2e-3, "gram[{a}][{b}] = {got}");
             }
         }

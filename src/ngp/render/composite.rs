@@ -47,8 +47,8 @@ pub fn composite(
         let sigma = raw[j][3].exp();
         let alpha = 1.0 - (-sigma * dt[j]).exp();
         let w = alpha * tr;
-        for k in 0..3 {
-            c.rgb[k] += w * sigmoid(raw[j][k]);
+        for (acc, &r) in c.rgb.iter_mut().zip(&raw[j][..3]) {
+            *acc += w * sigmoid(r);
         }
         c.depth += w * dist[j];
         tr *= 1.0 - alpha;
