@@ -29,8 +29,10 @@ pub struct Args {
     /// Key file: render the hidden scene it unlocks instead of the cover.
     #[arg(long)]
     pub key: Option<PathBuf>,
-    /// Diagnostic variant of --key: partial:P (first P of the m keys, rest Π), mixed:pi1k2k3,
-    /// mixed:pi1pi2k3, wrong[:SEED].
+    /// Diagnostic variant of --key: partial:P (the first P of the m keys, the rest Π; for
+    /// prf the first P of the secret's m shares, the rest zero), levels:P (the subkeys of the
+    /// first P of the m level groups, the other levels Π), mixed:pi1k2k3, mixed:pi1pi2k3,
+    /// wrong[:SEED].
     #[arg(long)]
     pub key_variant: Option<String>,
 }

@@ -263,10 +263,15 @@ impl Key {
         super::index::level_indices(self, layout)
     }
 
-    /// Partial disclosure (paper §Multi-Key ablation): the first `round(p·m)` groups keep
-    /// their key, the others use Π. For `primes` the triples are replaced by Π, literally;
-    /// for `prf` the same groups of levels (l mod m ≥ round(p·m)) fall back to the
-    /// reference index, so both schemes disclose the same levels for the same (p, m).
+    /// Partial disclosure (paper §Multi-Key ablation): the first `round(p·m)` of the m keys
+    /// are known, the rest replaced by the default. For `primes` the missing triples become Π,
+    /// literally, and the levels they cover fall back to the reference index. For `prf` the
+    /// m keys are m equal shares of the 256-bit secret (share j = bytes `[32j/m, 32(j+1)/m)`)
+    /// and a missing share is replaced by zero bytes, the default secret's. Every level's
+    /// subkey is derived from the whole secret, so any missing share changes every level:
+    /// all-or-nothing. p = 0 is no key at all (the reference index, i.e. the cover), as for
+    /// `primes`. What the paper's per-level substitution would do to `prf` — subkeys of some
+    /// levels leaked — is [`Key::disclose_levels`].
     pub fn partial(&self, fraction: f64) -> Key {
         let m = self.m();
         let keep = (fraction.clamp(0.0, 1.0) * m as f64).round() as usize;
@@ -277,11 +282,29 @@ impl Key {
                     *t = PI;
                 }
             }
-            KeyScheme::Prf { .. } => {
-                for j in keep..m {
-                    k.reference_groups |= 1 << j;
+            KeyScheme::Prf { .. } if keep == 0 => return self.disclose_levels(0.0),
+            KeyScheme::Prf { secret, .. } => {
+                for b in secret.iter_mut().skip(32 * keep / m) {
+                    *b = 0;
+                }
+                if keep < m {
+                    k.kdf = None;
                 }
             }
+        }
+        k
+    }
+
+    /// Leaked level subkeys: the first `round(p·m)` groups of levels (l mod m < round(p·m))
+    /// keep this key's index, the others use the reference index. For `primes` this equals
+    /// [`Key::partial`]; for `prf` it models a side channel that leaks derived per-level
+    /// subkeys, which the key file never exposes (the scenario the paper's table measures).
+    pub fn disclose_levels(&self, fraction: f64) -> Key {
+        let m = self.m();
+        let keep = (fraction.clamp(0.0, 1.0) * m as f64).round() as usize;
+        let mut k = self.clone();
+        for j in keep..m {
+            k.reference_groups |= 1 << j;
         }
         k
     }

@@ -343,6 +343,7 @@ fn key_file_round_trip_and_permissions() {
         ),
         prf_key(4, DenseMode::Permute),
         prf_key(4, DenseMode::Permute).partial(0.5),
+        prf_key(4, DenseMode::Permute).disclose_levels(0.5),
         derive_prf_from_passphrase("correct horse", "model-1", 2).unwrap(),
         Key::reference(),
     ];
@@ -470,6 +471,13 @@ fn passphrase_derivation_is_deterministic_and_salted() {
     assert!(derive_prf_from_passphrase("", "s", 1).is_err());
 }
 
+fn prf_key_secret(k: &Key) -> [u8; 32] {
+    match k.scheme() {
+        KeyScheme::Prf { secret, .. } => *secret,
+        KeyScheme::Primes { .. } => panic!("not a prf key"),
+    }
+}
+
 fn same_key_on_level(a: &Key, b: &Key, l: usize) -> bool {
     let g = layout();
     let (ia, ib) = (a.level_indices(&g), b.level_indices(&g));
@@ -488,21 +496,25 @@ fn partial_keys() {
         ],
         DenseMode::Permute,
     );
-    for key in [
-        primes,
-        prf_key(4, DenseMode::Permute),
-        prf_key(4, DenseMode::Hash),
-    ] {
-        assert_eq!(key.partial(1.0), key);
-        assert!(key.partial(0.0).is_reference());
+    // Per-level disclosure: primes' partial keys, and leaked prf level subkeys.
+    type Disclose = fn(&Key, f64) -> Key;
+    let disclosures: Vec<(Key, Disclose)> = vec![
+        (primes.clone(), Key::partial),
+        (primes, Key::disclose_levels),
+        (prf_key(4, DenseMode::Permute), Key::disclose_levels),
+        (prf_key(4, DenseMode::Hash), Key::disclose_levels),
+    ];
+    for (key, disclose) in disclosures {
+        assert_eq!(disclose(&key, 1.0), key);
+        assert!(disclose(&key, 0.0).is_reference());
         for l in 0..16 {
             assert!(
-                same_key_on_level(&key.partial(0.0), &Key::reference(), l),
+                same_key_on_level(&disclose(&key, 0.0), &Key::reference(), l),
                 "level {l}"
             );
         }
         // 50% of m = 4: groups 0, 1 (levels l mod 4 < 2) keep the key.
-        let half = key.partial(0.5);
+        let half = disclose(&key, 0.5);
         for l in 0..16 {
             let keyed = same_key_on_level(&half, &key, l);
             let reference = same_key_on_level(&half, &Key::reference(), l);
@@ -513,15 +525,39 @@ fn partial_keys() {
             );
         }
         // round(0.25·4) = 1, round(0.75·4) = 3.
-        assert_eq!(key.partial(0.25).partial(1.0), key.partial(0.25));
         let n_ref = |k: &Key| {
             (0..4)
                 .filter(|&j| k.group(j) == GroupKey::Reference)
                 .count()
         };
-        assert_eq!(n_ref(&key.partial(0.25)), 3);
-        assert_eq!(n_ref(&key.partial(0.75)), 1);
-        let _ = g.levels.len();
+        assert_eq!(n_ref(&disclose(&key, 0.25)), 3);
+        assert_eq!(n_ref(&disclose(&key, 0.75)), 1);
+    }
+    // prf partial keys are all-or-nothing: any missing share of the secret changes every
+    // level, so no level matches the key (nor Π) until the whole secret is given.
+    for key in [prf_key(4, DenseMode::Permute), prf_key(8, DenseMode::Hash)] {
+        assert_eq!(key.partial(1.0), key);
+        assert!(key.partial(0.0).is_reference());
+        for p in [0.25, 0.5, 0.75] {
+            let part = key.partial(p);
+            assert!(!part.is_reference());
+            for l in 0..g.levels.len() {
+                assert!(!same_key_on_level(&part, &key, l), "p {p} level {l}");
+                assert!(
+                    !same_key_on_level(&part, &Key::reference(), l),
+                    "p {p} level {l}"
+                );
+            }
+        }
+        // Share j of m = 4 is bytes [8j, 8j + 8): 75 % keeps 24 bytes, zeroes the last 8.
+        let KeyScheme::Prf { secret: full, .. } = key.scheme() else {
+            unreachable!()
+        };
+        let three_quarters = prf_key_secret(&key.partial(0.75));
+        if key.m() == 4 {
+            assert_eq!(three_quarters[..24], full[..24]);
+            assert_eq!(three_quarters[24..], [0u8; 8]);
+        }
     }
 }
 
@@ -638,7 +674,7 @@ fn key_strength_numbers() {
     assert_eq!(s.total_bits, 256.0);
     assert!((s.oracle_bits - 132.0).abs() < 1e-9);
     assert_eq!(key_strength(&Key::reference(), &g).total_bits, 0.0);
-    let s = key_strength(&prf_key(4, DenseMode::Permute).partial(0.5), &g);
+    let s = key_strength(&prf_key(4, DenseMode::Permute).disclose_levels(0.5), &g);
     assert_eq!(s.levels.iter().filter(|l| l.bits == 0.0).count(), 8);
     println!("{}", serde_json::to_string(&s).unwrap());
 }
