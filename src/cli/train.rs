@@ -63,6 +63,10 @@ pub struct Args {
     pub key: Vec<PathBuf>,
     #[arg(long, value_enum, default_value_t = ScheduleArg::Mixed)]
     pub schedule: ScheduleArg,
+    /// Loss weight of each hidden scene relative to the cover's 1: where the scenes share
+    /// table entries, a larger weight moves quality from the cover to the hidden scenes.
+    #[arg(long, default_value_t = 1.0)]
+    pub hidden_weight: f32,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
     #[arg(long, value_delimiter = ',')]
     pub checkpoints: Vec<f64>,
@@ -111,6 +115,9 @@ pub fn run(a: Args) -> Result<()> {
     if a.downscale == 0 {
         bail!("--downscale must be at least 1");
     }
+    if !(a.hidden_weight.is_finite() && a.hidden_weight > 0.0) {
+        bail!("--hidden-weight must be a positive number");
+    }
     let opts = LoadOptions {
         downscale: a.downscale,
     };
@@ -152,6 +159,7 @@ pub fn run(a: Args) -> Result<()> {
             ScheduleArg::Mixed => Schedule::Mixed,
             ScheduleArg::RandomScene => Schedule::RandomScene,
         },
+        hidden_loss_weight: a.hidden_weight,
         workers: a.workers,
         ..Default::default()
     };

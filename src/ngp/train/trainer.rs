@@ -40,6 +40,9 @@ pub struct TrainConfig {
     /// Fraction of the reference's occupancy-update sample count (1 = reference).
     pub occupancy_fraction: f32,
     pub schedule: Schedule,
+    /// Loss weight of every scene after the first (the hidden scenes of a stego model), relative
+    /// to the first scene's 1. Shared table entries settle where the scenes' gradients balance.
+    pub hidden_loss_weight: f32,
     pub optimizer: OptimizerConfig,
     /// Worker count (gradient partitions); 0 = one per core.
     pub workers: usize,
@@ -52,6 +55,7 @@ impl Default for TrainConfig {
             batch_samples: 1 << 18,
             occupancy_fraction: 1.0,
             schedule: Schedule::Mixed,
+            hidden_loss_weight: 1.0,
             optimizer: OptimizerConfig::default(),
             workers: 0,
         }
@@ -69,6 +73,7 @@ struct SceneState {
     indices: LevelIndices,
     grid: OccupancyGrid,
     marcher: Marcher,
+    loss_weight: f32,
     rays_per_batch: u32,
     measured_samples: u32,
     measured_marched: u32,
@@ -183,6 +188,11 @@ impl Trainer {
                 indices: s.indices,
                 grid,
                 marcher: Marcher::new(model.aabb_scale),
+                loss_weight: if states.is_empty() {
+                    1.0
+                } else {
+                    config.hidden_loss_weight
+                },
                 rays_per_batch: rays,
                 measured_samples: 0,
                 measured_marched: 0,
@@ -256,7 +266,7 @@ impl Trainer {
     fn update_occupancy(&mut self) {
         let step = self.step;
         let interval = (step / 16).clamp(1, 16);
-        if step % interval != 0 {
+        if !step.is_multiple_of(interval) {
             return;
         }
         let fraction = self.config.occupancy_fraction;
@@ -475,7 +485,7 @@ fn train_rays(
     let n_images = scene.data.frames.len();
     let n_levels = net.layout.grid.levels.len();
     let grid_offset = net.layout.grid_offset;
-    let loss_norm = 1.0 / (3.0 * n_rays as f32);
+    let loss_norm = scene.loss_weight / (3.0 * n_rays as f32);
     let mut next = range.start;
     while next < range.end {
         w.pos.clear();
