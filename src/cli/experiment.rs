@@ -25,8 +25,12 @@ pub struct Args {
     /// Hidden scene(s) (default: generated 3D text scenes).
     #[arg(long)]
     pub hidden: Vec<PathBuf>,
+    /// Downscale factor of the cover's images.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// Downscale factor of the hidden scenes' images.
+    #[arg(long, default_value_t = 1)]
+    pub hidden_downscale: u32,
     /// Training steps per model.
     #[arg(long, default_value_t = 300)]
     pub steps: u32,
@@ -106,6 +110,7 @@ pub fn run(a: Args) -> Result<()> {
         cover,
         hidden,
         downscale: a.downscale,
+        hidden_downscale: a.hidden_downscale,
         steps: a.steps,
         batch: a.batch,
         seed: a.seed,

@@ -26,9 +26,13 @@ pub struct Args {
     /// Model file to write (.ingp or .msgpack).
     #[arg(long)]
     pub out: PathBuf,
-    /// Integer image downscale factor (area averaging).
+    /// Integer downscale factor of the cover's images (area averaging).
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// Integer downscale factor of the hidden scenes' images; each scene is trained at the
+    /// resolution it will be evaluated at, so the cover's --downscale does not apply.
+    #[arg(long, default_value_t = 1)]
+    pub hidden_downscale: u32,
     /// Training steps (default 1000 unless --minutes is given).
     #[arg(long, conflicts_with = "minutes")]
     pub steps: Option<u32>,
@@ -112,8 +116,8 @@ pub fn run(a: Args) -> Result<()> {
             a.key.len()
         );
     }
-    if a.downscale == 0 {
-        bail!("--downscale must be at least 1");
+    if a.downscale == 0 || a.hidden_downscale == 0 {
+        bail!("--downscale and --hidden-downscale must be at least 1");
     }
     if !(a.hidden_weight.is_finite() && a.hidden_weight > 0.0) {
         bail!("--hidden-weight must be a positive number");
@@ -140,7 +144,9 @@ pub fn run(a: Args) -> Result<()> {
         &a.hidden,
         &a.key,
         &layout,
-        &opts,
+        &LoadOptions {
+            downscale: a.hidden_downscale,
+        },
         config.aabb_scale,
     )?);
     let eval_data = if a.checkpoints.is_empty() {
@@ -164,6 +170,18 @@ pub fn run(a: Args) -> Result<()> {
         ..Default::default()
     };
     let mut trainer = Trainer::new(config, scenes, cfg)?;
+    if !a.json {
+        for i in 0..trainer.n_scenes() {
+            let d = trainer.dataset(i);
+            let role = if i == 0 { "cover" } else { "hidden" };
+            eprintln!(
+                "{role}: {} images of {}×{}",
+                d.frames.len(),
+                d.width,
+                d.height
+            );
+        }
+    }
     let budget_s = a.minutes.map(|m| m * 60.0);
     let steps = a
         .steps

@@ -52,7 +52,10 @@ pub struct ExpConfig {
     pub cover: PathBuf,
     /// Hidden scenes; experiments that need more than given reuse them cyclically.
     pub hidden: Vec<PathBuf>,
+    /// Downscale of the cover's images.
     pub downscale: u32,
+    /// Downscale of the hidden scenes' images (each scene has its own native resolution).
+    pub hidden_downscale: u32,
     /// Training steps of every model (a stego model trains each scene this many steps).
     pub steps: u32,
     /// Samples per scene per step.
@@ -214,7 +217,7 @@ impl Ctx<'_> {
 
 fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
     json!({
-        "cover": cfg.cover, "hidden": cfg.hidden, "downscale": cfg.downscale,
+        "cover": cfg.cover, "hidden": cfg.hidden, "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
         "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
         "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
@@ -254,7 +257,7 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
         hidden: cfg
             .hidden
             .iter()
-            .map(|h| load_scene(h, cfg.downscale))
+            .map(|h| load_scene(h, cfg.hidden_downscale))
             .collect::<Result<_>>()?,
     };
     match name {
