@@ -329,6 +329,15 @@ fn reference_parameter_counts_and_sizes_16x2_and_8x4() {
 /// writer): 8×4 config with a `per_level_scale`-free encoding, fp32 params, aabb_scale 2,
 /// optimizer state, and a few params at known positions.
 fn hand_built(params_type: &str, with_optimizer: bool) -> (Vec<u8>, usize) {
+    hand_built_with(params_type, with_optimizer, &[])
+}
+
+/// [`hand_built`] with `extra` (index, value) parameters set on top of its three.
+fn hand_built_with(
+    params_type: &str,
+    with_optimizer: bool,
+    extra: &[(usize, f32)],
+) -> (Vec<u8>, usize) {
     let grid = GridConfig {
         n_levels: 2,
         n_features: 4,
@@ -343,7 +352,7 @@ fn hand_built(params_type: &str, with_optimizer: bool) -> (Vec<u8>, usize) {
     .n_params;
     let elem = if params_type == "float" { 4 } else { 2 };
     let mut params = vec![0u8; n * elem];
-    // Param 0 = 0.5, param 3072 (first colour-MLP weight) = −2, last = 1.
+    // Param 0 = 0.5, param 3072 (in the colour MLP's first matrix) = −2, last = 1.
     let put = |p: &mut Vec<u8>, i: usize, v: f32| {
         if elem == 4 {
             p[i * 4..i * 4 + 4].copy_from_slice(&v.to_le_bytes());
@@ -354,6 +363,9 @@ fn hand_built(params_type: &str, with_optimizer: bool) -> (Vec<u8>, usize) {
     put(&mut params, 0, 0.5);
     put(&mut params, 3072, -2.0);
     put(&mut params, n - 1, 1.0);
+    for &(i, v) in extra {
+        put(&mut params, i, v);
+    }
     let grid_bin = vec![0u8; DENSITY_GRID_CELLS * 2 * 2];
     let mlp = |h: u64| {
         map(vec![
@@ -487,6 +499,79 @@ fn hand_built_reference_snapshot_loads() {
                 == opt
         );
         assert_eq!(read::from_msgpack(&again).unwrap().params, s.params);
+    }
+}
+
+/// The hand-built file's network evaluated at two inputs. Weights are placed at positions
+/// worked out from the spec alone (§2.5: [density MLP][colour MLP][grid], row-major
+/// out × in, inputs padded to 16, outputs to 16; §1.3/§1.5: dense level 0, hashed level 1,
+/// entry-major features), and the outputs are worked out by hand. A transposed matrix, a
+/// wrong block offset, a used padding row or a wrong corner index changes them.
+#[test]
+fn hand_built_reference_snapshot_gives_expected_outputs() {
+    // 2 levels × 4 features = 8 inputs, padded to 16: density 64·16 + 16·64 = 2048 params.
+    const D_W0: usize = 0; // 64 × 16
+    const D_W1: usize = 1024; // 16 × 64
+    // Colour input [16 density outputs, 16 SH] = 32: 64·32 + 64·64 + 16·64 = 7168 params.
+    const C_W0: usize = 2048; // 64 × 32
+    const C_W1: usize = C_W0 + 64 * 32; // 64 × 64
+    const C_W2: usize = C_W1 + 64 * 64; // 16 × 64, rows 3..15 padding
+    const GRID: usize = C_W2 + 16 * 64;
+    // Level 0: scale 8 − 1 = 7, resolution 8, 8³ = 512 ≤ 2^10 → dense, 512 entries.
+    // Level 1: per_level_scale = 2048·aabb_scale/8 = 512, scale 4095 → hashed, 1024 entries.
+    const L1: usize = GRID + 512 * 4;
+    let mut puts = vec![
+        (D_W0 + 1, 2.0),            // hidden 0 ← input 1 (level 0, feature 1)
+        (D_W0 + 16 + 4, 1.0),       // hidden 1 ← input 4 (level 1, feature 0)
+        (D_W1, 1.5),                // output 0 (log-density) ← hidden 0
+        (D_W1 + 1, 1.0),            // output 0 ← hidden 1
+        (D_W1 + 5 * 64, 1.0),       // output 5 ← hidden 0
+        (C_W0 + 3 * 32 + 5, 0.5),   // colour hidden 3 ← density output 5
+        (C_W0 + 3 * 32 + 16, 1.0),  // colour hidden 3 ← SH 0
+        (C_W0 + 4 * 32 + 17, 1.0),  // colour hidden 4 ← SH 1 (−0.4886·y)
+        (C_W1 + 7 * 64 + 3, 1.0),   // second hidden 7 ← 3
+        (C_W1 + 8 * 64 + 4, 1.0),   // second hidden 8 ← 4
+        (C_W2 + 8, 1.0),            // r ← 8
+        (C_W2 + 64 + 7, 1.0),       // g ← 7
+        (C_W2 + 2 * 64 + 7, -1.0),  // b ← 7
+        (C_W2 + 5 * 64 + 7, 100.0), // a padding row: must never reach an output
+    ];
+    // Feature 1 of every level-0 entry = 1: the interpolated value is 1 anywhere.
+    puts.extend((0..512).map(|e| (GRID + e * 4 + 1, 1.0)));
+    // Level 1 at x = 0: p = 0.5, all 8 corners weigh 1/8; corner (1,1,1) hashes to
+    // 1 ⊕ (2654435761 mod 2^10 = 433) ⊕ (805459861 mod 2^10 = 917) = 549.
+    assert_eq!(1 ^ (2654435761u32 & 1023) ^ (805459861u32 & 1023), 549);
+    puts.push((L1 + 549 * 4, 8.0));
+    for ptype in ["float", "__half"] {
+        // The base file sets param 0 (density W0[0][0], input 0 is zero here), param 3072
+        // (colour hidden 32 ← density output 0; hidden 32 feeds nothing) and the last param
+        // (level-1 entry 1023, feature 3: unused input 7): none of them moves the outputs.
+        let (bytes, n) = hand_built_with(ptype, false, &puts);
+        assert_eq!(n, L1 + 1024 * 4);
+        let s = read::from_msgpack(&bytes).unwrap();
+        let net = crate::ngp::network::nerf::NerfNetwork::new(s.config).unwrap();
+        let idx = crate::ngp::encoding::reference_indices(&net.layout.grid);
+        let mut ws = net.workspace();
+        let pos = [[0.0f32; 3], [0.5; 3]];
+        let dir = [[0.0f32, -1.0, 0.0], [0.0, 1.0, 0.0]];
+        let mut out = [[0.0f32; 4]; 2];
+        net.forward(&s.params, &idx, &pos, &dir, &mut ws, &mut out);
+        let (sh0, sh1) = (0.282_094_8f32, 0.488_602_5f32);
+        // x = 0: density hidden (2, 1) → log-density 1.5·2 + 1 = 4, output 5 = 2; colour
+        // hidden 3 = 0.5·2 + SH0, hidden 4 = SH1 at y = −1. x = 0.5: level 1 reads corner
+        // (2048,2048,2048) → entry 0, which is zero: log-density 3; SH1 < 0 at y = +1.
+        let want = [
+            [sh1, 1.0 + sh0, -(1.0 + sh0), 4.0],
+            [0.0, 1.0 + sh0, -(1.0 + sh0), 3.0],
+        ];
+        for (got, want) in out.iter().zip(&want) {
+            for c in 0..4 {
+                assert!(
+                    (got[c] - want[c]).abs() < 1e-5,
+                    "{ptype}: got {got:?}, want {want:?}"
+                );
+            }
+        }
     }
 }
 
