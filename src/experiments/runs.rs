@@ -10,7 +10,8 @@ use crate::ngp::network::{ModelConfig, NerfLayout};
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::render::image::{RenderOptions, rebuild_occupancy};
 use crate::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
-use crate::stego::{Key, Mixed, generate_prf, generate_primes, key_strength};
+use crate::rng::Pcg32;
+use crate::stego::{Key, Mixed, generate_prf, generate_primes, generate_with, key_strength};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -37,11 +38,12 @@ impl KeySchemeArg {
             KeySchemeArg::Primes => "primes",
         }
     }
-    fn generate(self, m: usize) -> Result<Key> {
-        match self {
-            KeySchemeArg::Prf => generate_prf(m),
-            KeySchemeArg::Primes => generate_primes(m),
-        }
+    /// The experiment's key number `which` for `m` groups: drawn from the run's seed, so a
+    /// report can be reproduced exactly (these keys protect nothing).
+    fn generate(self, m: usize, seed: u64, which: u64) -> Result<Key> {
+        let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
+        let mut next = move || ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
+        generate_with(self == KeySchemeArg::Prf, m, &mut next)
     }
 }
 
@@ -274,7 +276,7 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
 
 fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
-    let key = ctx.cfg.scheme.generate(1)?;
+    let key = ctx.cfg.scheme.generate(1, ctx.cfg.seed, 0)?;
     let h = ctx.hidden(0);
     ctx.log("fidelity: plain cover, plain hidden, stego (cover + hidden)");
     let plain_c = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi)], "plain cover")?;
@@ -324,7 +326,7 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
     for scheme in [KeySchemeArg::Primes, KeySchemeArg::Prf] {
-        let key = scheme.generate(1)?;
+        let key = scheme.generate(1, ctx.cfg.seed, 0)?;
         ctx.log(&format!("key-sensitivity ({}): stego model", scheme.name()));
         let stego = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi), (h, &key)], scheme.name())?;
         let variants = [
@@ -392,7 +394,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
             if m > ctx.cfg.grid.n_levels as usize {
                 continue;
             }
-            let key = scheme.generate(m)?;
+            let key = scheme.generate(m, ctx.cfg.seed, 0)?;
             ctx.log(&format!("partial-keys: {} m = {m}", scheme.name()));
             let stego = ctx.train(
                 ctx.cfg.grid,
@@ -450,7 +452,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let mut tiles = vec![];
     for phi in 1..=4usize {
         let keys: Vec<Key> = (0..phi)
-            .map(|_| ctx.cfg.scheme.generate(1))
+            .map(|i| ctx.cfg.scheme.generate(1, ctx.cfg.seed, i as u64))
             .collect::<Result<_>>()?;
         let mut scenes: Vec<(&Scene, &Key)> = vec![(&ctx.cover, &pi)];
         for (i, k) in keys.iter().enumerate() {
@@ -490,7 +492,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
 fn table_size(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
-    let key = ctx.cfg.scheme.generate(1)?;
+    let key = ctx.cfg.scheme.generate(1, ctx.cfg.seed, 0)?;
     let mut t = Table::new("Hash table size T");
     for log2_t in 18..=21u32 {
         let grid = GridConfig {

@@ -368,6 +368,24 @@ pub fn generate_primes(m: usize) -> Result<Key> {
     Key::new(KeyScheme::Primes { keys }, DenseMode::default())
 }
 
+/// A key of `scheme` drawn from `next_u64` instead of the OS CSPRNG: for experiments
+/// whose reports must be reproducible from a seed. Never for a key that protects anything.
+pub fn generate_with(prf: bool, m: usize, mut next_u64: impl FnMut() -> u64) -> Result<Key> {
+    check_m(m)?;
+    let scheme = if prf {
+        let mut secret = [0u8; 32];
+        for c in secret.chunks_mut(8) {
+            c.copy_from_slice(&next_u64().to_le_bytes());
+        }
+        KeyScheme::Prf { secret, m }
+    } else {
+        KeyScheme::Primes {
+            keys: primes::random_prime_triples(m, || Ok(next_u64()))?,
+        }
+    };
+    Key::new(scheme, DenseMode::default())
+}
+
 /// A random 256-bit secret from the OS CSPRNG, with `m` disclosure groups.
 pub fn generate_prf(m: usize) -> Result<Key> {
     check_m(m)?;

@@ -47,6 +47,6 @@ mod tests;
 pub use keyfile::{load_key, parse_key, save_key};
 pub use keys::{
     DenseMode, GroupKey, Key, KeyScheme, Mixed, PI, derive_prf_from_passphrase, generate_prf,
-    generate_primes,
+    generate_primes, generate_with,
 };
 pub use strength::{KeyStrength, key_strength};
