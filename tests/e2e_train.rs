@@ -53,6 +53,11 @@ fn config() -> TrainConfig {
 }
 
 fn psnr_of(model: &Model, key: Option<&Key>, test: &Dataset) -> f64 {
+    scores_of(model, key, test).0
+}
+
+/// (PSNR of the rendering, PSNR of an empty render) on 4 held-out views.
+fn scores_of(model: &Model, key: Option<&Key>, test: &Dataset) -> (f64, f64) {
     let grid_layout = &model.net.layout.grid;
     let idx = match key {
         Some(k) => k.level_indices(grid_layout),
@@ -61,14 +66,14 @@ fn psnr_of(model: &Model, key: Option<&Key>, test: &Dataset) -> f64 {
     let rebuilt = key.map(|_| rebuild_occupancy(&model.net, &model.params, &idx, 1, 1, 0));
     let view = model.view(&idx, rebuilt.as_ref().unwrap_or(&model.grid));
     let which = spread_views(test.frames.len(), 4);
-    evaluate(
+    let r = evaluate(
         &view,
         test,
         &RenderOptions::default(),
         Some(&which),
         |_, _, _| {},
-    )
-    .psnr
+    );
+    (r.psnr, r.blank_psnr)
 }
 
 #[test]
@@ -127,7 +132,7 @@ fn stego_model_hides_scene_behind_key() {
     let (htrain, htest) = scene(&dir.path().join("hidden"), SceneKind::Text("HI".into()), 4);
     let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
-    let key = generate_prf(1).unwrap();
+    let key = generate_prf(4).unwrap();
     let mut t = Trainer::new(
         cfg,
         vec![
@@ -150,9 +155,10 @@ fn stego_model_hides_scene_behind_key() {
     let cover = psnr_of(&model, None, &ctest);
     let hidden = psnr_of(&model, Some(&key), &htest);
     let hidden_no_key = psnr_of(&model, None, &htest);
-    let wrong = psnr_of(&model, Some(&Key::wrong(9, &key)), &htest);
+    let (wrong, empty) = scores_of(&model, Some(&Key::wrong(9, &key)), &htest);
+    let partial = psnr_of(&model, Some(&key.partial(0.75)), &htest);
     eprintln!(
-        "cover {cover:.2}, hidden with key {hidden:.2}, without {hidden_no_key:.2}, wrong key {wrong:.2}"
+        "cover {cover:.2}, hidden with key {hidden:.2}, without {hidden_no_key:.2}, wrong key {wrong:.2}, 3 of 4 shares {partial:.2}, empty render {empty:.2}"
     );
     // Measured: cover ~22 dB, hidden with key ~25 dB, without key ~8 dB, wrong key ~11 dB.
     assert!(cover > 18.0, "cover {cover:.2}");
@@ -160,4 +166,12 @@ fn stego_model_hides_scene_behind_key() {
     // Without the key the hidden views show the cover, with a wrong key noise.
     assert!(hidden > hidden_no_key + 8.0);
     assert!(hidden > wrong + 8.0);
+    // A wrong key and 3 of the secret's 4 shares show nothing of the hidden scene: they
+    // score no better than an image of background only, and alike.
+    assert!(wrong < empty + 1.0, "wrong {wrong:.2} vs empty {empty:.2}");
+    assert!(
+        partial < empty + 1.0,
+        "partial {partial:.2} vs empty {empty:.2}"
+    );
+    assert!((partial - wrong).abs() < 2.0);
 }

@@ -99,8 +99,8 @@ pub fn run(a: Args) -> Result<()> {
         println!("{}", serde_json::to_string(&r)?);
     } else {
         println!(
-            "{} views: PSNR {:.3} dB, SSIM {:.4} ({:.1} s)",
-            r.n_views, r.psnr, r.ssim, r.seconds
+            "{} views: PSNR {:.3} dB, SSIM {:.4} ({:.1} s); an empty render scores {:.2} dB, SSIM {:.4}",
+            r.n_views, r.psnr, r.ssim, r.seconds, r.blank_psnr, r.blank_ssim
         );
     }
     Ok(())

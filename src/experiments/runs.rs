@@ -359,7 +359,7 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
             let (vs_hidden, img) = ctx.score(&stego.model, k, h);
             let (vs_cover, _) = ctx.score(&stego.model, k, &ctx.cover);
             t.push(json!({"key": label, "psnr_vs_hidden": vs_hidden.psnr, "ssim_vs_hidden": vs_hidden.ssim,
-                "psnr_vs_cover": vs_cover.psnr}));
+                "psnr_vs_cover": vs_cover.psnr, "empty_render_vs_hidden": vs_hidden.blank_psnr}));
             tiles.push(img);
         }
         report.tables.push(t);
@@ -423,6 +423,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
                     tiles.push(img);
                 }
                 row.insert("wrong key".into(), json!(wrong.psnr));
+                row.insert("empty render".into(), json!(wrong.blank_psnr));
                 t.push(serde_json::Value::Object(row));
                 let file = format!(
                     "partial_{}_{}_m{m}.png",
@@ -441,7 +442,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
         }
     }
     report.tables.push(t);
-    report.notes.push("`primes`: the first p % of the m prime triples are given, the rest replaced by Π (the paper's ablation). `prf`, secret shares: the first p % of the secret's m equal shares are given, the rest zero; every level's subkey depends on the whole secret, so a partial key should score like a wrong key. `prf`, level subkeys: the subkeys of the first p % of the level groups leak (a side channel the key file never offers), the other levels use Π — the paper's substitution applied to `prf`. 0 % is no key at all (the cover) in every row.".into());
+    report.notes.push("`primes`: the first p % of the m prime triples are given, the rest replaced by Π (the paper's ablation). `prf`, secret shares: the first p % of the secret's m equal shares are given, the rest zero; every level's subkey depends on the whole secret, so a partial key should score like a wrong key. `prf`, level subkeys: the subkeys of the first p % of the level groups leak (a side channel the key file never offers), the other levels use Π — the paper's substitution applied to `prf`. 0 % is no key at all (the cover) in every row. `empty render` is the score of an image of background colour only: a rendering that tells nothing about the hidden scene scores near it (a wrong key renders a faint haze, so it scores near the empty render rather than near the cover, an opaque object).".into());
     Ok(())
 }
 

@@ -19,6 +19,11 @@ pub struct EvalResult {
     pub psnr: f64,
     pub ssim: f64,
     pub n_views: usize,
+    /// PSNR and SSIM of an empty render (the background colour everywhere) on the same
+    /// views: the score of showing nothing, the floor a render that carries no information
+    /// about the scene sits near. Key experiments compare wrong and partial keys with it.
+    pub blank_psnr: f64,
+    pub blank_ssim: f64,
     pub views: Vec<ViewScore>,
     pub seconds: f64,
 }
@@ -47,12 +52,19 @@ pub fn evaluate(
     let all: Vec<usize> = (0..data.frames.len()).collect();
     let which = which.unwrap_or(&all);
     let mut views = Vec::new();
+    let (mut blank_psnr, mut blank_ssim) = (0.0, 0.0);
+    let mut blank: Vec<f32> = Vec::new();
     for &i in which {
         let frame = &data.frames[i];
         let img = render_image(view, &frame.camera, opts);
         let gt = ground_truth(data, i, opts.background);
+        let (w, h) = (img.width as usize, img.height as usize);
         let p = psnr(&img.rgb, &gt);
-        let s = ssim(&img.rgb, &gt, img.width as usize, img.height as usize);
+        let s = ssim(&img.rgb, &gt, w, h);
+        blank.clear();
+        blank.extend((0..w * h).flat_map(|_| opts.background));
+        blank_psnr += psnr(&blank, &gt);
+        blank_ssim += ssim(&blank, &gt, w, h);
         on_view(i, &img, &gt);
         views.push(ViewScore {
             index: i,
@@ -66,6 +78,8 @@ pub fn evaluate(
         psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         n_views: views.len(),
+        blank_psnr: blank_psnr / n,
+        blank_ssim: blank_ssim / n,
         views,
         seconds: t0.elapsed().as_secs_f64(),
     }
