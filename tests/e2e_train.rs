@@ -8,7 +8,7 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
-use stegongp::ngp::render::image::{RenderOptions, rebuild_occupancy};
+use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy};
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::stego::{Key, generate_prf};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
@@ -63,7 +63,16 @@ fn scores_of(model: &Model, key: Option<&Key>, test: &Dataset) -> (f64, f64) {
         Some(k) => k.level_indices(grid_layout),
         None => reference_indices(grid_layout),
     };
-    let rebuilt = key.map(|_| rebuild_occupancy(&model.net, &model.params, &idx, 1, 1, 0));
+    let rebuilt = key.map(|_| {
+        rebuild_occupancy(
+            &model.net,
+            &model.params,
+            &idx,
+            1,
+            KEY_HOLDER_SAMPLES_PER_CELL,
+            0,
+        )
+    });
     let view = model.view(&idx, rebuilt.as_ref().unwrap_or(&model.grid));
     let which = spread_views(test.frames.len(), 4);
     let r = evaluate(

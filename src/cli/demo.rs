@@ -10,7 +10,7 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, ground_truth, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
-use stegongp::ngp::render::image::{RenderOptions, rebuild_occupancy};
+use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy};
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::stego::{Key, generate_prf, load_key, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
@@ -139,7 +139,7 @@ pub fn run(a: Args) -> Result<()> {
                 &model.params,
                 &idx,
                 model.config.aabb_scale,
-                1,
+                KEY_HOLDER_SAMPLES_PER_CELL,
                 a.seed,
             )
         });

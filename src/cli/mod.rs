@@ -18,7 +18,7 @@ use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::NerfLayout;
 use stegongp::ngp::occupancy::OccupancyGrid;
-use stegongp::ngp::render::image::rebuild_occupancy;
+use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, rebuild_occupancy};
 use stegongp::ngp::train::SceneSpec;
 use stegongp::stego::{Key, Mixed, load_key};
 
@@ -148,7 +148,7 @@ pub fn scene_for_key(
         &model.params,
         &indices,
         model.config.aabb_scale,
-        1,
+        KEY_HOLDER_SAMPLES_PER_CELL,
         0,
     );
     Ok((indices, Some(grid)))

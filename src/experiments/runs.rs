@@ -8,7 +8,7 @@ use crate::ngp::eval::{EvalResult, evaluate, spread_views};
 use crate::ngp::model::Model;
 use crate::ngp::network::{ModelConfig, NerfLayout};
 use crate::ngp::occupancy::OccupancyGrid;
-use crate::ngp::render::image::{RenderOptions, rebuild_occupancy};
+use crate::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy};
 use crate::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use crate::rng::Pcg32;
 use crate::stego::{Key, Mixed, generate_prf, generate_primes, generate_with, key_strength};
@@ -181,7 +181,7 @@ impl Ctx<'_> {
                 &model.params,
                 &indices,
                 model.config.aabb_scale,
-                1,
+                KEY_HOLDER_SAMPLES_PER_CELL,
                 self.cfg.seed,
             );
             &rebuilt

@@ -294,6 +294,24 @@ impl OccupancyGrid {
             .collect()
     }
 
+    /// Like [`Self::points_in_cells`], but each point lies in octant `octant` (bit d set =
+    /// upper half along axis d) of its cell: rounds over different octants stratify the
+    /// samples, so a few rounds cover a cell far better than as many independent points.
+    pub fn points_in_cell_octant(&self, cells: &[u32], octant: u32, seed: u64) -> Vec<[f32; 3]> {
+        cells
+            .par_iter()
+            .enumerate()
+            .map(|(i, &c)| {
+                let mut rng = Pcg32::new(seed, i as u64);
+                let (o, vs) = Self::cell_origin(c % N_CELLS as u32, c as usize / N_CELLS);
+                let half = 0.5 * vs;
+                std::array::from_fn(|d| {
+                    o[d] + half * (((octant >> d) & 1) as f32) + half * rng.next_f32()
+                })
+            })
+            .collect()
+    }
+
     /// Raises cells to the optical thickness of their samples, without decay and without
     /// recomputing the bitfield (call [`Self::update_bitfield`] when done).
     pub fn splat_max(&mut self, cells: &[u32], log_density: &[f32]) {
@@ -474,6 +492,33 @@ mod tests {
         assert_eq!(p1, p2);
         for (p, &c) in p1.iter().zip(&c1) {
             assert_eq!(cell_at(*p, 0), Some(c));
+        }
+    }
+
+    #[test]
+    fn octant_points_stay_in_their_cell_and_octant() {
+        let g = OccupancyGrid::new(4);
+        // Cells of cascades 0 and 2, spread over the grid.
+        let cells: Vec<u32> = (0..500u32)
+            .map(|i| i * 4099 % N_CELLS as u32)
+            .chain((0..500u32).map(|i| 2 * N_CELLS as u32 + i * 7919 % N_CELLS as u32))
+            .collect();
+        for octant in 0..8u32 {
+            let pts = g.points_in_cell_octant(&cells, octant, 11);
+            assert_eq!(pts, g.points_in_cell_octant(&cells, octant, 11));
+            for (p, &c) in pts.iter().zip(&cells) {
+                let cascade = c as usize / N_CELLS;
+                assert_eq!(
+                    cell_at(*p, cascade as u32),
+                    Some(c % N_CELLS as u32),
+                    "octant {octant}"
+                );
+                let (o, vs) = OccupancyGrid::cell_origin(c % N_CELLS as u32, cascade);
+                for d in 0..3 {
+                    let upper = p[d] >= o[d] + 0.5 * vs;
+                    assert_eq!(upper, (octant >> d) & 1 == 1, "octant {octant} axis {d}");
+                }
+            }
         }
     }
 }
