@@ -121,6 +121,7 @@ pub fn run(a: Args) -> Result<()> {
     let wrong = Key::wrong(a.seed ^ 0x5eed, &key);
     let mut rows = Vec::new();
     let mut tiles = Vec::new();
+    let mut blank = (0.0, 0.0);
     let cases: [(&str, Option<&Key>, &Dataset); 4] = [
         ("no key → cover", None, &cover_test),
         ("no key vs hidden text", None, &hidden_test),
@@ -163,7 +164,11 @@ pub fn run(a: Args) -> Result<()> {
         )?;
         tiles.push(img);
         rows.push((label, r.psnr, r.ssim));
+        blank = (r.blank_psnr, r.blank_ssim);
     }
+    // What an image of background only scores on the hidden views: a wrong key lands
+    // near it (a faint haze), i.e. it shows nothing, not something cover-like.
+    rows.push(("empty image vs hidden text", blank.0, blank.1));
     tiles.insert(0, ground_truth(&hidden_test, views[0], [1.0; 3]));
     tiles.insert(0, ground_truth(&cover_test, views[0], [1.0; 3]));
     let grid_path = a.out.join("demo.png");
