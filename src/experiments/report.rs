@@ -29,10 +29,19 @@ impl Table {
 
     pub fn markdown(&self) -> String {
         let mut s = format!("### {}\n\n", self.title);
-        let Some(first) = self.rows.first() else {
+        if self.rows.is_empty() {
             return s + "(no rows)\n";
-        };
-        let cols: Vec<&String> = first.keys().collect();
+        }
+        // Rows may grow columns (multi-hidden adds one per hidden scene): every key of
+        // every row, in order of first appearance.
+        let mut cols: Vec<&String> = Vec::new();
+        for r in &self.rows {
+            for k in r.keys() {
+                if !cols.contains(&k) {
+                    cols.push(k);
+                }
+            }
+        }
         s += &format!(
             "| {} |\n",
             cols.iter()
@@ -137,5 +146,12 @@ mod tests {
         assert!(md.contains("| a | b |"));
         assert!(md.contains("| 1 | 2.500 |"));
         assert!(md.contains("| 3 | z |"));
+        // A later row's extra column gets a header; earlier rows leave it empty.
+        t.push(serde_json::json!({"a": 4, "b": 1, "c": 5}));
+        let md = t.markdown();
+        assert!(md.contains("| a | b | c |"), "{md}");
+        assert!(md.contains("|---|---|---|\n"));
+        assert!(md.contains("| 1 | 2.500 |  |"));
+        assert!(md.contains("| 4 | 1 | 5 |"));
     }
 }
