@@ -279,35 +279,33 @@ impl OccupancyGrid {
 
     /// A uniformly random point inside each given cell (index including the cascade offset).
     pub fn points_in_cells(&self, cells: &[u32], seed: u64) -> Vec<[f32; 3]> {
-        cells
-            .par_iter()
-            .enumerate()
-            .map(|(i, &c)| {
-                let mut rng = Pcg32::new(seed, i as u64);
-                let (o, vs) = Self::cell_origin(c % N_CELLS as u32, c as usize / N_CELLS);
-                [
-                    o[0] + vs * rng.next_f32(),
-                    o[1] + vs * rng.next_f32(),
-                    o[2] + vs * rng.next_f32(),
-                ]
-            })
-            .collect()
+        self.points_in_sub_boxes(cells, [0.0; 3], 1.0, seed)
     }
 
     /// Like [`Self::points_in_cells`], but each point lies in octant `octant` (bit d set =
     /// upper half along axis d) of its cell: rounds over different octants stratify the
     /// samples, so a few rounds cover a cell far better than as many independent points.
     pub fn points_in_cell_octant(&self, cells: &[u32], octant: u32, seed: u64) -> Vec<[f32; 3]> {
+        let lo = std::array::from_fn(|d| 0.5 * ((octant >> d) & 1) as f32);
+        self.points_in_sub_boxes(cells, lo, 0.5, seed)
+    }
+
+    /// A random point per cell in the sub-box `[lo, lo + extent]³` of the cell (fractions
+    /// of the cell's side).
+    fn points_in_sub_boxes(
+        &self,
+        cells: &[u32],
+        lo: [f32; 3],
+        extent: f32,
+        seed: u64,
+    ) -> Vec<[f32; 3]> {
         cells
             .par_iter()
             .enumerate()
             .map(|(i, &c)| {
                 let mut rng = Pcg32::new(seed, i as u64);
                 let (o, vs) = Self::cell_origin(c % N_CELLS as u32, c as usize / N_CELLS);
-                let half = 0.5 * vs;
-                std::array::from_fn(|d| {
-                    o[d] + half * (((octant >> d) & 1) as f32) + half * rng.next_f32()
-                })
+                std::array::from_fn(|d| o[d] + vs * (lo[d] + extent * rng.next_f32()))
             })
             .collect()
     }
