@@ -42,8 +42,8 @@ impl KeySchemeArg {
     /// report can be reproduced exactly (these keys protect nothing).
     fn generate(self, m: usize, seed: u64, which: u64) -> Result<Key> {
         let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
-        let mut next = move || ((rng.next_u32() as u64) << 32) | rng.next_u32() as u64;
-        generate_with(self == KeySchemeArg::Prf, m, &mut next)
+        let next = move || Ok(((rng.next_u32() as u64) << 32) | rng.next_u32() as u64);
+        generate_with(self == KeySchemeArg::Prf, m, next)
     }
 }
 

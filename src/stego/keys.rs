@@ -363,36 +363,34 @@ impl Key {
 
 /// `m` random triples of distinct primes in [1e7, 1e10] from the OS CSPRNG.
 pub fn generate_primes(m: usize) -> Result<Key> {
-    check_m(m)?;
-    let keys = primes::random_prime_triples(m, primes::os_u64)?;
-    Key::new(KeyScheme::Primes { keys }, DenseMode::default())
-}
-
-/// A key of `scheme` drawn from `next_u64` instead of the OS CSPRNG: for experiments
-/// whose reports must be reproducible from a seed. Never for a key that protects anything.
-pub fn generate_with(prf: bool, m: usize, mut next_u64: impl FnMut() -> u64) -> Result<Key> {
-    check_m(m)?;
-    let scheme = if prf {
-        let mut secret = [0u8; 32];
-        for c in secret.chunks_mut(8) {
-            c.copy_from_slice(&next_u64().to_le_bytes());
-        }
-        KeyScheme::Prf { secret, m }
-    } else {
-        KeyScheme::Primes {
-            keys: primes::random_prime_triples(m, || Ok(next_u64()))?,
-        }
-    };
-    Key::new(scheme, DenseMode::default())
+    generate_with(false, m, primes::os_u64)
 }
 
 /// A random 256-bit secret from the OS CSPRNG, with `m` disclosure groups.
 pub fn generate_prf(m: usize) -> Result<Key> {
+    generate_with(true, m, primes::os_u64)
+}
+
+/// A `prf` (`prf = true`) or `primes` key drawn from `next_u64`. The OS CSPRNG for real
+/// keys; a seeded generator only for experiments whose reports must be reproducible.
+pub fn generate_with(
+    prf: bool,
+    m: usize,
+    mut next_u64: impl FnMut() -> Result<u64>,
+) -> Result<Key> {
     check_m(m)?;
-    let mut secret = [0u8; 32];
-    getrandom::fill(&mut secret)
-        .map_err(|e| Error::Other(format!("OS random number generator: {e}")))?;
-    Key::new(KeyScheme::Prf { secret, m }, DenseMode::default())
+    let scheme = if prf {
+        let mut secret = [0u8; 32];
+        for c in secret.chunks_mut(8) {
+            c.copy_from_slice(&next_u64()?.to_le_bytes());
+        }
+        KeyScheme::Prf { secret, m }
+    } else {
+        KeyScheme::Primes {
+            keys: primes::random_prime_triples(m, next_u64)?,
+        }
+    };
+    Key::new(scheme, DenseMode::default())
 }
 
 /// Argon2id cost: 64 MiB, 3 passes, 1 lane (release); tiny under `cfg(test)`.
