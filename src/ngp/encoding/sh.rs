@@ -14,30 +14,46 @@ pub fn reference_direction(d: [f32; 3]) -> [f32; 3] {
     d.map(|v| ((v + 1.0) * 0.5) * 2.0 - 1.0)
 }
 
-/// The 16 SH basis functions at `(x, y, z)` (a unit vector), tcnn ordering and signs.
-/// The literals are tcnn's, rounded to f32 by the compiler exactly as nvcc rounds them.
+/// tcnn's SH constants, rounded to f32 by the compiler exactly as nvcc rounds them; the
+/// forward and its backward share them.
 #[allow(clippy::excessive_precision)]
+mod constants {
+    pub const C0: f32 = 0.28209479177387814;
+    pub const C1: f32 = 0.48860251190291987;
+    pub const C2: f32 = 1.0925484305920792;
+    pub const C3: f32 = 0.94617469575755997;
+    pub const C4: f32 = 0.31539156525251999;
+    pub const C5: f32 = 0.54627421529603959;
+    pub const C6: f32 = 0.59004358992664352;
+    pub const C7: f32 = 2.8906114426405538;
+    pub const C8: f32 = 0.45704579946446572;
+    pub const C9: f32 = 0.3731763325901154;
+    pub const C10: f32 = 1.4453057213202769;
+}
+use constants::*;
+
+/// The 16 SH basis functions at `(x, y, z)` (a unit vector), tcnn ordering and signs.
 #[inline(always)]
 pub fn sh4(x: f32, y: f32, z: f32) -> [f32; SH4_DIMS] {
     let (xy, xz, yz) = (x * y, x * z, y * z);
     let (x2, y2, z2) = (x * x, y * y, z * z);
     [
-        0.28209479177387814,
-        -0.48860251190291987 * y,
-        0.48860251190291987 * z,
-        -0.48860251190291987 * x,
-        1.0925484305920792 * xy,
-        -1.0925484305920792 * yz,
-        0.94617469575755997 * z2 - 0.31539156525251999,
-        -1.0925484305920792 * xz,
-        0.54627421529603959 * x2 - 0.54627421529603959 * y2,
-        0.59004358992664352 * y * (-3.0 * x2 + y2),
-        2.8906114426405538 * xy * z,
-        0.45704579946446572 * y * (1.0 - 5.0 * z2),
-        0.3731763325901154 * z * (5.0 * z2 - 3.0),
-        0.45704579946446572 * x * (1.0 - 5.0 * z2),
-        1.4453057213202769 * z * (x2 - y2),
-        0.59004358992664352 * x * (-x2 + 3.0 * y2),
+        C0,
+        -C1 * y,
+        C1 * z,
+        -C1 * x,
+        C2 * xy,
+        -C2 * yz,
+        C3 * z2 - C4,
+        -C2 * xz,
+        C5 * x2 - C5 * y2,
+        C6 * y * (-3.0 * x2 + y2),
+        C7 * xy * z,
+        C8 * y * (1.0 - 5.0 * z2),
+        C9 * z * (5.0 * z2 - 3.0),
+        C8 * x * (1.0 - 5.0 * z2),
+        C10 * z * (x2 - y2),
+        C6 * x * (-x2 + 3.0 * y2),
     ]
 }
 
@@ -57,18 +73,8 @@ pub fn encode(dirs: &[[f32; 3]], out: &mut [f32], ld: usize) {
 /// Vector-Jacobian product of [`sh4`]: given `d_out` = dL/d(basis), returns dL/d(x, y, z).
 /// The polynomials are differentiated as written, off the unit sphere too (no
 /// renormalisation is differentiated, as in tcnn).
-#[allow(clippy::excessive_precision)]
 #[inline(always)]
 pub fn sh4_backward(x: f32, y: f32, z: f32, d_out: &[f32; SH4_DIMS]) -> [f32; 3] {
-    const C1: f32 = 0.48860251190291987;
-    const C2: f32 = 1.0925484305920792;
-    const C3: f32 = 0.94617469575755997;
-    const C5: f32 = 0.54627421529603959;
-    const C6: f32 = 0.59004358992664352;
-    const C7: f32 = 2.8906114426405538;
-    const C8: f32 = 0.45704579946446572;
-    const C9: f32 = 0.3731763325901154;
-    const C10: f32 = 1.4453057213202769;
     let (x2, y2, z2) = (x * x, y * y, z * z);
     let g = d_out;
     // Each row: (d/dx, d/dy, d/dz) of basis k.
