@@ -75,7 +75,9 @@ pub fn mip_from_dt(dt: f32, pos: [f32; 3], max_cascade: u32) -> u32 {
         return mip;
     }
     let e = ((d.to_bits() >> 23) & 0xff) as i32 - 126;
-    (mip as i32).clamp(e, max_cascade as i32) as u32
+    // glm's clamp(mip, e, max) is min(max(mip, e), max): a step coarser than the coarsest
+    // cascade reads the coarsest one (`Ord::clamp` would panic when e > max).
+    (mip as i32).max(e).min(max_cascade as i32) as u32
 }
 
 /// Morton cell of `pos` in cascade `mip`, or `None` outside it.
@@ -431,6 +433,10 @@ mod tests {
         assert_eq!(mip_from_pos([2.6, 0.5, 0.5], 1), 1);
         assert_eq!(mip_from_dt(MIN_CONE_STEPSIZE, [0.6, 0.5, 0.5], 7), 0);
         assert_eq!(mip_from_dt(4.0 / 128.0, [0.6, 0.5, 0.5], 7), 4); // dt·256 = 8 = 0.5·2^4
+        // A step coarser than the coarsest cascade reads the coarsest (fox crashed here).
+        assert_eq!(mip_from_dt(4.0 / 128.0, [0.6, 0.5, 0.5], 2), 2);
+        assert_eq!(mip_from_dt(1.7, [0.6, 0.5, 0.5], 0), 0);
+        assert_eq!(mip_from_dt(1.7, [9.0, 0.5, 0.5], 7), 7);
         assert_eq!(cell_at([0.0, 0.0, 0.0], 0), Some(0));
         assert_eq!(cell_at([0.999, 0.0, 0.0], 0), Some(morton3d(127, 0, 0)));
         assert_eq!(cell_at([1.0001, 0.5, 0.5], 0), None);
