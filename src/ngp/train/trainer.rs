@@ -14,7 +14,7 @@ use crate::ngp::data::Dataset;
 use crate::ngp::encoding::LevelIndices;
 use crate::ngp::network::ModelConfig;
 use crate::ngp::network::nerf::{CHUNK, NerfNetwork, Workspace};
-use crate::ngp::occupancy::OccupancyGrid;
+use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::ngp::render::composite::{
     TRAIN_MIN_TRANSMITTANCE, composite, composite_backward, huber_loss,
 };
@@ -131,6 +131,42 @@ struct RayRec {
 /// Samples a worker marches before running the network on them.
 const GROUP_SAMPLES: usize = 4 * CHUNK;
 
+/// The reference adapts rays per batch in multiples of this (`BATCH_SIZE_GRANULARITY`).
+const RAY_GRANULARITY: u32 = 256;
+/// Most rays per batch (the reference's cap).
+const MAX_RAYS_PER_BATCH: u32 = 1 << 18;
+/// The reference's loss scale: its gradients reach the optimizer multiplied by 128, which
+/// the optimizer divides out. The regularisers below are added *after* that scaling, so
+/// their effective size is their constant divided by 128.
+const REFERENCE_LOSS_SCALE: f32 = 128.0;
+/// Pull-up on negative raw density while the grid's mean density is below 0.01
+/// (`output_l1_reg_density`): keeps an empty-looking grid from collapsing early.
+const DENSITY_PULL_UP: f32 = 1e-4 / REFERENCE_LOSS_SCALE;
+/// Push-down on density of samples closer than `NEAR_DISTANCE` to their camera (raw > −10):
+/// keeps camera-specific floaters from forming right in front of the lens.
+const NEAR_PUSH_DOWN: f32 = 1e-4 / REFERENCE_LOSS_SCALE;
+/// `near_distance` (ngp units) of the reference's training.
+const NEAR_DISTANCE: f32 = 0.1;
+
+/// Rays of the first step: the reference starts at 4096 rays for its 2^18-sample target, i.e.
+/// 64 samples a ray; a smaller target starts at the same ratio.
+fn initial_rays_per_batch(batch_samples: u32) -> u32 {
+    let rays = (4096u64 * batch_samples as u64) >> 18;
+    (rays as u32)
+        .div_ceil(RAY_GRANULARITY)
+        .max(1)
+        .saturating_mul(RAY_GRANULARITY)
+        .min(MAX_RAYS_PER_BATCH)
+}
+
+/// The reference's `update_after_training`: scale the ray count by target / measured samples,
+/// round up to a multiple of 256, cap at 2^18.
+fn next_rays_per_batch(rays: u32, batch_samples: u32, measured: u64) -> u32 {
+    let r = (rays as f64 * batch_samples as f64 / measured.max(1) as f64) as u64;
+    (r.div_ceil(RAY_GRANULARITY as u64).max(1) * RAY_GRANULARITY as u64)
+        .min(MAX_RAYS_PER_BATCH as u64) as u32
+}
+
 pub struct Trainer {
     pub net: NerfNetwork,
     pub params: Vec<f32>,
@@ -182,7 +218,7 @@ impl Trainer {
             let mut grid = OccupancyGrid::new(model.aabb_scale);
             let cams: Vec<_> = s.dataset.frames.iter().map(|f| f.camera.clone()).collect();
             grid.mark_untrained(&cams);
-            let rays = (config.batch_samples / 32).max(64);
+            let rays = initial_rays_per_batch(config.batch_samples);
             states.push(SceneState {
                 data: s.dataset,
                 indices: s.indices,
@@ -329,14 +365,14 @@ impl Trainer {
             stats.n_marched += marched;
             stats.loss += (loss / n_rays as f64) as f32;
             stats.n_samples += used;
-            // Adapt rays per batch to the sample target (rounded to 64, as the reference to 256).
             let scene = &mut self.scenes[si];
             scene.measured_samples = used as u32;
             scene.measured_marched = marched as u32;
-            let target = self.config.batch_samples as f64;
-            let rays =
-                (n_rays as f64 * target / (used.max(1) as f64)).clamp(64.0, (1 << 18) as f64);
-            scene.rays_per_batch = ((rays as u32).div_ceil(64) * 64).max(64);
+            // The reference keeps its ray count when nothing was trained.
+            if used > 0 {
+                scene.rays_per_batch =
+                    next_rays_per_batch(n_rays as u32, self.config.batch_samples, used);
+            }
         }
         let t_rays = t0.elapsed().as_secs_f64();
         let mut grads: Vec<Vec<f32>> = self
@@ -485,7 +521,14 @@ fn train_rays(
     let n_images = scene.data.frames.len();
     let n_levels = net.layout.grid.levels.len();
     let grid_offset = net.layout.grid_offset;
-    let loss_norm = scene.loss_weight / (3.0 * n_rays as f32);
+    // The reference differentiates the per-channel loss summed over channels (the reported
+    // loss is their mean), divided by the ray count.
+    let loss_norm = scene.loss_weight / n_rays as f32;
+    let pull_up = if scene.grid.mean < MIN_OPTICAL_THICKNESS {
+        DENSITY_PULL_UP
+    } else {
+        0.0
+    };
     let mut next = range.start;
     while next < range.end {
         w.pos.clear();
@@ -502,11 +545,10 @@ fn train_rays(
             let (wd, ht) = (frame.image.width, frame.image.height);
             let x = rng.below(wd);
             let y = rng.below(ht);
-            let bg = if scene.data.has_alpha {
-                [rng.next_f32(), rng.next_f32(), rng.next_f32()]
-            } else {
-                [0.0; 3]
-            };
+            // A random background for every dataset, as the reference: on opaque images it
+            // is the target of nothing, which teaches rays to end (T → 0) where the photo
+            // shows something, instead of leaning on a fixed colour behind the scene.
+            let bg = [rng.next_f32(), rng.next_f32(), rng.next_f32()];
             let ray = frame.camera.ray(x as f32 + 0.5, y as f32 + 0.5);
             let Some((tmin, _)) = scene.marcher.intersect(ray.o, ray.d) else {
                 continue;
@@ -584,8 +626,17 @@ fn train_rays(
                 ray.bg,
                 TRAIN_MIN_TRANSMITTANCE,
                 dl,
-                &mut w.d_raw[r],
+                &mut w.d_raw[r.clone()],
             );
+            for j in r.clone().take(c.n_used) {
+                let raw_density = w.raw[j][3];
+                if raw_density < 0.0 {
+                    w.d_raw[j][3] -= pull_up;
+                }
+                if raw_density > -10.0 && w.dist[j] < NEAR_DISTANCE {
+                    w.d_raw[j][3] += NEAR_PUSH_DOWN;
+                }
+            }
             w.n_samples += c.n_used as u64;
             w.n_rays += 1;
         }
@@ -608,5 +659,26 @@ fn train_rays(
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rays_per_batch_follow_the_reference() {
+        // 2^18 target: the reference's 4096 start.
+        assert_eq!(initial_rays_per_batch(1 << 18), 4096);
+        assert_eq!(initial_rays_per_batch(1 << 16), 1024);
+        // Small targets still start at one granule.
+        assert_eq!(initial_rays_per_batch(1000), 256);
+        // 4096 rays gave 2^17 samples for a 2^18 target: twice the rays.
+        assert_eq!(next_rays_per_batch(4096, 1 << 18, 1 << 17), 8192);
+        // 1000 × 65536 / 70000 = 936.2 → 936 → next multiple of 256 = 1024.
+        assert_eq!(next_rays_per_batch(1000, 65536, 70000), 1024);
+        // Capped at 2^18, never below one granule.
+        assert_eq!(next_rays_per_batch(1 << 17, 1 << 18, 1), 1 << 18);
+        assert_eq!(next_rays_per_batch(256, 1, 1 << 20), 256);
     }
 }
