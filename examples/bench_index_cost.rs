@@ -31,6 +31,7 @@ fn main() {
                     n_val: 0,
                     n_test: 2,
                     seed: 1,
+                    aabb_scale: 1,
                 };
                 generate(&opts, &tmp).expect("generate scene");
             }
@@ -39,7 +40,10 @@ fn main() {
     };
     let steps: u32 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(60);
     let downscale: u32 = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1);
-    let opts = LoadOptions { downscale };
+    let opts = LoadOptions {
+        downscale,
+        ..Default::default()
+    };
     let data = Arc::new(Dataset::load(&dir, Split::Train, &opts).expect("load"));
     let test = Dataset::load(&dir, Split::Test, &opts).expect("load test split");
     let cfg = ModelConfig {

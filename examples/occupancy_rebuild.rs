@@ -19,8 +19,15 @@ fn main() {
     }
     let model = Model::load(args[1].as_ref()).unwrap_or_else(|e| panic!("{e}"));
     let downscale = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1);
-    let data = Dataset::load(args[2].as_ref(), Split::Test, &LoadOptions { downscale })
-        .unwrap_or_else(|e| panic!("{e}"));
+    let data = Dataset::load(
+        args[2].as_ref(),
+        Split::Test,
+        &LoadOptions {
+            downscale,
+            ..Default::default()
+        },
+    )
+    .unwrap_or_else(|e| panic!("{e}"));
     let key = args
         .get(4)
         .filter(|s| !s.is_empty() && *s != "-")

@@ -33,6 +33,8 @@ enum Cmd {
     Demo(cli::demo::Args),
     /// Run one of the paper's experiments and write a report.
     Experiment(cli::experiment::Args),
+    /// Write a COLMAP or LLFF capture as an instant-ngp transforms.json.
+    Convert(cli::convert::Args),
 }
 
 fn main() {
@@ -46,6 +48,7 @@ fn main() {
         Cmd::Keygen(a) => cli::keygen::run(a),
         Cmd::Demo(a) => cli::demo::run(a),
         Cmd::Experiment(a) => cli::experiment::run(a),
+        Cmd::Convert(a) => cli::convert::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -29,7 +29,10 @@ fn dist_to_axis(c: &Camera, p: [f32; 3]) -> f32 {
 #[test]
 fn lego_downscale_4() {
     let Some(dir) = data_dir("lego") else { return };
-    let opts = LoadOptions { downscale: 4 };
+    let opts = LoadOptions {
+        downscale: 4,
+        ..Default::default()
+    };
     let t0 = Instant::now();
     let train = Dataset::load(&dir, Split::Train, &opts).unwrap();
     println!(
@@ -86,7 +89,10 @@ fn lego_downscale_4() {
 #[test]
 fn fox_every_eighth_with_distortion() {
     let Some(dir) = data_dir("fox") else { return };
-    let opts = LoadOptions { downscale: 4 };
+    let opts = LoadOptions {
+        downscale: 4,
+        ..Default::default()
+    };
     let (test_cams, test_meta) = Dataset::load_cameras(&dir, Split::Test, &opts).unwrap();
     assert_eq!(
         test_meta.dropped.len(),

@@ -32,11 +32,15 @@ fn scene(dir: &std::path::Path, kind: SceneKind, seed: u64) -> (Dataset, Dataset
             n_val: 0,
             n_test: 4,
             seed,
+            aabb_scale: 1,
         },
         dir,
     )
     .unwrap();
-    let o = LoadOptions { downscale: 1 };
+    let o = LoadOptions {
+        downscale: 1,
+        ..Default::default()
+    };
     (
         Dataset::load(dir, Split::Train, &o).unwrap(),
         Dataset::load(dir, Split::Test, &o).unwrap(),

@@ -55,6 +55,7 @@ pub fn run(a: Args) -> Result<()> {
                     n_val: 0,
                     n_test: 8,
                     seed,
+                    aabb_scale: 1,
                 },
                 dir,
             )?;
@@ -68,7 +69,10 @@ pub fn run(a: Args) -> Result<()> {
         save_key(&key_path, &k, false)?;
         k
     };
-    let opts = LoadOptions { downscale: 1 };
+    let opts = LoadOptions {
+        downscale: 1,
+        ..Default::default()
+    };
     let cover = Dataset::load(&cover_dir, Split::Train, &opts)?;
     let hidden = Dataset::load(&hidden_dir, Split::Train, &opts)?;
     let config = ModelConfig::default();

@@ -50,6 +50,7 @@ pub fn run(a: Args) -> Result<()> {
         a.split.into(),
         &LoadOptions {
             downscale: a.downscale,
+            ..Default::default()
         },
     )?;
     let (indices, rebuilt) =

@@ -1,6 +1,7 @@
 //! One module per subcommand, plus what they share.
 
 pub mod common;
+pub mod convert;
 pub mod demo;
 pub mod eval;
 pub mod experiment;

@@ -47,6 +47,7 @@ pub fn run(a: Args) -> Result<()> {
         a.split.into(),
         &LoadOptions {
             downscale: a.downscale,
+            ..Default::default()
         },
     )?;
     let (indices, rebuilt) =

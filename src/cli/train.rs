@@ -124,6 +124,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let opts = LoadOptions {
         downscale: a.downscale,
+        ..Default::default()
     };
     let cover = Dataset::load(&a.scene, Split::Train, &opts)?;
     let config = ModelConfig {
@@ -146,6 +147,7 @@ pub fn run(a: Args) -> Result<()> {
         &layout,
         &LoadOptions {
             downscale: a.hidden_downscale,
+            ..Default::default()
         },
         config.aabb_scale,
     )?);

@@ -79,7 +79,10 @@ struct Scene {
 }
 
 fn load_scene(dir: &Path, downscale: u32) -> Result<Scene> {
-    let opts = LoadOptions { downscale };
+    let opts = LoadOptions {
+        downscale,
+        ..Default::default()
+    };
     Ok(Scene {
         train: Arc::new(Dataset::load(dir, Split::Train, &opts)?),
         test: Dataset::load(dir, Split::Test, &opts)?,

@@ -58,7 +58,10 @@ fn synthetic(dir: &Path, splits: &[&str]) {
 }
 
 fn opts(n: u32) -> LoadOptions {
-    LoadOptions { downscale: n }
+    LoadOptions {
+        downscale: n,
+        ..Default::default()
+    }
 }
 
 fn close(a: f32, b: f32) -> bool {

@@ -343,11 +343,23 @@ impl Ctx<'_> {
     }
 }
 
-/// Reads and validates one transforms JSON file.
+/// Reads and validates one transforms JSON file (image paths relative to its folder).
 pub fn parse_transforms(json_path: &Path) -> Result<Transforms> {
     let text = std::fs::read_to_string(json_path).map_err(|e| Error::io(json_path, e))?;
     let root: Value = serde_json::from_str(&text)
         .map_err(|e| Error::format(json_path, format!("malformed JSON: {e}")))?;
+    let base = json_path.parent().unwrap_or(Path::new(""));
+    parse_transforms_value(&root, json_path, base)
+}
+
+/// Validates a transforms JSON already in memory, exactly as [`parse_transforms`] does a
+/// file: `json_path` names it in messages (and becomes [`Transforms::json_path`]),
+/// `base_dir` is the folder `file_path`s are relative to.
+pub fn parse_transforms_value(
+    root: &Value,
+    json_path: &Path,
+    base_dir: &Path,
+) -> Result<Transforms> {
     let ctx = Ctx { path: json_path };
     let obj = root
         .as_object()
@@ -428,7 +440,7 @@ pub fn parse_transforms(json_path: &Path) -> Result<Transforms> {
         .ok_or_else(|| ctx.err("frames: missing"))?
         .as_array()
         .ok_or_else(|| ctx.err("frames: not an array"))?;
-    let base = json_path.parent().unwrap_or(Path::new("")).to_path_buf();
+    let base = base_dir.to_path_buf();
     struct Raw<'a> {
         idx: usize,
         obj: &'a Map<String, Value>,
