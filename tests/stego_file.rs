@@ -136,12 +136,15 @@ fn stego_file_matches_plain_file_and_holds_no_key() {
             "hidden dataset leaked into the file"
         );
         match key.scheme() {
-            KeyScheme::Prf { secret, .. } => {
-                assert!(!contains(&stego, secret));
-                let hex: String = secret.iter().map(|b| format!("{b:02x}")).collect();
-                assert!(!contains(&stego, hex.as_bytes()));
-                assert!(!contains(&stego, &secret[..8]));
+            KeyScheme::Prf { secrets } => {
+                for secret in secrets {
+                    assert!(!contains(&stego, secret));
+                    let hex: String = secret.iter().map(|b| format!("{b:02x}")).collect();
+                    assert!(!contains(&stego, hex.as_bytes()));
+                    assert!(!contains(&stego, &secret[..8]));
+                }
             }
+            KeyScheme::PrfShares { .. } => unreachable!("generate_prf makes version-2 keys"),
             KeyScheme::Primes { keys } => {
                 for k in keys.iter().flatten() {
                     assert!(!contains(&stego, &k.to_le_bytes()[..4]));

@@ -1,10 +1,11 @@
-//! `stegongp keygen`: make a key file. Prints only the path, scheme, m and key strength.
+//! `stegongp keygen`: make a key file. Prints only the path, scheme, m, the passphrase
+//! salt (not secret) and key strength — never key material.
 
 use anyhow::bail;
 use std::io::{BufRead, IsTerminal};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use stegongp::ngp::encoding::{GridConfig, GridLayout};
-use stegongp::stego::{self, DenseMode, key_strength};
+use stegongp::stego::{self, DenseMode, Key, key_strength};
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum Scheme {
@@ -34,10 +35,10 @@ pub struct Args {
     /// stdin when stdin is not a terminal).
     #[arg(long)]
     pub passphrase: bool,
-    /// Salt for --passphrase (e.g. a model name); the same passphrase and salt give the
-    /// same key.
-    #[arg(long, default_value = "", requires = "passphrase")]
-    pub salt: String,
+    /// Salt for --passphrase; without it a random one is drawn, stored in the key file and
+    /// printed (a salt is not secret). The same passphrase, salt and m give the same key.
+    #[arg(long, requires = "passphrase")]
+    pub salt: Option<String>,
     /// How dense (coarse) levels are keyed.
     #[arg(long, value_enum, default_value = "permute")]
     pub dense: Dense,
@@ -47,7 +48,7 @@ pub struct Args {
     /// log2 of the hash table size T (for the strength report).
     #[arg(long, default_value_t = 19)]
     pub log2_hashmap_size: u32,
-    /// Replace an existing key file.
+    /// Replace an existing key file (or a link at its path; the link's target is untouched).
     #[arg(long)]
     pub force: bool,
     /// Key file to write (created with mode 0600).
@@ -92,11 +93,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         (Scheme::Primes, false) => stego::generate_primes(args.m)?,
         (Scheme::Prf, false) => stego::generate_prf(args.m)?,
         (Scheme::Prf, true) => {
+            let salt = match &args.salt {
+                Some(s) if s.is_empty() => bail!("--salt must not be empty"),
+                Some(s) => s.clone(),
+                None => stego::random_salt()?,
+            };
             let pass = read_passphrase()?;
             if pass.chars().count() < 8 {
                 bail!("passphrase too short (at least 8 characters)");
             }
-            stego::derive_prf_from_passphrase(&pass, &args.salt, args.m)?
+            stego::derive_prf_from_passphrase(&pass, &salt, args.m)?
         }
     };
     let key = key.with_dense(match args.dense {
@@ -107,12 +113,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     // The error already names the file.
     stego::save_key(&args.out, &key, args.force)?;
     let strength = key_strength(&key, &layout);
+    let last = strength.after_disclosure.last();
     if args.json {
         let report = serde_json::json!({
             "path": args.out,
+            "version": stego::keyfile::version_for(&key),
             "scheme": key.scheme().name(),
             "m": key.m(),
             "dense": key.dense().name(),
+            "salt": key.kdf().map(|k| k.salt.clone()),
+            "kdf": key.kdf(),
             "strength": strength,
         });
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -136,9 +146,39 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 "key"
             }
         );
+        if let (Some(d), true) = (last, key.m() > 1) {
+            println!(
+                "with {} of the {} keys disclosed: {:.1} bits brute force, {:.1} bits with the oracle",
+                d.disclosed,
+                key.m(),
+                d.brute_force_bits,
+                d.oracle_bits
+            );
+        }
         if let Some(p) = strength.paper_claim_bits {
             println!("(the paper counts {p:.1} bits for this m)");
         }
+        if let Some(k) = key.kdf() {
+            println!(
+                "passphrase salt: {} (not secret; the passphrase with `--salt {} --m {}` recreates this key; Argon2id m = {} KiB, t = {}, p = {})",
+                k.salt,
+                k.salt,
+                key.m(),
+                k.m_cost_kib,
+                k.t_cost,
+                k.p_cost
+            );
+        }
     }
     Ok(())
+}
+
+/// Loads a key file for the CLI: prints the loader's warnings (permissions readable by
+/// others, the old version-1 layout, diagnostic entries, weak KDF cost) on stderr.
+pub fn load_key_reporting(path: &Path) -> anyhow::Result<Key> {
+    let loaded = stego::load_key_with_warnings(path)?;
+    for w in &loaded.warnings {
+        eprintln!("warning: {}: {w}", path.display());
+    }
+    Ok(loaded.key)
 }

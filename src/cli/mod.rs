@@ -21,7 +21,7 @@ use stegongp::ngp::network::NerfLayout;
 use stegongp::ngp::occupancy::OccupancyGrid;
 use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, rebuild_occupancy};
 use stegongp::ngp::train::SceneSpec;
-use stegongp::stego::{Key, Mixed, load_key};
+use stegongp::stego::{Key, Mixed};
 
 /// The hidden scenes of a `train --hidden … --key …` call, each with its key's indices.
 pub fn stego_scenes(
@@ -41,7 +41,7 @@ pub fn stego_scenes(
     let mut loaded: Vec<(Key, &PathBuf)> = Vec::new();
     let mut out = Vec::new();
     for (h, kp) in hidden.iter().zip(keys) {
-        let key = load_key(kp)?;
+        let key = keygen::load_key_reporting(kp)?;
         key.validate_for(&layout.grid)
             .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
         if key.is_reference() {
@@ -132,7 +132,7 @@ pub fn scene_for_key(
         }
         return Ok((reference_indices(&model.net.layout.grid), None));
     };
-    let mut key = load_key(kp)?;
+    let mut key = keygen::load_key_reporting(kp)?;
     key.validate_for(&model.net.layout.grid)
         .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
     if let Some(v) = variant {

@@ -49,8 +49,7 @@ fn bench_corners() {
     .unwrap();
     let prf = Key::new(
         KeyScheme::Prf {
-            secret: [9; 32],
-            m: 1,
+            secrets: vec![[9; 32]],
         },
         DenseMode::Permute,
     )

@@ -1,6 +1,7 @@
 //! Keys: the `primes` scheme (the paper's) and the `prf` scheme (ours), the level → key
 //! group assignment, and the diagnostic variants used by key-sensitivity experiments.
 
+use super::prf::combine_secrets;
 use super::primes::{self, is_prime};
 use crate::error::{Error, Result};
 use crate::ngp::encoding::index::REFERENCE_PRIMES;
@@ -49,10 +50,16 @@ impl DenseMode {
 pub enum KeyScheme {
     /// `m = keys.len()` prime triples; level l uses `keys[l mod m]`.
     Primes { keys: Vec<[u64; 3]> },
-    /// A 256-bit secret; per-level subkeys are derived from it. `m` only groups levels for
-    /// partial disclosure (group j = levels with l mod m = j); the full key's index
-    /// functions do not depend on m.
-    Prf { secret: [u8; 32], m: usize },
+    /// `m = secrets.len()` independent 256-bit secrets (key file version 2). Every level's
+    /// subkey is derived from the master [`combine_secrets`]`(secrets)`, i.e. from all m
+    /// together: the index is all-or-nothing, and any m − 1 disclosed secrets leave the
+    /// 256 bits of the last one to search.
+    Prf { secrets: Vec<[u8; 32]> },
+    /// The version-1 layout, read for compatibility only: one 256-bit secret whose m
+    /// "keys" are shares of it (share j = bytes `[32j/m, 32(j+1)/m)`), so m − 1 disclosed
+    /// keys leave only the last share (16 bits for m = 16) to search. `keygen` never
+    /// makes one; [`Key::is_legacy_layout`] flags it.
+    PrfShares { secret: [u8; 32], m: usize },
 }
 
 impl std::fmt::Debug for KeyScheme {
@@ -63,8 +70,13 @@ impl std::fmt::Debug for KeyScheme {
                 .field("m", &keys.len())
                 .field("keys", &"<redacted>")
                 .finish(),
-            KeyScheme::Prf { m, .. } => f
+            KeyScheme::Prf { secrets } => f
                 .debug_struct("Prf")
+                .field("m", &secrets.len())
+                .field("secrets", &"<redacted>")
+                .finish(),
+            KeyScheme::PrfShares { m, .. } => f
+                .debug_struct("PrfShares")
                 .field("m", m)
                 .field("secret", &"<redacted>")
                 .finish(),
@@ -76,25 +88,74 @@ impl KeyScheme {
     pub fn name(&self) -> &'static str {
         match self {
             KeyScheme::Primes { .. } => "primes",
-            KeyScheme::Prf { .. } => "prf",
+            KeyScheme::Prf { .. } | KeyScheme::PrfShares { .. } => "prf",
         }
     }
     pub fn m(&self) -> usize {
         match self {
             KeyScheme::Primes { keys } => keys.len(),
-            KeyScheme::Prf { m, .. } => *m,
+            KeyScheme::Prf { secrets } => secrets.len(),
+            KeyScheme::PrfShares { m, .. } => *m,
         }
+    }
+    /// Either `prf` layout.
+    pub fn is_prf(&self) -> bool {
+        !matches!(self, KeyScheme::Primes { .. })
     }
 }
 
-/// How a passphrase-derived secret was made (informational; stored in the key file).
+/// Bytes of share `j` of a version-1 (`PrfShares`) secret split into `m` shares.
+pub fn share_range(m: usize, j: usize) -> std::ops::Range<usize> {
+    32 * j / m..32 * (j + 1) / m
+}
+
+/// How a passphrase-derived secret was made (stored in the key file; the salt is not
+/// secret, and with the passphrase it recreates the key).
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
 pub struct KdfInfo {
     pub algorithm: String,
+    /// Argon2 version (19 = 0x13); 0 where a version-1 file did not record it.
+    pub version: u32,
     pub salt: String,
     pub m_cost_kib: u32,
     pub t_cost: u32,
     pub p_cost: u32,
+}
+
+impl KdfInfo {
+    /// The recorded Argon2id cost.
+    pub fn cost(&self) -> Argon2Cost {
+        Argon2Cost {
+            m_cost_kib: self.m_cost_kib,
+            t_cost: self.t_cost,
+            p_cost: self.p_cost,
+        }
+    }
+}
+
+/// Argon2id cost parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct Argon2Cost {
+    pub m_cost_kib: u32,
+    pub t_cost: u32,
+    pub p_cost: u32,
+}
+
+impl Argon2Cost {
+    /// `keygen`'s cost: 64 MiB, 3 passes, 1 lane — above both OWASP minimums.
+    pub const DEFAULT: Argon2Cost = Argon2Cost {
+        m_cost_kib: 64 * 1024,
+        t_cost: 3,
+        p_cost: 1,
+    };
+
+    /// OWASP's Argon2id minimum (Password Storage Cheat Sheet): m = 19 MiB (19456 KiB)
+    /// with t = 2, or m = 46 MiB (47104 KiB) with t = 1 (p = 1 in both).
+    pub fn meets_owasp(self) -> bool {
+        self.p_cost >= 1
+            && ((self.m_cost_kib >= 19_456 && self.t_cost >= 2)
+                || (self.m_cost_kib >= 47_104 && self.t_cost >= 1))
+    }
 }
 
 /// The key of one level group, as the index builder sees it.
@@ -194,6 +255,11 @@ impl Key {
     pub fn kdf(&self) -> Option<&KdfInfo> {
         self.kdf.as_ref()
     }
+    /// A version-1 `prf` key: its m keys are shares of one secret (see
+    /// [`KeyScheme::PrfShares`]); disclosing m − 1 of them leaves only the last share.
+    pub fn is_legacy_layout(&self) -> bool {
+        matches!(self.scheme, KeyScheme::PrfShares { .. })
+    }
     pub fn with_dense(mut self, dense: DenseMode) -> Key {
         self.dense = dense;
         self
@@ -234,7 +300,9 @@ impl Key {
         match &self.scheme {
             KeyScheme::Primes { keys } if keys[j] == PI => GroupKey::Reference,
             KeyScheme::Primes { keys } => GroupKey::Primes(keys[j]),
-            KeyScheme::Prf { secret, .. } => GroupKey::Prf(*secret),
+            // Every group's levels are keyed by the master of all m secrets.
+            KeyScheme::Prf { secrets } => GroupKey::Prf(combine_secrets(secrets)),
+            KeyScheme::PrfShares { secret, .. } => GroupKey::Prf(*secret),
         }
     }
 
@@ -266,12 +334,12 @@ impl Key {
     /// Partial disclosure (paper §Multi-Key ablation): the first `round(p·m)` of the m keys
     /// are known, the rest replaced by the default. For `primes` the missing triples become Π,
     /// literally, and the levels they cover fall back to the reference index. For `prf` the
-    /// m keys are m equal shares of the 256-bit secret (share j = bytes `[32j/m, 32(j+1)/m)`)
-    /// and a missing share is replaced by zero bytes, the default secret's. Every level's
-    /// subkey is derived from the whole secret, so any missing share changes every level:
-    /// all-or-nothing. p = 0 is no key at all (the reference index, i.e. the cover), as for
-    /// `primes`. What the paper's per-level substitution would do to `prf` — subkeys of some
-    /// levels leaked — is [`Key::disclose_levels`].
+    /// m keys are the m independent secrets and a missing one is replaced by zero bytes
+    /// (the "default secret"); every level's subkey is derived from all m together, so any
+    /// missing secret changes every level: all-or-nothing. (A version-1 key's shares of its
+    /// one secret are zeroed the same way.) p = 0 is no key at all (the reference index,
+    /// i.e. the cover), as for `primes`. What the paper's per-level substitution would do
+    /// to `prf` — subkeys of some levels leaked — is [`Key::disclose_levels`].
     pub fn partial(&self, fraction: f64) -> Key {
         let m = self.m();
         let keep = (fraction.clamp(0.0, 1.0) * m as f64).round() as usize;
@@ -282,15 +350,20 @@ impl Key {
                     *t = PI;
                 }
             }
-            KeyScheme::Prf { .. } if keep == 0 => return self.disclose_levels(0.0),
-            KeyScheme::Prf { secret, .. } => {
+            _ if keep == 0 => return self.disclose_levels(0.0),
+            KeyScheme::Prf { secrets } => {
+                for s in secrets.iter_mut().skip(keep) {
+                    *s = [0; 32];
+                }
+            }
+            KeyScheme::PrfShares { secret, .. } => {
                 for b in secret.iter_mut().skip(32 * keep / m) {
                     *b = 0;
                 }
-                if keep < m {
-                    k.kdf = None;
-                }
             }
+        }
+        if keep < m && k.scheme.is_prf() {
+            k.kdf = None;
         }
         k
     }
@@ -310,7 +383,7 @@ impl Key {
     }
 
     /// Mixed keys. `primes`: {π1,k2,k3} / {π1,π2,k3} in every triple. `prf` analogue: the
-    /// first ⌊32/3⌋ / ⌊64/3⌋ bytes of the secret are replaced by zeros (the "default
+    /// first ⌊32/3⌋ / ⌊64/3⌋ bytes of every secret are replaced by zeros (the "default
     /// secret"), i.e. a third / two thirds of the key material is wrong.
     pub fn mixed(&self, which: Mixed) -> Key {
         let n = match which {
@@ -324,11 +397,12 @@ impl Key {
                     t[..n].copy_from_slice(&PI[..n]);
                 }
             }
-            KeyScheme::Prf { secret, .. } => {
-                for b in secret.iter_mut().take(32 * n / 3) {
-                    *b = 0;
+            KeyScheme::Prf { secrets } => {
+                for s in secrets.iter_mut() {
+                    s[..32 * n / 3].fill(0);
                 }
             }
+            KeyScheme::PrfShares { secret, .. } => secret[..32 * n / 3].fill(0),
         }
         k.kdf = None;
         k
@@ -344,13 +418,15 @@ impl Key {
                 keys: primes::random_prime_triples(keys.len(), &mut next)
                     .unwrap_or_else(|_| vec![PI; keys.len()]),
             },
-            KeyScheme::Prf { m, .. } => {
-                let mut secret = [0u8; 32];
-                for c in secret.chunks_mut(8) {
-                    c.copy_from_slice(&next().unwrap_or(0).to_le_bytes());
-                }
-                KeyScheme::Prf { secret, m: *m }
-            }
+            KeyScheme::Prf { secrets } => KeyScheme::Prf {
+                secrets: (0..secrets.len())
+                    .map(|_| random_secret(&mut next).unwrap_or([0; 32]))
+                    .collect(),
+            },
+            KeyScheme::PrfShares { m, .. } => KeyScheme::PrfShares {
+                secret: random_secret(&mut next).unwrap_or([0; 32]),
+                m: *m,
+            },
         };
         Key {
             scheme,
@@ -366,7 +442,7 @@ pub fn generate_primes(m: usize) -> Result<Key> {
     generate_with(false, m, primes::os_u64)
 }
 
-/// A random 256-bit secret from the OS CSPRNG, with `m` disclosure groups.
+/// `m` independent random 256-bit secrets from the OS CSPRNG (key file version 2).
 pub fn generate_prf(m: usize) -> Result<Key> {
     generate_with(true, m, primes::os_u64)
 }
@@ -380,11 +456,11 @@ pub fn generate_with(
 ) -> Result<Key> {
     check_m(m)?;
     let scheme = if prf {
-        let mut secret = [0u8; 32];
-        for c in secret.chunks_mut(8) {
-            c.copy_from_slice(&next_u64()?.to_le_bytes());
+        KeyScheme::Prf {
+            secrets: (0..m)
+                .map(|_| random_secret(&mut next_u64))
+                .collect::<Result<_>>()?,
         }
-        KeyScheme::Prf { secret, m }
     } else {
         KeyScheme::Primes {
             keys: primes::random_prime_triples(m, next_u64)?,
@@ -393,40 +469,78 @@ pub fn generate_with(
     Key::new(scheme, DenseMode::default())
 }
 
-/// Argon2id cost: 64 MiB, 3 passes, 1 lane (release); tiny under `cfg(test)`.
-#[cfg(not(test))]
-pub const ARGON2_COST: (u32, u32, u32) = (64 * 1024, 3, 1);
-#[cfg(test)]
-pub const ARGON2_COST: (u32, u32, u32) = (256, 1, 1);
+fn random_secret(next_u64: &mut impl FnMut() -> Result<u64>) -> Result<[u8; 32]> {
+    let mut secret = [0u8; 32];
+    for c in secret.chunks_mut(8) {
+        c.copy_from_slice(&next_u64()?.to_le_bytes());
+    }
+    Ok(secret)
+}
+
+/// A fresh passphrase salt: 128 bits from the OS CSPRNG as 32 hex digits. Salts are not
+/// secret; `keygen` stores and prints it so that passphrase + salt recreate the key.
+pub fn random_salt() -> Result<String> {
+    let (a, b) = (primes::os_u64()?, primes::os_u64()?);
+    Ok(format!("{a:016x}{b:016x}"))
+}
 
 /// Domain salt prepended to the user's salt, so the same passphrase gives unrelated
 /// secrets here and in any other Argon2id use.
-pub const PASSPHRASE_DOMAIN: &str = "stegongp/prf-key/v1";
+pub const PASSPHRASE_DOMAIN: &str = "stegongp/prf-key/v2";
 
-/// A `prf` key from a passphrase: `secret = Argon2id(pass, "stegongp/prf-key/v1\0" ‖ salt)`
-/// with [`ARGON2_COST`]. The same passphrase and salt always give the same key, so the
-/// key file can be recreated; a non-empty, per-model salt defeats precomputed tables.
+/// Domain label of the per-secret expansion of a passphrase root.
+pub const PASSPHRASE_SECRET_DOMAIN: &[u8] = b"stegongp/v2/passphrase-secret";
+
+/// A `prf` key from a passphrase with [`Argon2Cost::DEFAULT`]; see
+/// [`derive_prf_from_passphrase_with`].
 pub fn derive_prf_from_passphrase(pass: &str, salt: &str, m: usize) -> Result<Key> {
+    derive_prf_from_passphrase_with(pass, salt, m, Argon2Cost::DEFAULT)
+}
+
+/// A `prf` key from a passphrase: `root = Argon2id(pass, "stegongp/prf-key/v2\0" ‖ salt)`
+/// (32 bytes, `cost`), then secret j = `W(root, "stegongp/v2/passphrase-secret" ‖ 0x00 ‖
+/// m ‖ j)` (u32 LE; W = [`super::prf::wide_prf`]): m secrets, each with its own index. The
+/// same passphrase, salt, m and cost always give the same key. The salt must not be
+/// empty (`keygen` draws a random one). A passphrase key is only as strong as the
+/// passphrase: anyone holding one of its secrets can test guesses at one Argon2id each.
+pub fn derive_prf_from_passphrase_with(
+    pass: &str,
+    salt: &str,
+    m: usize,
+    cost: Argon2Cost,
+) -> Result<Key> {
     check_m(m)?;
     if pass.is_empty() {
         return Err(Error::Key("empty passphrase".into()));
     }
-    let (mc, tc, pc) = ARGON2_COST;
-    let params = argon2::Params::new(mc, tc, pc, Some(32))
+    if salt.is_empty() {
+        return Err(Error::Key("empty passphrase salt".into()));
+    }
+    let params = argon2::Params::new(cost.m_cost_kib, cost.t_cost, cost.p_cost, Some(32))
         .map_err(|e| Error::Other(format!("argon2 parameters: {e}")))?;
     let a = argon2::Argon2::new(argon2::Algorithm::Argon2id, argon2::Version::V0x13, params);
     let mut full_salt = Vec::from(PASSPHRASE_DOMAIN.as_bytes());
     full_salt.push(0);
     full_salt.extend_from_slice(salt.as_bytes());
-    let mut secret = [0u8; 32];
-    a.hash_password_into(pass.as_bytes(), &full_salt, &mut secret)
+    let mut root = [0u8; 32];
+    a.hash_password_into(pass.as_bytes(), &full_salt, &mut root)
         .map_err(|e| Error::Other(format!("argon2id: {e}")))?;
+    let secrets = (0..m as u32)
+        .map(|j| {
+            let mut msg = Vec::from(PASSPHRASE_SECRET_DOMAIN);
+            msg.push(0);
+            msg.extend_from_slice(&(m as u32).to_le_bytes());
+            msg.extend_from_slice(&j.to_le_bytes());
+            super::prf::wide_prf(&root, &msg)
+        })
+        .collect();
     let kdf = KdfInfo {
         algorithm: "argon2id".into(),
+        version: 0x13,
         salt: salt.into(),
-        m_cost_kib: mc,
-        t_cost: tc,
-        p_cost: pc,
+        m_cost_kib: cost.m_cost_kib,
+        t_cost: cost.t_cost,
+        p_cost: cost.p_cost,
     };
-    Ok(Key::new(KeyScheme::Prf { secret, m }, DenseMode::default())?.with_kdf(Some(kdf)))
+    Ok(Key::new(KeyScheme::Prf { secrets }, DenseMode::default())?.with_kdf(Some(kdf)))
 }

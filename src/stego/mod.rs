@@ -5,8 +5,10 @@
 //!   Hashed levels: `(x·k1 ⊕ y·k2 ⊕ z·k3) mod T` (u64 products; only `k mod T` matters,
 //!   see [`strength`]). Π = {1, 2654435761, 805459861} is the reference index on every
 //!   level, dense ones included.
-//! - `prf` (ours, the default): a 256-bit secret; `index = SipHash-2-4(subkey_l, x‖y‖z)
-//!   mod size_l` with per-level subkeys from a documented KDF ([`prf`]).
+//! - `prf` (ours, the default): m independent 256-bit secrets (key file version 2);
+//!   `index = SipHash-2-4(subkey_l, x‖y‖z) mod size_l` with per-level subkeys from a
+//!   documented KDF of the master that all m secrets make together ([`prf`]). Version-1
+//!   files (one secret in m shares) still load, flagged as the weaker layout.
 //!
 //! Every level is keyed. Dense levels (res³ ≤ T, sizes not powers of two) use, per the
 //! key's `dense` option, either a keyed permutation of the reference dense index
@@ -27,8 +29,9 @@
 //! Key strength ([`strength`]), paper config (16 levels, T = 2^19): a prime triple is worth
 //! 54 bits on hashed levels (only k mod 2^19, odd, matters) and ≤ 86.3 bits on dense ones;
 //! with a per-key oracle (which the paper's partial-key PSNR table exhibits) m = 1 costs
-//! ~2^54 and m = 16 ~2^88.6, not the paper's 2^1380. `prf`: 256-bit secret, 128-bit
-//! subkey per level, 2^132 even with a per-level oracle.
+//! ~2^54 and m = 16 ~2^88.6, not the paper's 2^1380. `prf`: 256-bit master, 128-bit
+//! subkey per level, 2^132 even with a per-level oracle; with m − 1 of its m secrets
+//! disclosed, still 256 bits (2^132 per-level) — version 1's shares left 256/m bits.
 
 pub mod diagnostics;
 pub mod index;
@@ -44,9 +47,11 @@ mod bench;
 #[cfg(test)]
 mod tests;
 
-pub use keyfile::{load_key, parse_key, save_key};
-pub use keys::{
-    DenseMode, GroupKey, Key, KeyScheme, Mixed, PI, derive_prf_from_passphrase, generate_prf,
-    generate_primes, generate_with,
+pub use keyfile::{
+    LoadedKey, key_file_warnings, load_key, load_key_with_warnings, parse_key, save_key,
 };
-pub use strength::{KeyStrength, key_strength};
+pub use keys::{
+    Argon2Cost, DenseMode, GroupKey, Key, KeyScheme, Mixed, PI, derive_prf_from_passphrase,
+    derive_prf_from_passphrase_with, generate_prf, generate_primes, generate_with, random_salt,
+};
+pub use strength::{Disclosure, KeyStrength, key_strength};

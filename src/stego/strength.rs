@@ -6,14 +6,29 @@
 //! (T = 2^19: 18, so 54 per triple); on a dense level (hash: u64 products mod a
 //! non-power-of-two size; permute: a KDF of the whole triple) every bit counts → log2 U ≈
 //! 28.76 per prime, U = 454 387 932 primes in [1e7, 1e10]. Entries equal to Π count 0.
-//! `prf`: every keyed level has its own 128-bit SipHash subkey from the 256-bit secret.
+//! `prf`: every keyed level has its own 128-bit SipHash subkey derived from a 256-bit
+//! master, which (version 2) is derived from all m 256-bit secrets together.
 //!
 //! `total_bits`: brute force over everything that changes some level's function.
 //! `oracle_bits`: the work when each key group (primes) or each level (prf) can be
 //! recognised on its own — the paper's partial-key table shows PSNR rising with each
 //! correct key, so this is the realistic figure for `primes`.
+//!
+//! `after_disclosure[j]` (j = 0 … m − 1): what is left when j of the m keys are disclosed,
+//! the worst case over which j (the attacker learns the most valuable ones; with the
+//! paper's cyclic assignment those are the first j, whose groups hold the dense levels).
+//! - `primes`: the undisclosed groups' bits. Brute force multiplies them (a sum of bits);
+//!   with the per-group oracle each group is searched on its own, so the work is a *sum*
+//!   of 2^bits over the undisclosed groups (its log2 is `oracle_bits`).
+//! - `prf` (version 2): each key is an independent 256-bit secret and every subkey needs
+//!   all of them, so any j < m leaves min(256·(m−j), 256) = 256 bits (past 256 the master
+//!   itself is the cheaper target), and there is no per-key oracle: a wrong secret gives
+//!   noise on every level. The per-level figure (a level's 128-bit subkey recognised on
+//!   its own, `levels:P`) does not depend on j.
+//! - `prf` version 1 (shares of one secret): the undisclosed shares' bits, e.g. 16 for
+//!   m = 16 and j = 15.
 
-use super::keys::{GroupKey, Key, KeyScheme, PI};
+use super::keys::{GroupKey, Key, KeyScheme, PI, share_range};
 use super::primes::PRIMES_IN_RANGE;
 use crate::ngp::encoding::GridLayout;
 
@@ -39,6 +54,20 @@ pub struct KeyStrength {
     pub oracle_bits: f64,
     /// What the paper states for this m (86.3 bits per prime triple), primes only.
     pub paper_claim_bits: Option<f64>,
+    /// Bits left when j = 0 … m − 1 of the m keys are disclosed (index j).
+    pub after_disclosure: Vec<Disclosure>,
+}
+
+/// What an attacker still faces when `disclosed` of the `m` keys are known.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct Disclosure {
+    pub disclosed: usize,
+    /// Brute force over the undisclosed keys together (product of their spaces).
+    pub brute_force_bits: f64,
+    /// With the per-group oracle (`primes`: sum over the undisclosed groups) or the
+    /// per-level oracle (`prf`: a level's subkey on its own), whichever is cheaper than
+    /// brute force.
+    pub oracle_bits: f64,
 }
 
 fn log2_sum_pow2(bits: impl IntoIterator<Item = f64>) -> f64 {
@@ -77,7 +106,7 @@ pub fn key_strength(key: &Key, layout: &GridLayout) -> KeyStrength {
         });
     }
     let in_group = |j: usize| levels.iter().filter(move |l| l.group == j);
-    let is_prf = matches!(key.scheme(), KeyScheme::Prf { .. });
+    let is_prf = key.scheme().is_prf();
     let mut group_bits = Vec::with_capacity(m);
     let mut group_oracle = Vec::with_capacity(m);
     for j in 0..m {
@@ -104,14 +133,74 @@ pub fn key_strength(key: &Key, layout: &GridLayout) -> KeyStrength {
     }
     let sum: f64 = group_bits.iter().sum();
     let total_bits = if is_prf { sum.min(256.0) } else { sum };
+    let oracle_bits = log2_sum_pow2(group_oracle.iter().copied());
+    let after_disclosure = if is_prf {
+        // Key material of key j, and whether the index has any keyed level at all.
+        let key_bits: Vec<f64> = match key.scheme() {
+            KeyScheme::PrfShares { m, .. } => (0..*m)
+                .map(|j| 8.0 * share_range(*m, j).len() as f64)
+                .collect(),
+            _ => vec![256.0; m],
+        };
+        let keyed = total_bits > 0.0;
+        disclosures(&key_bits, |rest| {
+            let brute = if keyed {
+                rest.iter().sum::<f64>().min(256.0)
+            } else {
+                0.0
+            };
+            (brute, oracle_bits.min(brute))
+        })
+    } else {
+        let bits: Vec<(f64, f64)> = group_bits
+            .iter()
+            .copied()
+            .zip(group_oracle.iter().copied())
+            .collect();
+        disclosures_by(&bits, |rest| {
+            (
+                rest.iter().map(|b| b.0).sum(),
+                log2_sum_pow2(rest.iter().map(|b| b.1)),
+            )
+        })
+    };
     KeyStrength {
         scheme: key.scheme().name().into(),
         m,
         dense_mode: key.dense().name().into(),
         levels,
         total_bits,
-        oracle_bits: log2_sum_pow2(group_oracle),
+        oracle_bits,
         group_bits,
         paper_claim_bits: (!is_prf).then_some(3.0 * log2u * m as f64),
+        after_disclosure,
     }
+}
+
+fn disclosures(key_bits: &[f64], left: impl Fn(&[f64]) -> (f64, f64)) -> Vec<Disclosure> {
+    let pairs: Vec<(f64, f64)> = key_bits.iter().map(|&b| (b, b)).collect();
+    disclosures_by(&pairs, |rest| {
+        let b: Vec<f64> = rest.iter().map(|p| p.0).collect();
+        left(&b)
+    })
+}
+
+/// For j = 0 … m − 1: the keys sorted most valuable first (brute-force bits, then oracle
+/// bits), the first j disclosed, `left` of the rest.
+fn disclosures_by(
+    keys: &[(f64, f64)],
+    left: impl Fn(&[(f64, f64)]) -> (f64, f64),
+) -> Vec<Disclosure> {
+    let mut sorted = keys.to_vec();
+    sorted.sort_by(|a, b| b.0.total_cmp(&a.0).then(b.1.total_cmp(&a.1)));
+    (0..keys.len())
+        .map(|j| {
+            let (brute_force_bits, oracle_bits) = left(&sorted[j..]);
+            Disclosure {
+                disclosed: j,
+                brute_force_bits,
+                oracle_bits,
+            }
+        })
+        .collect()
 }
