@@ -211,7 +211,9 @@ pub fn import_capture(dir: &Path, images: Option<&str>) -> Result<ImportedScene>
     }
 }
 
-const CAPTURES_LOOKED_FOR: &str = "poses_bounds.npy (LLFF), and cameras + images (.bin or      .txt) in sparse/0/, sparse/ or the folder itself (COLMAP)";
+/// What [`find_capture`] looks for, for messages.
+const CAPTURES_LOOKED_FOR: &str = "poses_bounds.npy (LLFF), and cameras + images (.bin or .txt) \
+     in sparse/0/, sparse/ or the folder itself (COLMAP)";
 
 fn locate(dir: &Path, split: Split) -> Result<Source> {
     // A path to a single JSON file is read as an instant-ngp transforms file.
