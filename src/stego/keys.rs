@@ -114,12 +114,18 @@ pub fn share_range(m: usize, j: usize) -> std::ops::Range<usize> {
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
 pub struct KdfInfo {
     pub algorithm: String,
-    /// Argon2 version (19 = 0x13); 0 where a version-1 file did not record it.
+    /// Argon2 version (19 = 0x13); 0 where a version-1 file did not record it (then it
+    /// is not written back either).
+    #[serde(skip_serializing_if = "is_zero")]
     pub version: u32,
     pub salt: String,
     pub m_cost_kib: u32,
     pub t_cost: u32,
     pub p_cost: u32,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 impl KdfInfo {

@@ -980,6 +980,7 @@ fn version_1_files_load_flagged_and_index_as_before() {
         (v["version"].as_u64(), v["secret"].as_str()),
         (Some(1), Some(&secret_hex[..]))
     );
+    assert!(v["kdf"].get("version").is_none(), "{v}");
     // m = 1 version-1 keys are flagged as old but not as weaker.
     let one = text.replace("\"m\": 4", "\"m\": 1");
     let l1 = keyfile::parse_key_with_warnings(&p, &one).unwrap();
