@@ -742,3 +742,89 @@ pub fn import(model_dir: &Path, images: Option<&str>) -> Result<ImportedScene> {
         points: model.points,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn text_fields_and_names_with_spaces() {
+        let (f, rest) = fields_and_rest("1  0.5 a  b c d e f 7 my image.jpg ", 9).unwrap();
+        assert_eq!(f, vec!["1", "0.5", "a", "b", "c", "d", "e", "f", "7"]);
+        assert_eq!(rest, "my image.jpg");
+        assert!(fields_and_rest("1 2 3", 9).is_none());
+    }
+
+    #[test]
+    fn text_model_by_hand() {
+        let t = tempfile::tempdir().unwrap();
+        let cams = t.path().join("cameras.txt");
+        std::fs::write(
+            &cams,
+            "# comment\n\n1 SIMPLE_RADIAL 40 30 50 20 15 0.1\n2 PINHOLE 40 30 60 61 19 14\n",
+        )
+        .unwrap();
+        let c = read_cameras_txt(&cams).unwrap();
+        assert_eq!(c.len(), 2);
+        assert_eq!(
+            c[0].intrinsics(),
+            (50.0, 50.0, 20.0, 15.0, [0.1, 0.0, 0.0, 0.0])
+        );
+        assert_eq!(c[1].intrinsics(), (60.0, 61.0, 19.0, 14.0, [0.0; 4]));
+        let imgs = t.path().join("images.txt");
+        // Image 1's point line is empty; the quaternion is normalised (2, 0, 0, 0) → identity.
+        std::fs::write(
+            &imgs,
+            "# header\n1 2 0 0 0 1 2 3 1 a.png\n\n2 1 0 0 0 0 0 0 2 b.png\n1 2 -1\n",
+        )
+        .unwrap();
+        let i = read_images_txt(&imgs).unwrap();
+        assert_eq!(i.len(), 2);
+        assert_eq!(i[0].qvec, [1.0, 0.0, 0.0, 0.0]);
+        assert_eq!((i[0].tvec, i[0].name.as_str()), ([1.0, 2.0, 3.0], "a.png"));
+        assert_eq!((i[1].camera_id, i[1].name.as_str()), (2, "b.png"));
+        std::fs::write(&imgs, "1 0 0 0 0 1 2 3 1 a.png\n").unwrap();
+        let e = read_images_txt(&imgs).unwrap_err().to_string();
+        assert!(
+            e.contains("line 1") && e.contains("not a finite rotation"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn binary_camera_by_hand_and_truncation() {
+        let t = tempfile::tempdir().unwrap();
+        let p = t.path().join("cameras.bin");
+        let mut b = Vec::new();
+        b.extend(1u64.to_le_bytes());
+        b.extend(3i32.to_le_bytes());
+        b.extend(1i32.to_le_bytes()); // PINHOLE: fx, fy, cx, cy
+        b.extend(64u64.to_le_bytes());
+        b.extend(48u64.to_le_bytes());
+        for v in [70.0f64, 71.0, 32.0, 24.0] {
+            b.extend(v.to_le_bytes());
+        }
+        std::fs::write(&p, &b).unwrap();
+        let c = read_cameras_bin(&p).unwrap();
+        assert_eq!(
+            (c[0].id, c[0].model, c[0].width, c[0].height),
+            (3, "PINHOLE", 64, 48)
+        );
+        assert_eq!(c[0].intrinsics(), (70.0, 71.0, 32.0, 24.0, [0.0; 4]));
+        std::fs::write(&p, &b[..b.len() - 1]).unwrap();
+        let e = read_cameras_bin(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("params[3] of PINHOLE") && e.contains("truncated"),
+            "{e}"
+        );
+        // Shorter than the smallest camera record: refused by the count check.
+        std::fs::write(&p, &b[..40]).unwrap();
+        let e = read_cameras_bin(&p).unwrap_err().to_string();
+        assert!(e.contains("count 1 cannot fit"), "{e}");
+        let mut extra = b.clone();
+        extra.push(0);
+        std::fs::write(&p, &extra).unwrap();
+        let e = read_cameras_bin(&p).unwrap_err().to_string();
+        assert!(e.contains("1 unexpected bytes"), "{e}");
+    }
+}
