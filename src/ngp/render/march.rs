@@ -73,9 +73,12 @@ impl Marcher {
         }
     }
 
+    /// One step from `t`. Never negative: far from the camera, rounding in stepping space
+    /// can put `t` one step on *before* `t` (a negative step would make α < 0 and the
+    /// transmittance grow past 1).
     #[inline]
     pub fn calc_dt(&self, t: f32) -> f32 {
-        advance_n_steps(t, self.cone_angle, 1.0) - t
+        (advance_n_steps(t, self.cone_angle, 1.0) - t).max(0.0)
     }
 
     /// Marches from `t` and appends at most `max_samples` samples (network position, dt,
@@ -104,15 +107,19 @@ impl Marcher {
             }
             let dt = self.calc_dt(t);
             let mip = mip_from_dt(dt, p, self.max_cascade);
-            if grid.is_occupied(p, mip) {
+            let next = if grid.is_occupied(p, mip) {
                 pos.push(self.warp(p));
                 dts.push(dt);
                 ts.push(t);
                 n += 1;
-                t += dt;
+                t + dt
             } else {
-                t = advance_to_next_voxel(t, self.cone_angle, p, d, idir, mip);
-            }
+                advance_to_next_voxel(t, self.cone_angle, p, d, idir, mip)
+            };
+            // Far from the camera a step can be smaller than the spacing of floats at t
+            // (a camera 10^6 away from a unit box): step to the next float instead of
+            // marching in place for ever.
+            t = if next > t { next } else { t.next_up() };
         }
     }
 }
@@ -275,6 +282,23 @@ mod tests {
             let back = from_stepping_space(to_stepping_space(t, m.cone_angle), m.cone_angle);
             assert!((back - t).abs() / t < 1e-3, "{t} -> {back}");
         }
+    }
+
+    #[test]
+    fn marching_from_far_away_terminates() {
+        // At t ≈ 1e6 the fixed step (1.7e-3) is below the float spacing (0.0625): marching
+        // must still advance and leave the box.
+        let m = Marcher::new(1);
+        let grid = OccupancyGrid::new(1);
+        let o = [1.0e6, 0.5, 0.5];
+        let d = [-1.0, 0.0, 0.0];
+        let (t0, _) = m.intersect(o, d).unwrap();
+        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+        let r = m.march(&grid, o, d, t0, 100_000, &mut p, &mut dt, &mut ts);
+        assert!(r.is_none());
+        assert!(!p.is_empty() && p.len() < 100, "{} samples", p.len());
+        assert!(ts.windows(2).all(|w| w[1] > w[0]));
+        assert!(dt.iter().all(|&x| x >= 0.0));
     }
 
     #[test]
