@@ -81,6 +81,7 @@ pub fn run(a: Args) -> Result<()> {
                 n_val: 0,
                 n_test: 10,
                 seed,
+                aabb_scale: 1,
             };
             eprintln!("generating {} ({} px)", dir.display(), a.res);
             generate(&opts, &dir)?;

@@ -8,6 +8,9 @@ pub enum SceneArg {
     Object,
     /// Extruded 3D text (the natural hidden message).
     Text,
+    /// The object inside a room, cameras inside the room: a capture-like unbounded scene in
+    /// the instant-ngp format (needs --aabb-scale ≥ 2).
+    Room,
 }
 
 #[derive(clap::Args, Debug)]
@@ -31,6 +34,9 @@ pub struct Args {
     pub val: usize,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// `aabb_scale` written into the transforms (a room's walls are placed inside its box).
+    #[arg(long, default_value_t = 1)]
+    pub aabb_scale: u32,
     /// Write into a non-empty directory.
     #[arg(long)]
     pub force: bool,
@@ -50,12 +56,14 @@ pub fn run(a: Args) -> Result<()> {
         scene: match a.scene {
             SceneArg::Object => SceneKind::Object,
             SceneArg::Text => SceneKind::Text(a.text.clone()),
+            SceneArg::Room => SceneKind::Room,
         },
         resolution: a.res,
         n_train: a.train,
         n_val: a.val,
         n_test: a.test,
         seed: a.seed,
+        aabb_scale: a.aabb_scale,
     };
     let s = generate(&opts, &a.out)?;
     if a.json {

@@ -3,6 +3,12 @@
 //! `camera_angle_x` and camera-to-world matrices (OpenGL camera: looks down −z, +y up).
 //! Train views are random on the upper hemisphere (radius 4, looking at the origin, like the
 //! Blender scenes); test and val views circle the object at a few elevations.
+//!
+//! The `room` scene is the layout of a real capture instead: the object inside a room whose
+//! walls are a far, opaque background, cameras inside the room (and inside the scene's box
+//! for the chosen `aabb_scale`), written in the instant-ngp format (`transforms.json` with
+//! `fl_x`/`fl_y`/`cx`/`cy`/`aabb_scale`, opaque PNGs in `images/`, every 8th view held out
+//! by the loader).
 
 pub mod font;
 pub mod scene;
@@ -26,6 +32,8 @@ const LINE_CHARS: usize = 10;
 pub enum SceneKind {
     Object,
     Text(String),
+    /// The object inside a room (an unbounded-looking capture); needs `aabb_scale` ≥ 2.
+    Room,
 }
 
 #[derive(Clone, Debug)]
@@ -37,6 +45,9 @@ pub struct SynthOptions {
     pub n_val: usize,
     pub n_test: usize,
     pub seed: u64,
+    /// Written into the transforms as `aabb_scale` (power of two ≤ 128). A room's walls are
+    /// placed inside the box it gives; object and text scenes fit the unit box whatever it is.
+    pub aabb_scale: u32,
 }
 
 impl Default for SynthOptions {
@@ -48,8 +59,40 @@ impl Default for SynthOptions {
             n_val: 0,
             n_test: 25,
             seed: 0,
+            aabb_scale: 1,
         }
     }
+}
+
+/// The reference's nerf → ngp scale (`nerf_loader.h`): world metres × 0.33 = ngp units.
+const NGP_SCALE: f32 = 0.33;
+
+/// Half-size of a room's walls for a box of `aabb_scale`: 80 % of the box's half-size in
+/// world units, so the walls are inside the box with a margin.
+pub fn room_half_size(aabb_scale: u32) -> f32 {
+    0.8 * (aabb_scale as f32 / 2.0) / NGP_SCALE
+}
+
+/// Distance of a room's cameras from the origin: as the Blender scenes' 4 where the room is
+/// large enough, else half-way to the walls.
+pub fn room_camera_radius(aabb_scale: u32) -> f32 {
+    CAMERA_RADIUS.min(0.55 * room_half_size(aabb_scale))
+}
+
+/// Room views: random azimuth, elevation in [−10°, 45°], looking at the origin.
+fn room_poses(n: usize, radius: f32, seed: u64) -> Vec<[[f32; 4]; 4]> {
+    let mut rng = Pcg32::new(seed, 4);
+    (0..n)
+        .map(|_| {
+            let az = rng.next_f32() * std::f32::consts::TAU;
+            let el = (-10.0 + 55.0 * rng.next_f32()).to_radians();
+            look_at([
+                radius * el.cos() * az.cos(),
+                radius * el.cos() * az.sin(),
+                radius * el.sin(),
+            ])
+        })
+        .collect()
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -224,9 +267,16 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
             "a scene needs at least one train and one test view".into(),
         ));
     }
+    if !(opts.aabb_scale.is_power_of_two() && opts.aabb_scale <= 128) {
+        return Err(Error::Config(format!(
+            "aabb_scale {} is not a power of two between 1 and 128",
+            opts.aabb_scale
+        )));
+    }
     let (scene, name) = match &opts.scene {
         SceneKind::Object => (object_scene(), "object".to_string()),
         SceneKind::Text(t) => (text_scene(&layout_text(t)?), format!("text {t:?}")),
+        SceneKind::Room => return generate_room(opts, out_dir, t0),
     };
     let splits = [
         ("train", opts.n_train, true, 1u64),
@@ -253,7 +303,10 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
             .enumerate()
             .map(|(i, p)| serde_json::json!({"file_path": format!("./{split}/r_{i}"), "rotation": 0.0, "transform_matrix": p}))
             .collect();
-        let json = serde_json::json!({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames});
+        let mut json = serde_json::json!({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames});
+        if opts.aabb_scale != 1 {
+            json["aabb_scale"] = opts.aabb_scale.into();
+        }
         let text = serde_json::to_string_pretty(&json).map_err(|e| Error::Other(e.to_string()))?;
         write_atomic(
             &out_dir.join(format!("transforms_{split}.json")),
@@ -267,6 +320,60 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
         n_train: opts.n_train,
         n_val: opts.n_val,
         n_test: opts.n_test,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+/// The room scene in the instant-ngp format: `n_train + n_test` views in one list (the
+/// loader holds out every 8th), opaque RGB PNGs in `images/`, pixel intrinsics.
+fn generate_room(
+    opts: &SynthOptions,
+    out_dir: &Path,
+    t0: std::time::Instant,
+) -> Result<SynthSummary> {
+    if opts.aabb_scale < 2 {
+        return Err(Error::Config(
+            "a room scene needs aabb_scale ≥ 2: its walls lie outside the unit box".into(),
+        ));
+    }
+    let half = room_half_size(opts.aabb_scale);
+    let scene = scene::room_scene(half);
+    let n = opts.n_train + opts.n_val + opts.n_test;
+    let images = out_dir.join("images");
+    std::fs::create_dir_all(&images).map_err(|e| Error::io(&images, e))?;
+    let ps = room_poses(n, room_camera_radius(opts.aabb_scale), opts.seed);
+    let res = opts.resolution;
+    for (i, p) in ps.iter().enumerate() {
+        let rgba = render_view(&scene, p, res);
+        let path = images.join(format!("{i:04}.png"));
+        write_atomic_with(&path, |f| {
+            use std::io::Write;
+            f.write_all(&encode_png(res, res, &rgba)?)
+        })?;
+    }
+    let focal = 0.5 * res as f32 / (0.5 * CAMERA_ANGLE_X).tan();
+    let frames: Vec<serde_json::Value> = ps
+        .iter()
+        .enumerate()
+        .map(|(i, p)| serde_json::json!({"file_path": format!("images/{i:04}.png"), "transform_matrix": p}))
+        .collect();
+    let json = serde_json::json!({
+        "fl_x": focal, "fl_y": focal,
+        "cx": res as f32 / 2.0, "cy": res as f32 / 2.0,
+        "w": res, "h": res,
+        "aabb_scale": opts.aabb_scale,
+        "frames": frames,
+    });
+    let text = serde_json::to_string_pretty(&json).map_err(|e| Error::Other(e.to_string()))?;
+    write_atomic(&out_dir.join("transforms.json"), text.as_bytes())?;
+    let n_test = n.div_ceil(8);
+    Ok(SynthSummary {
+        dir: out_dir.to_path_buf(),
+        scene: format!("room (aabb_scale {})", opts.aabb_scale),
+        resolution: res,
+        n_train: n - n_test,
+        n_val: 0,
+        n_test,
         seconds: t0.elapsed().as_secs_f64(),
     })
 }

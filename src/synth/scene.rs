@@ -47,6 +47,8 @@ pub enum Material {
     Grid(V3, V3, f32),
     /// Hue gradient along x (the text scene).
     HueAlongX(f32, f32),
+    /// Walls of a room: hue by the angle around z, a checkerboard of a cell size on top.
+    Walls(f32),
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -77,10 +79,14 @@ pub struct Object {
 
 pub struct Scene {
     pub objects: Vec<Object>,
-    /// Bounding box of everything, for a quick miss test.
+    /// Bounding box of the objects, for a quick miss test.
     pub lo: V3,
     pub hi: V3,
     pub light: V3,
+    /// What a ray that misses every object sees: nothing (transparent), or the inside of an
+    /// enclosing box, shown at its albedo (no light, no shadow: it is the far background of
+    /// a captured scene, and would otherwise shadow everything it encloses).
+    pub backdrop: Option<(Shape, Material)>,
 }
 
 pub struct Hit {
@@ -220,6 +226,13 @@ impl Material {
                 if on { line } else { base }
             }
             Material::HueAlongX(lo, hi) => hsv(0.8 * (p[0] - lo) / (hi - lo), 0.8, 0.95),
+            Material::Walls(s) => {
+                let k = (p[0] / s).floor() as i32
+                    + (p[1] / s).floor() as i32
+                    + (p[2] / s).floor() as i32;
+                let v = if k.rem_euclid(2) == 0 { 0.9 } else { 0.55 };
+                hsv(p[1].atan2(p[0]) / std::f32::consts::TAU, 0.45, v)
+            }
         }
     }
 }
@@ -246,6 +259,7 @@ impl Scene {
             lo,
             hi,
             light: normalize(light),
+            backdrop: None,
         }
     }
 
@@ -270,7 +284,12 @@ impl Scene {
 
     /// Colour seen along a ray, or `None` for background.
     pub fn shade(&self, o: V3, d: V3) -> Option<V3> {
-        let h = self.intersect(o, d)?;
+        let Some(h) = self.intersect(o, d) else {
+            let (shape, material) = self.backdrop.as_ref()?;
+            let inv = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+            let (t, _) = shape.intersect(o, d, inv)?;
+            return Some(material.albedo(add(o, mul(d, t))));
+        };
         let ob = &self.objects[h.obj];
         let albedo = ob.material.albedo(h.p);
         let ndl = dot(h.n, self.light).max(0.0);
@@ -351,6 +370,21 @@ pub fn object_scene() -> Scene {
         },
     ];
     Scene::new(objs, [0.5, -0.4, 0.8])
+}
+
+/// The object scene inside a room: walls at `half_size` around the origin, the floor half
+/// as far below. Cameras stand inside the room, so the walls are a background far
+/// from the object that every view shows (the layout of a real capture).
+pub fn room_scene(half_size: f32) -> Scene {
+    let mut s = object_scene();
+    s.backdrop = Some((
+        Shape::Box {
+            lo: [-half_size, -half_size, -0.5 * half_size],
+            hi: [half_size, half_size, half_size],
+        },
+        Material::Walls(half_size / 3.0),
+    ));
+    s
 }
 
 /// 3D text: each line of glyphs stands upright in the x–z plane (readable from −y), every

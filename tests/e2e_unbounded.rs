@@ -1,0 +1,261 @@
+//! End to end on capture-like generated scenes: the object inside a room, cameras inside the
+//! room and inside the scene's box, the walls a far background, at `aabb_scale` 4 (3
+//! cascades) and 16 (5 cascades, exponential steps reaching the coarsest). Plus marching and
+//! rendering from cameras anywhere — inside, outside, on the box's faces, looking along its
+//! axes — at every aabb_scale up to 128, which must never panic.
+
+use std::sync::Arc;
+use stegongp::ngp::camera::Camera;
+use stegongp::ngp::data::{Dataset, LoadOptions, Split, aabb_for_scale};
+use stegongp::ngp::encoding::reference_indices;
+use stegongp::ngp::eval::evaluate;
+use stegongp::ngp::model::Model;
+use stegongp::ngp::network::nerf::NerfNetwork;
+use stegongp::ngp::network::{ModelConfig, NerfLayout};
+use stegongp::ngp::occupancy::OccupancyGrid;
+use stegongp::ngp::render::image::{RenderOptions, SceneView, rebuild_occupancy, render_image};
+use stegongp::ngp::render::march::Marcher;
+use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
+use stegongp::rng::Pcg32;
+use stegongp::synth::{SceneKind, SynthOptions, generate};
+
+fn model_config(aabb_scale: u32) -> ModelConfig {
+    let mut c = ModelConfig::default();
+    c.grid.log2_hashmap_size = 16;
+    c.aabb_scale = aabb_scale;
+    c
+}
+
+fn room(dir: &std::path::Path, aabb_scale: u32) -> (Dataset, Dataset) {
+    generate(
+        &SynthOptions {
+            scene: SceneKind::Room,
+            resolution: 64,
+            n_train: 40,
+            n_val: 0,
+            n_test: 8,
+            seed: 5,
+            aabb_scale,
+        },
+        dir,
+    )
+    .unwrap();
+    let o = LoadOptions {
+        downscale: 1,
+        ..Default::default()
+    };
+    (
+        Dataset::load(dir, Split::Train, &o).unwrap(),
+        Dataset::load(dir, Split::Test, &o).unwrap(),
+    )
+}
+
+/// Mean PSNR over every held-out view, on black (the views are opaque).
+fn psnr(model: &Model, test: &Dataset) -> f64 {
+    let idx = reference_indices(&model.net.layout.grid);
+    let view = model.view(&idx, &model.grid);
+    let opts = RenderOptions {
+        background: [0.0; 3],
+        ..Default::default()
+    };
+    evaluate(&view, test, &opts, None, |_, _, _| {}).psnr
+}
+
+fn trains_room(aabb_scale: u32, steps: u32, floor: f64) {
+    let dir = tempfile::tempdir().unwrap();
+    let (train, test) = room(dir.path(), aabb_scale);
+    assert_eq!(train.aabb_scale, aabb_scale);
+    // The premise: every camera is inside the box, and the walls are far beyond the object.
+    let (lo, hi) = aabb_for_scale(aabb_scale);
+    for f in &train.frames {
+        let p = f.camera.position();
+        assert!(
+            (0..3).all(|d| p[d] > lo[d] && p[d] < hi[d]),
+            "camera at {p:?}"
+        );
+    }
+    assert!(test.frames.len() >= 5);
+    let cfg = model_config(aabb_scale);
+    let layout = NerfLayout::new(cfg).unwrap();
+    let mut t = Trainer::new(
+        cfg,
+        vec![SceneSpec {
+            dataset: Arc::new(train),
+            indices: reference_indices(&layout.grid),
+        }],
+        TrainConfig {
+            seed: 7,
+            batch_samples: 1 << 15,
+            occupancy_fraction: 1.0 / 32.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    assert_eq!(t.grid(0).n_cascades, aabb_scale.ilog2() as usize + 1);
+    let p0 = psnr(&Model::from_trainer(&t, 0.0), &test);
+    for _ in 0..steps {
+        t.train_step();
+    }
+    let p = psnr(&Model::from_trainer(&t, 0.0), &test);
+    eprintln!("aabb_scale {aabb_scale}: untrained {p0:.2} dB, {steps} steps {p:.2} dB");
+    assert!(
+        p > floor,
+        "aabb_scale {aabb_scale}: {p:.2} dB after {steps} steps"
+    );
+    assert!(p > p0 + 6.0, "{p:.2} dB vs untrained {p0:.2} dB");
+}
+
+// Thresholds: an untrained model scores 5–6 dB on these views, one that learned only the
+// walls' mean colour ~11 dB. Measured after 300 steps: 20.98 dB at aabb_scale 4, 19.31 dB at
+// 16 (600 steps of the same scene at 16 reach 21.7 dB). The floors sit 2.5 and 1.8 dB
+// under: run-to-run noise is nil on one machine (deterministic), and across machines of
+// this kind small; a broken cascade, cone step or background would cost far more.
+
+#[test]
+fn room_at_aabb_scale_4_reaches_threshold() {
+    trains_room(4, 300, 18.5);
+}
+
+#[test]
+fn room_at_aabb_scale_16_reaches_threshold() {
+    trains_room(16, 300, 17.5);
+}
+
+/// Cameras everywhere: far outside, on a face, inside near a corner, at the centre, looking
+/// along an axis (rays parallel to four slab faces) and away from the box.
+fn cameras_everywhere(aabb_scale: u32) -> Vec<Camera> {
+    let (lo, hi) = aabb_for_scale(aabb_scale);
+    let h = hi[0];
+    let positions = [
+        [0.5, 0.5, 0.5],
+        [lo[0] + 1e-3, lo[1] + 1e-3, lo[2] + 1e-3],
+        [hi[0], 0.5, 0.5],
+        [h * 3.0, h * 2.0, -h * 4.0],
+        [0.5, 0.5, lo[2] - 50.0],
+        [1e6, 0.5, 0.5],
+    ];
+    let rotations = [
+        // Identity: looks down +z (ngp cameras look along their third column).
+        [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+        // Looks down −x.
+        [[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]],
+        // Oblique.
+        [[0.8, -0.36, 0.48], [0.0, 0.8, 0.6], [-0.6, -0.48, 0.64]],
+    ];
+    let mut cams = Vec::new();
+    for p in positions {
+        for r in rotations {
+            cams.push(Camera {
+                c2w: [
+                    [r[0][0], r[0][1], r[0][2], p[0]],
+                    [r[1][0], r[1][1], r[1][2], p[1]],
+                    [r[2][0], r[2][1], r[2][2], p[2]],
+                ],
+                fx: 5.0,
+                fy: 5.0,
+                // Pixel 4's centre is the principal point: its ray runs exactly along the
+                // camera's axis, parallel to four faces of the box.
+                cx: 4.5,
+                cy: 4.5,
+                width: 8,
+                height: 8,
+                distortion: None,
+            });
+        }
+    }
+    cams
+}
+
+#[test]
+fn marching_and_rendering_never_panic_at_any_aabb_scale() {
+    for aabb_scale in [1u32, 2, 4, 16, 128] {
+        let mut cfg = model_config(aabb_scale);
+        cfg.grid.log2_hashmap_size = 12;
+        let net = NerfNetwork::new(cfg).unwrap();
+        let params = net.init_params(3);
+        let idx = reference_indices(&net.layout.grid);
+        // Every cell occupied (rays march the whole box), and a sparse random grid (rays
+        // skip from cell to cell through every cascade).
+        let full = OccupancyGrid::new(aabb_scale);
+        let mut rng = Pcg32::new(aabb_scale as u64, 1);
+        let sparse = OccupancyGrid::from_density(
+            (0..full.density.len())
+                .map(|_| if rng.next_f32() < 0.02 { 1.0 } else { 0.0 })
+                .collect(),
+        )
+        .unwrap();
+        for grid in [&full, &sparse] {
+            let view = SceneView {
+                net: &net,
+                params: &params,
+                indices: &idx,
+                grid,
+                marcher: Marcher::new(aabb_scale),
+            };
+            for cam in cameras_everywhere(aabb_scale) {
+                let img = render_image(&view, &cam, &RenderOptions::default());
+                assert!(img.rgb.iter().all(|v| v.is_finite()));
+                let bad: Vec<&f32> = img
+                    .opacity
+                    .iter()
+                    .filter(|v| !(0.0..=1.0).contains(*v))
+                    .collect();
+                assert!(
+                    bad.is_empty(),
+                    "aabb {aabb_scale} cam {:?}: opacity {bad:?}",
+                    cam.c2w
+                );
+            }
+        }
+    }
+}
+
+/// A key holder's grid rebuild and training steps at a large box: cameras inside the box, the
+/// marching of training rays through 5 cascades, the occupancy update over all of them.
+#[test]
+fn key_holder_rebuild_and_training_steps_at_aabb_scale_16() {
+    let dir = tempfile::tempdir().unwrap();
+    generate(
+        &SynthOptions {
+            scene: SceneKind::Room,
+            resolution: 8,
+            n_train: 9,
+            n_val: 0,
+            n_test: 1,
+            seed: 1,
+            aabb_scale: 16,
+        },
+        dir.path(),
+    )
+    .unwrap();
+    let data = Dataset::load(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    let mut cfg = model_config(16);
+    cfg.grid.log2_hashmap_size = 12;
+    let layout = NerfLayout::new(cfg).unwrap();
+    let mut t = Trainer::new(
+        cfg,
+        vec![SceneSpec {
+            dataset: Arc::new(data),
+            indices: reference_indices(&layout.grid),
+        }],
+        TrainConfig {
+            batch_samples: 1 << 12,
+            occupancy_fraction: 1.0 / 64.0,
+            ..Default::default()
+        },
+    )
+    .unwrap();
+    for _ in 0..3 {
+        let s = t.train_step();
+        assert!(s.loss.is_finite() && s.n_samples > 0);
+    }
+    let model = Model::from_trainer(&t, 0.0);
+    let idx = reference_indices(&model.net.layout.grid);
+    let rebuilt = rebuild_occupancy(&model.net, &model.params, &idx, 16, 1, 0);
+    assert_eq!(rebuilt.n_cascades, 5);
+    let view = model.view(&idx, &rebuilt);
+    for cam in cameras_everywhere(16) {
+        let img = render_image(&view, &cam, &RenderOptions::default());
+        assert!(img.rgb.iter().all(|v| v.is_finite()));
+    }
+}
