@@ -68,3 +68,73 @@ fn cover_downscale_leaves_hidden_scenes_at_their_resolution() {
     assert!(log.contains("cover: 4 images of 32×32"), "{log}");
     assert!(log.contains("hidden: 4 images of 8×8"), "{log}");
 }
+
+/// A hidden scene whose box (aabb_scale 8) is larger than the capture-like cover's (4) is
+/// refused before any training, naming both boxes; with `--aabb-scale 8` the cover takes the
+/// larger box, the hidden scene trains in it, and the file is the cover's, at aabb_scale 8.
+#[test]
+fn hidden_scenes_take_the_cover_box_or_are_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let (room, text, key, model) = (p("room"), p("text"), p("k.json"), p("m.ingp"));
+    ok(stegongp(&[
+        "synth",
+        "--scene",
+        "room",
+        "--aabb-scale",
+        "4",
+        "--res",
+        "16",
+        "--train",
+        "8",
+        "--test",
+        "1",
+        "--out",
+        &room,
+    ]));
+    ok(stegongp(&[
+        "synth",
+        "--scene",
+        "text",
+        "--aabb-scale",
+        "8",
+        "--res",
+        "16",
+        "--train",
+        "4",
+        "--test",
+        "1",
+        "--out",
+        &text,
+    ]));
+    ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    let common = [
+        "--steps",
+        "2",
+        "--batch",
+        "2048",
+        "--log2-t",
+        "14",
+        "--occupancy-fraction",
+        "0.01",
+    ];
+    let mut args = vec![
+        "train", &room, "--hidden", &text, "--key", &key, "--out", &model,
+    ];
+    args.extend_from_slice(&common);
+    let out = stegongp(&args);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("aabb_scale 8") && err.contains("model's 4") && err.contains("--aabb-scale"),
+        "{err}"
+    );
+    assert!(!std::path::Path::new(&model).exists());
+
+    args.extend_from_slice(&["--aabb-scale", "8"]);
+    let log = ok(stegongp(&args));
+    assert!(log.contains("hidden: 4 images of 16×16"), "{log}");
+    let info = stegongp(&["inspect", &model, "--json"]);
+    let info: serde_json::Value = serde_json::from_slice(&info.stdout).unwrap();
+    assert_eq!(info["aabb_scale"], 8, "{info}");
+}

@@ -57,15 +57,8 @@ pub fn stego_scenes(
                 other.display()
             );
         }
-        let data = Dataset::load(h, Split::Train, opts)?;
-        if data.aabb_scale != aabb_scale {
-            bail!(
-                "{}: aabb_scale {} differs from the cover's {}; hidden scenes must share the cover's bounds (rescale the scene or its transforms)",
-                h.display(),
-                data.aabb_scale,
-                aabb_scale
-            );
-        }
+        let mut data = Dataset::load(h, Split::Train, opts)?;
+        data.fit_into_box(aabb_scale)?;
         out.push(SceneSpec {
             dataset: Arc::new(data),
             indices: key.level_indices(&layout.grid),

@@ -21,6 +21,9 @@ pub struct Args {
     pub out: PathBuf,
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// COLMAP / LLFF data: the image folder to read (e.g. images_4).
+    #[arg(long)]
+    pub images: Option<String>,
     /// Render at most this many views, spread over the split (0 = all).
     #[arg(long, default_value_t = 0)]
     pub views: usize,
@@ -47,6 +50,7 @@ pub fn run(a: Args) -> Result<()> {
         a.split.into(),
         &LoadOptions {
             downscale: a.downscale,
+            images: a.images.clone(),
             ..Default::default()
         },
     )?;

@@ -21,7 +21,8 @@ pub enum ScheduleArg {
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Scene directory (NeRF-synthetic transforms_*.json or instant-ngp transforms.json).
+    /// Scene directory: NeRF-synthetic (transforms_*.json), instant-ngp (transforms.json),
+    /// COLMAP (sparse/0 with cameras/images .bin or .txt) or LLFF (poses_bounds.npy).
     pub scene: PathBuf,
     /// Model file to write (.ingp or .msgpack).
     #[arg(long)]
@@ -29,6 +30,14 @@ pub struct Args {
     /// Integer downscale factor of the cover's images (area averaging).
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// COLMAP / LLFF cover: the image folder to read (e.g. images_4); default `images/`, else
+    /// the `images_N/` with the smallest N.
+    #[arg(long)]
+    pub images: Option<String>,
+    /// The cover's box, overriding its dataset's aabb_scale (a power of two ≤ 128; COLMAP and
+    /// LLFF captures default to 16). Hidden scenes are placed in the same box.
+    #[arg(long)]
+    pub aabb_scale: Option<u32>,
     /// Integer downscale factor of the hidden scenes' images; each scene is trained at the
     /// resolution it will be evaluated at, so the cover's --downscale does not apply.
     #[arg(long, default_value_t = 1)]
@@ -124,7 +133,8 @@ pub fn run(a: Args) -> Result<()> {
     }
     let opts = LoadOptions {
         downscale: a.downscale,
-        ..Default::default()
+        images: a.images.clone(),
+        aabb_scale: a.aabb_scale,
     };
     let cover = Dataset::load(&a.scene, Split::Train, &opts)?;
     let config = ModelConfig {

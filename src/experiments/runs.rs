@@ -78,14 +78,22 @@ struct Scene {
     name: String,
 }
 
-fn load_scene(dir: &Path, downscale: u32) -> Result<Scene> {
+/// Loads a scene's splits, placed in the box of `aabb_scale` when given (hidden scenes take
+/// the cover's: every model of an experiment shares the cover's box).
+fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) -> Result<Scene> {
     let opts = LoadOptions {
         downscale,
         ..Default::default()
     };
+    let mut train = Dataset::load(dir, Split::Train, &opts)?;
+    let mut test = Dataset::load(dir, Split::Test, &opts)?;
+    if let Some(a) = aabb_scale {
+        train.fit_into_box(a)?;
+        test.fit_into_box(a)?;
+    }
     Ok(Scene {
-        train: Arc::new(Dataset::load(dir, Split::Train, &opts)?),
-        test: Dataset::load(dir, Split::Test, &opts)?,
+        train: Arc::new(train),
+        test,
         name: dir
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
@@ -256,13 +264,15 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
             "this experiment needs at least one hidden scene".into(),
         ));
     }
+    let cover = load_scene(&cfg.cover, cfg.downscale, None)?;
+    let box_scale = Some(cover.train.aabb_scale);
     let ctx = Ctx {
         cfg,
-        cover: load_scene(&cfg.cover, cfg.downscale)?,
+        cover,
         hidden: cfg
             .hidden
             .iter()
-            .map(|h| load_scene(h, cfg.hidden_downscale))
+            .map(|h| load_scene(h, cfg.hidden_downscale, box_scale))
             .collect::<Result<_>>()?,
     };
     match name {

@@ -557,6 +557,25 @@ impl Dataset {
     pub fn cameras(&self) -> Vec<Camera> {
         self.frames.iter().map(|f| f.camera.clone()).collect()
     }
+
+    /// Puts this scene into the box of `aabb_scale` (another scene's, e.g. a stego model's
+    /// cover). Every box is centred on the same point, so a scene whose own box is no larger
+    /// already lies inside it: it keeps its poses and only takes the larger box (whose extra
+    /// cascades stay empty for it). A larger scene would be cut off: an error.
+    pub fn fit_into_box(&mut self, aabb_scale: u32) -> Result<()> {
+        check_aabb_scale(aabb_scale)?;
+        if self.aabb_scale > aabb_scale {
+            return Err(Error::Config(format!(
+                "{}: its aabb_scale {} is larger than the model's {}: the scene would not fit in the model's box (train the cover with a larger --aabb-scale, e.g. {})",
+                self.root.display(),
+                self.aabb_scale,
+                aabb_scale,
+                self.aabb_scale
+            )));
+        }
+        self.aabb_scale = aabb_scale;
+        Ok(())
+    }
 }
 
 #[cfg(test)]
