@@ -288,7 +288,9 @@ fn llff_rows(cams: &[Known]) -> Vec<Vec<f64>> {
             for i in 0..3 {
                 r.extend([g[i][1], g[i][0], -g[i][2], g[i][3], [hh, ww, f][i]]);
             }
-            r.extend([2.0, 6.0]);
+            // The cameras stand 4 from the origin they look at; near 3 and far 6 have the
+            // harmonic mean 4, so the LLFF focus is that same origin.
+            r.extend([3.0, 6.0]);
             r
         })
         .collect()
@@ -437,6 +439,7 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
                 image_path: fx.cap.join("images").join(&k.name),
                 camera: 0,
                 c2w: k.c2w,
+                depth_bounds: None,
             })
             .collect(),
         default_aabb_scale: 16,

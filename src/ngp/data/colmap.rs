@@ -729,6 +729,7 @@ pub fn import(model_dir: &Path, images: Option<&str>) -> Result<ImportedScene> {
             image_path: path,
             camera: idx,
             c2w: colmap_c2w(im.qvec, im.tvec),
+            depth_bounds: None,
         });
     }
     Ok(ImportedScene {

@@ -90,6 +90,9 @@ pub struct ImportFrame {
     pub camera: usize,
     /// Camera-to-world 3×4 in COLMAP's world, camera axes right, down, forward (OpenCV).
     pub c2w: [[f64; 4]; 3],
+    /// Near and far depth of what this camera sees, where the capture records it (LLFF's
+    /// bounds), in the units of `c2w`.
+    pub depth_bounds: Option<[f64; 2]>,
 }
 
 /// A real capture as read from disk, before normalisation.
@@ -249,10 +252,28 @@ pub fn closest_point_2_lines(
     (p, denom)
 }
 
+/// Depth along a camera's axis of the point it looks at, from the near and far depth of what
+/// it sees: their harmonic mean, which weighs the near content (the subject of a
+/// forward-facing capture) over a background that reaches far away.
+pub fn focus_depth(bounds: [f64; 2]) -> f64 {
+    2.0 / (1.0 / bounds[0] + 1.0 / bounds[1])
+}
+
 /// The script's normalisation of camera-to-world matrices given in COLMAP's world with
 /// OpenCV camera axes: returns OpenGL/NeRF camera-to-world 3×4 matrices, up = +z, centred,
 /// mean distance 4.
-pub fn normalise(c2w_colmap: &[[[f64; 4]; 3]]) -> (Vec<[[f64; 4]; 3]>, Normalisation) {
+///
+/// The centre is the script's weighted closest point of the camera axes, unless every camera
+/// comes with the depth of what it looks at (`focus`, from LLFF's bounds): then it is the
+/// mean of the points at that depth along each axis. The script's estimate assumes cameras
+/// that look inwards; the nearly parallel axes of a forward-facing capture (LLFF flower)
+/// give it almost no weight, and the few diverging pairs put the centre *among the
+/// cameras*, scaling the scene's content out of any box (flower's nearest content lands 8.6
+/// ngp units from the cameras and did not train).
+pub fn normalise(
+    c2w_colmap: &[[[f64; 4]; 3]],
+    focus: Option<&[f64]>,
+) -> (Vec<[[f64; 4]; 3]>, Normalisation) {
     let mut up = [0.0; 3];
     let mut ms: Vec<[[f64; 4]; 3]> = c2w_colmap
         .iter()
@@ -289,19 +310,33 @@ pub fn normalise(c2w_colmap: &[[[f64; 4]; 3]]) -> (Vec<[[f64; 4]; 3]>, Normalisa
     }
     let col = |m: &[[f64; 4]; 3], j: usize| [m[0][j], m[1][j], m[2][j]];
     let (mut totp, mut totw) = ([0.0; 3], 0.0);
-    for f in &ms {
-        for g in &ms {
-            let (p, w) = closest_point_2_lines(col(f, 3), col(f, 2), col(g, 3), col(g, 2));
-            if w > PAIR_WEIGHT_MIN {
+    match focus.filter(|f| f.len() == ms.len() && !f.is_empty()) {
+        Some(depths) => {
+            for (m, &d) in ms.iter().zip(depths) {
+                // OpenGL cameras look down −z: the point is o − d·z.
+                let (o, z) = (col(m, 3), col(m, 2));
                 for k in 0..3 {
-                    totp[k] += p[k] * w;
+                    totp[k] += o[k] - d * z[k];
                 }
-                totw += w;
+            }
+            totp = scaled(totp, 1.0 / ms.len() as f64);
+        }
+        None => {
+            for f in &ms {
+                for g in &ms {
+                    let (p, w) = closest_point_2_lines(col(f, 3), col(f, 2), col(g, 3), col(g, 2));
+                    if w > PAIR_WEIGHT_MIN {
+                        for k in 0..3 {
+                            totp[k] += p[k] * w;
+                        }
+                        totw += w;
+                    }
+                }
+            }
+            if totw > 0.0 {
+                totp = scaled(totp, 1.0 / totw);
             }
         }
-    }
-    if totw > 0.0 {
-        totp = scaled(totp, 1.0 / totw);
     }
     let mut avglen = 0.0;
     for m in ms.iter_mut() {
@@ -448,7 +483,12 @@ pub fn relative_path(from: &Path, to: &Path) -> String {
 /// to, or the dataset folder for an in-memory load).
 pub fn to_transforms(scene: &ImportedScene, aabb_scale: u32, base_dir: &Path) -> Converted {
     let poses: Vec<[[f64; 4]; 3]> = scene.frames.iter().map(|f| f.c2w).collect();
-    let (ms, norm) = normalise(&poses);
+    let focus: Option<Vec<f64>> = scene
+        .frames
+        .iter()
+        .map(|f| f.depth_bounds.map(focus_depth))
+        .collect();
+    let (ms, norm) = normalise(&poses, focus.as_deref());
     let single = scene.cameras.len() == 1;
     let frames: Vec<Value> = scene
         .frames
@@ -639,7 +679,7 @@ mod tests {
                 look_at_colmap(pos, c)
             })
             .collect();
-        let (ms, n) = normalise(&poses);
+        let (ms, n) = normalise(&poses, None);
         // The mean up axis is rotated onto +z: every camera (tilted ~11° down) has its up
         // column close to +z.
         for m in &ms {
@@ -688,5 +728,39 @@ mod tests {
             relative_path(Path::new("/a/./b/../b"), Path::new("/a/b/x.png")),
             "x.png"
         );
+    }
+
+    #[test]
+    fn forward_facing_cameras_centre_on_their_focus_depth() {
+        // Three OpenCV cameras side by side, all looking down +y of COLMAP's world (axes
+        // parallel: the script's estimate has no weight at all), each seeing content from
+        // depth 2 to 6: the focus is 3 in front of each (harmonic mean), so the centre is 3
+        // in front of the middle camera and the mean camera distance scales to 4.
+        let r = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]];
+        let poses: Vec<[[f64; 4]; 3]> = [-1.0, 0.0, 1.0]
+            .iter()
+            .map(|&x| {
+                [
+                    [r[0][0], r[0][1], r[0][2], x],
+                    [r[1][0], r[1][1], r[1][2], 0.0],
+                    [r[2][0], r[2][1], r[2][2], 0.0],
+                ]
+            })
+            .collect();
+        assert_eq!(focus_depth([2.0, 6.0]), 3.0);
+        let (ms, n) = normalise(&poses, Some(&[3.0, 3.0, 3.0]));
+        let dists: Vec<f64> = ms
+            .iter()
+            .map(|m| norm([m[0][3], m[1][3], m[2][3]]))
+            .collect();
+        let (d_side, d_mid) = ((1.0f64 + 9.0).sqrt(), 3.0);
+        let expect = 4.0 / ((2.0 * d_side + d_mid) / 3.0);
+        assert!((n.scale - expect).abs() < 1e-12, "{} vs {expect}", n.scale);
+        assert!((dists[1] - 3.0 * expect).abs() < 1e-9);
+        assert!((dists[0] - d_side * expect).abs() < 1e-9);
+        // Without the depths the axes never meet: the centre stays at the origin of the
+        // rotated world, among the cameras.
+        let (_, n0) = normalise(&poses, None);
+        assert_eq!(n0.centre, [0.0; 3]);
     }
 }

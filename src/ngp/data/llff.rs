@@ -14,6 +14,9 @@
 //! world, so a capture imported from its COLMAP model or from its `poses_bounds.npy` ends up
 //! with the same cameras. (Equivalently: OpenGL axes [right, up, back] = [col1, −col0, col2],
 //! then the script's world flips, up→z rotation, recentring and scale to mean distance 4.)
+//! One departure, for forward-facing captures: the centre the cameras look at is taken from
+//! the bounds (the harmonic mean of near and far along each camera's axis, see
+//! [`super::colmap2nerf::normalise`]) instead of the intersection of nearly parallel axes.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -237,6 +240,7 @@ pub fn import(dir: &Path, images: Option<&str>) -> Result<ImportedScene> {
             image_path: path,
             camera: idx,
             c2w,
+            depth_bounds: Some([row[15], row[16]]),
         });
     }
     Ok(ImportedScene {
