@@ -46,16 +46,7 @@ pub fn check_model_path(path: &Path) -> Result<()> {
             path.display()
         ),
     }
-    if let Some(dir) = path.parent()
-        && !dir.as_os_str().is_empty()
-        && !dir.is_dir()
-    {
-        bail!(
-            "{}: directory {} does not exist",
-            path.display(),
-            dir.display()
-        );
-    }
+    check_parent_dir(path)?;
     Ok(())
 }
 
@@ -72,4 +63,19 @@ pub fn progress(len: u64, template: &str) -> ProgressBar {
             .progress_chars("=> "),
     );
     pb
+}
+
+/// An output file's folder must exist: we write a temporary file beside it, then rename.
+pub fn check_parent_dir(path: &Path) -> Result<()> {
+    if let Some(dir) = path.parent()
+        && !dir.as_os_str().is_empty()
+        && !dir.is_dir()
+    {
+        bail!(
+            "{}: directory {} does not exist",
+            path.display(),
+            dir.display()
+        );
+    }
+    Ok(())
 }

@@ -55,16 +55,7 @@ fn check_out(out: &Path) -> Result<()> {
     if out.is_dir() {
         bail!("{}: is a directory; give the file to write", out.display());
     }
-    if let Some(dir) = out.parent()
-        && !dir.as_os_str().is_empty()
-        && !dir.is_dir()
-    {
-        bail!(
-            "{}: directory {} does not exist",
-            out.display(),
-            dir.display()
-        );
-    }
+    super::common::check_parent_dir(out)?;
     Ok(())
 }
 
