@@ -8,6 +8,7 @@ pub mod error;
 pub mod experiments;
 pub mod ngp;
 pub mod rng;
+pub mod steganalysis;
 pub mod stego;
 pub mod synth;
 pub mod util;

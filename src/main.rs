@@ -35,6 +35,8 @@ enum Cmd {
     Experiment(cli::experiment::Args),
     /// Write a COLMAP or LLFF capture as an instant-ngp transforms.json.
     Convert(cli::convert::Args),
+    /// Steganalysis: statistics of a model file that could betray a hidden scene, and a score.
+    Detect(cli::detect::Args),
 }
 
 fn main() {
@@ -49,6 +51,7 @@ fn main() {
         Cmd::Demo(a) => cli::demo::run(a),
         Cmd::Experiment(a) => cli::experiment::run(a),
         Cmd::Convert(a) => cli::convert::run(a),
+        Cmd::Detect(a) => cli::detect::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -3,6 +3,7 @@
 pub mod common;
 pub mod convert;
 pub mod demo;
+pub mod detect;
 pub mod eval;
 pub mod experiment;
 pub mod inspect;
