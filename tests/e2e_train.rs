@@ -8,9 +8,9 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
-use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy};
+use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::stego::{Key, generate_prf};
+use stegongp::stego::{Key, generate_prf, open_scene};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 const RES: u32 = 40;
@@ -62,22 +62,8 @@ fn psnr_of(model: &Model, key: Option<&Key>, test: &Dataset) -> f64 {
 
 /// (PSNR of the rendering, PSNR of an empty render) on 4 held-out views.
 fn scores_of(model: &Model, key: Option<&Key>, test: &Dataset) -> (f64, f64) {
-    let grid_layout = &model.net.layout.grid;
-    let idx = match key {
-        Some(k) => k.level_indices(grid_layout),
-        None => reference_indices(grid_layout),
-    };
-    let rebuilt = key.map(|_| {
-        rebuild_occupancy(
-            &model.net,
-            &model.params,
-            &idx,
-            1,
-            KEY_HOLDER_SAMPLES_PER_CELL,
-            0,
-        )
-    });
-    let view = model.view(&idx, rebuilt.as_ref().unwrap_or(&model.grid));
+    let opened = open_scene(model, key, false, 0);
+    let view = opened.view(model);
     let which = spread_views(test.frames.len(), 4);
     let r = evaluate(
         &view,

@@ -10,9 +10,9 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, ground_truth, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
-use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy};
+use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::stego::{Key, generate_prf, load_key, save_key};
+use stegongp::stego::{Key, generate_prf, load_key, open_scene, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
@@ -103,7 +103,7 @@ pub fn run(a: Args) -> Result<()> {
         let st = trainer.train_step();
         secs += st.seconds;
         samples += st.n_samples;
-        loss = st.loss;
+        loss = st.cover_loss.unwrap_or(loss);
         pb.inc(1);
         pb.set_message(format!(
             "loss {loss:.4} {:.0}k samples/s",
@@ -121,7 +121,6 @@ pub fn run(a: Args) -> Result<()> {
     let hidden_test = Dataset::load(&hidden_dir, Split::Test, &opts)?;
     let ropts = RenderOptions::default();
     let views = spread_views(cover_test.frames.len(), 8);
-    let pi = reference_indices(&model.net.layout.grid);
     let wrong = Key::wrong(a.seed ^ 0x5eed, &key);
     let mut rows = Vec::new();
     let mut tiles = Vec::new();
@@ -135,20 +134,8 @@ pub fn run(a: Args) -> Result<()> {
     let images = a.out.join("images");
     ensure_dir(&images)?;
     for (label, k, data) in cases {
-        let idx = k
-            .map(|k| k.level_indices(&model.net.layout.grid))
-            .unwrap_or_else(|| pi.clone());
-        let rebuilt = k.map(|_| {
-            rebuild_occupancy(
-                &model.net,
-                &model.params,
-                &idx,
-                model.config.aabb_scale,
-                KEY_HOLDER_SAMPLES_PER_CELL,
-                a.seed,
-            )
-        });
-        let view = model.view(&idx, rebuilt.as_ref().unwrap_or(&model.grid));
+        let scene = open_scene(&model, k, false, a.seed);
+        let view = scene.view(&model);
         let mut first = None;
         let r = evaluate(&view, data, &ropts, Some(&views), |_, img, _| {
             first.get_or_insert_with(|| img.rgb.clone());

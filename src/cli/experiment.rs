@@ -53,6 +53,10 @@ pub struct Args {
     /// Key scheme of the hidden scenes (key-sensitivity and partial-keys always run both).
     #[arg(long, value_enum, default_value_t = SchemeArg::Prf)]
     pub scheme: SchemeArg,
+    /// Train the stego models with stealth (hidden scenes confined to the cover's reachable
+    /// table entries; see `train --stealth`).
+    #[arg(long)]
+    pub stealth: bool,
     /// Use the paper's one-scene-per-step schedule instead of mixed batches.
     #[arg(long)]
     pub random_scene: bool,
@@ -132,6 +136,7 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             Schedule::Mixed
         },
+        stealth: a.stealth,
         verbose: true,
     };
     let report = run_experiment(&a.name, &cfg)?;

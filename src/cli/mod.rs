@@ -16,13 +16,10 @@ use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
-use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::NerfLayout;
-use stegongp::ngp::occupancy::OccupancyGrid;
-use stegongp::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, rebuild_occupancy};
 use stegongp::ngp::train::SceneSpec;
-use stegongp::stego::{Key, Mixed};
+use stegongp::stego::{Key, Mixed, OpenedScene, open_scene};
 
 /// The hidden scenes of a `train --hidden … --key …` call, each with its key's indices.
 pub fn stego_scenes(
@@ -31,7 +28,7 @@ pub fn stego_scenes(
     layout: &NerfLayout,
     opts: &LoadOptions,
     aabb_scale: u32,
-) -> Result<Vec<SceneSpec>> {
+) -> Result<(Vec<SceneSpec>, Vec<Key>)> {
     if hidden.len() != keys.len() {
         bail!(
             "{} --hidden scene(s) but {} --key file(s): each hidden scene needs its own key",
@@ -66,7 +63,7 @@ pub fn stego_scenes(
         });
         loaded.push((key, kp));
     }
-    Ok(out)
+    Ok((out, loaded.into_iter().map(|(k, _)| k).collect()))
 }
 
 /// Diagnostic variants of a key, for experiments by hand.
@@ -112,19 +109,22 @@ pub fn parse_key_variant(s: &str) -> Result<KeyVariant> {
     })
 }
 
-/// Index functions and occupancy grid to render a model with: the reference index and the
-/// stored grid without a key; with a key, its indices and a grid rebuilt from the network
-/// (a hidden scene's grid is never stored).
+/// What renders a model: without a key the cover; with a key (or one of its diagnostic
+/// variants) the hidden scene it unlocks, confined as the model was trained when `stealth`.
 pub fn scene_for_key(
     model: &Model,
     key: Option<&Path>,
     variant: Option<&str>,
-) -> Result<(LevelIndices, Option<OccupancyGrid>)> {
+    stealth: bool,
+) -> Result<OpenedScene> {
     let Some(kp) = key else {
         if variant.is_some() {
             bail!("--key-variant needs --key");
         }
-        return Ok((reference_indices(&model.net.layout.grid), None));
+        if stealth {
+            bail!("--stealth needs --key (it says how the hidden scene's key is applied)");
+        }
+        return Ok(open_scene(model, None, false, 0));
     };
     let mut key = keygen::load_key_reporting(kp)?;
     key.validate_for(&model.net.layout.grid)
@@ -137,16 +137,7 @@ pub fn scene_for_key(
             KeyVariant::Wrong(seed) => Key::wrong(seed, &key),
         };
     }
-    let indices = key.level_indices(&model.net.layout.grid);
-    let grid = rebuild_occupancy(
-        &model.net,
-        &model.params,
-        &indices,
-        model.config.aabb_scale,
-        KEY_HOLDER_SAMPLES_PER_CELL,
-        0,
-    );
-    Ok((indices, Some(grid)))
+    Ok(open_scene(model, Some(&key), stealth, 0))
 }
 
 #[cfg(test)]

@@ -38,6 +38,10 @@ pub struct Args {
     /// wrong[:SEED].
     #[arg(long)]
     pub key_variant: Option<String>,
+    /// The model was trained with `train --stealth`: apply --key as stealth training did
+    /// (confined to the cover's reachable table entries, computed from the stored grid).
+    #[arg(long)]
+    pub stealth: bool,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -54,10 +58,13 @@ pub fn run(a: Args) -> Result<()> {
             ..Default::default()
         },
     )?;
-    let (indices, rebuilt) =
-        super::scene_for_key(&model, a.key.as_deref(), a.key_variant.as_deref())?;
-    let grid = rebuilt.as_ref().unwrap_or(&model.grid);
-    let view = model.view(&indices, grid);
+    let scene = super::scene_for_key(
+        &model,
+        a.key.as_deref(),
+        a.key_variant.as_deref(),
+        a.stealth,
+    )?;
+    let view = scene.view(&model);
     ensure_dir(&a.out)?;
     let opts = RenderOptions {
         background: a.background.rgb(),

@@ -10,6 +10,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
+use stegongp::stego::stealth::StealthRefresh;
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ScheduleArg {
@@ -80,6 +81,12 @@ pub struct Args {
     /// table entries, a larger weight moves quality from the cover to the hidden scenes.
     #[arg(long, default_value_t = 1.0)]
     pub hidden_weight: f32,
+    /// Stealth: confine the hidden scenes to the table entries the cover itself trains (its
+    /// reachable set under the stored occupancy grid), so that the file's statistics look
+    /// like a plain model's (see `stegongp detect`). Render and evaluate the hidden scenes
+    /// with `--stealth` too.
+    #[arg(long)]
+    pub stealth: bool,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
     #[arg(long, value_delimiter = ',')]
     pub checkpoints: Vec<f64>,
@@ -106,6 +113,7 @@ struct Summary {
     model: PathBuf,
     steps: u32,
     train_seconds: f64,
+    /// The cover's loss (what the file stores).
     final_loss: f32,
     samples_per_second: f64,
     marched_samples_per_second: f64,
@@ -151,7 +159,7 @@ pub fn run(a: Args) -> Result<()> {
         dataset: std::sync::Arc::new(cover),
         indices: reference_indices(&layout.grid),
     }];
-    scenes.extend(super::stego_scenes(
+    let (hidden_scenes, hidden_keys) = super::stego_scenes(
         &a.hidden,
         &a.key,
         &layout,
@@ -160,7 +168,11 @@ pub fn run(a: Args) -> Result<()> {
             ..Default::default()
         },
         config.aabb_scale,
-    )?);
+    )?;
+    scenes.extend(hidden_scenes);
+    if a.stealth && hidden_keys.is_empty() {
+        bail!("--stealth needs at least one --hidden scene");
+    }
     let eval_data = if a.checkpoints.is_empty() {
         None
     } else {
@@ -182,6 +194,13 @@ pub fn run(a: Args) -> Result<()> {
         ..Default::default()
     };
     let mut trainer = Trainer::new(config, scenes, cfg)?;
+    if a.stealth {
+        trainer.set_index_refresh(Box::new(StealthRefresh::new(
+            layout.grid.clone(),
+            config.aabb_scale,
+            hidden_keys,
+        )))?;
+    }
     if !a.json {
         for i in 0..trainer.n_scenes() {
             let d = trainer.dataset(i);
@@ -211,7 +230,10 @@ pub fn run(a: Args) -> Result<()> {
     };
     let mut train_s = 0.0;
     let (mut samples, mut marched) = (0u64, 0u64);
+    // The progress line shows the loss of every scene; the file stores the cover's alone,
+    // as a plain model's would.
     let mut loss_ema = 0.0f32;
+    let mut cover_ema: Option<f32> = None;
     let mut phase = [0.0f64; 3];
     let mut checkpoints = Vec::new();
     let mut pending: Vec<f64> = a.checkpoints.clone();
@@ -229,6 +251,9 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             0.95 * loss_ema + 0.05 * st.loss
         };
+        if let Some(c) = st.cover_loss {
+            cover_ema = Some(cover_ema.map_or(c, |e| 0.95 * e + 0.05 * c));
+        }
         if budget_s.is_some() {
             pb.set_position(train_s as u64);
         } else {
@@ -247,7 +272,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             pending.remove(0);
             let data = eval_data.as_ref().expect("loaded with checkpoints");
-            let model = Model::from_trainer(&trainer, loss_ema);
+            let model = Model::from_trainer(&trainer, cover_ema.unwrap_or(0.0));
             let idx = reference_indices(&layout.grid);
             let view = model.view(&idx, &model.grid);
             let opts = RenderOptions {
@@ -275,13 +300,13 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     pb.finish_and_clear();
-    let model = Model::from_trainer(&trainer, loss_ema);
+    let model = Model::from_trainer(&trainer, cover_ema.unwrap_or(0.0));
     model.save(&a.out)?;
     let summary = Summary {
         model: a.out.clone(),
         steps: trainer.step,
         train_seconds: train_s,
-        final_loss: loss_ema,
+        final_loss: cover_ema.unwrap_or(0.0),
         samples_per_second: samples as f64 / train_s,
         marched_samples_per_second: marched as f64 / train_s,
         steps_per_second: trainer.step as f64 / train_s,

@@ -3,15 +3,17 @@
 use super::report::{Report, Table, save_grid};
 use crate::error::{Error, Result};
 use crate::ngp::data::{Dataset, LoadOptions, Split};
-use crate::ngp::encoding::{GridConfig, LevelIndices};
+use crate::ngp::encoding::GridConfig;
 use crate::ngp::eval::{EvalResult, evaluate, spread_views};
 use crate::ngp::model::Model;
 use crate::ngp::network::{ModelConfig, NerfLayout};
-use crate::ngp::occupancy::OccupancyGrid;
-use crate::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy};
+use crate::ngp::render::image::RenderOptions;
 use crate::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use crate::rng::Pcg32;
-use crate::stego::{Key, Mixed, generate_prf, generate_primes, generate_with, key_strength};
+use crate::stego::stealth::StealthRefresh;
+use crate::stego::{
+    Key, Mixed, generate_prf, generate_primes, generate_with, key_strength, open_scene,
+};
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -68,6 +70,8 @@ pub struct ExpConfig {
     pub grid: GridConfig,
     pub scheme: KeySchemeArg,
     pub schedule: Schedule,
+    /// Stealth training: hidden scenes confined to the cover's reachable entries.
+    pub stealth: bool,
     /// Progress lines on stderr.
     pub verbose: bool,
 }
@@ -150,6 +154,14 @@ impl Ctx<'_> {
             ..Default::default()
         };
         let mut t = Trainer::new(config, specs, tc)?;
+        if self.cfg.stealth && scenes.len() > 1 {
+            let keys = scenes[1..].iter().map(|(_, k)| (*k).clone()).collect();
+            t.set_index_refresh(Box::new(StealthRefresh::new(
+                layout.grid.clone(),
+                config.aabb_scale,
+                keys,
+            )))?;
+        }
         // RandomScene trains one scene per step: give each scene the same number of steps.
         let steps = match self.cfg.schedule {
             Schedule::Mixed => self.cfg.steps,
@@ -160,7 +172,7 @@ impl Ctx<'_> {
             let st = t.train_step();
             secs += st.seconds;
             samples += st.n_samples;
-            loss = st.loss;
+            loss = st.cover_loss.unwrap_or(loss);
         }
         self.log(&format!(
             "  trained {label}: {steps} steps in {secs:.1} s ({:.0} k samples/s), loss {loss:.5}",
@@ -182,22 +194,8 @@ impl Ctx<'_> {
     /// (what a key holder — or an attacker trying a key — does). Returns the scores and the
     /// rendering of the first evaluated view.
     fn score(&self, model: &Model, key: &Key, scene: &Scene) -> (EvalResult, Vec<f32>) {
-        let indices: LevelIndices = key.level_indices(&model.net.layout.grid);
-        let rebuilt;
-        let grid: &OccupancyGrid = if key.is_reference() {
-            &model.grid
-        } else {
-            rebuilt = rebuild_occupancy(
-                &model.net,
-                &model.params,
-                &indices,
-                model.config.aabb_scale,
-                KEY_HOLDER_SAMPLES_PER_CELL,
-                self.cfg.seed,
-            );
-            &rebuilt
-        };
-        let view = model.view(&indices, grid);
+        let opened = open_scene(model, Some(key), self.cfg.stealth, self.cfg.seed);
+        let view = opened.view(model);
         let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
         let mut first = None;
         let r = evaluate(
@@ -235,7 +233,7 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
-        "schedule": format!("{:?}", cfg.schedule),
+        "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
         "threads": rayon::current_num_threads(),
     })
 }

@@ -374,6 +374,26 @@ impl OccupancyGrid {
         }
     }
 
+    /// Integer coordinates of the occupied cells of cascade `mip`, in Morton order.
+    pub fn occupied_cells(&self, mip: u32) -> Vec<[u32; 3]> {
+        let base = mip as usize * N_CELLS;
+        let bytes = &self.bitfield[base / 8..(base + N_CELLS) / 8];
+        let mut out = Vec::new();
+        for (i, &b) in bytes.iter().enumerate() {
+            let mut b = b;
+            while b != 0 {
+                let m = (i * 8) as u32 + b.trailing_zeros();
+                b &= b - 1;
+                out.push([
+                    morton3d_invert(m),
+                    morton3d_invert(m >> 1),
+                    morton3d_invert(m >> 2),
+                ]);
+            }
+        }
+        out
+    }
+
     /// Fraction of cascade-0 cells that are occupied.
     pub fn occupied_fraction(&self) -> f64 {
         let n: u32 = self.bitfield[..N_CELLS / 8]

@@ -40,7 +40,9 @@ pub mod keys;
 pub mod permute;
 pub mod prf;
 pub mod primes;
+pub mod stealth;
 pub mod strength;
+pub mod view;
 
 #[cfg(test)]
 mod bench;
@@ -55,3 +57,4 @@ pub use keys::{
     derive_prf_from_passphrase_with, generate_prf, generate_primes, generate_with, random_salt,
 };
 pub use strength::{Disclosure, KeyStrength, key_strength};
+pub use view::{OpenedScene, open_scene};

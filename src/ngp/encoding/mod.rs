@@ -4,6 +4,7 @@
 pub mod grid;
 pub mod index;
 pub mod layout;
+pub mod reach;
 pub mod sh;
 
 pub use index::{LevelIndex, LevelIndices, ReferenceIndex, reference_indices};

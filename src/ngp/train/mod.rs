@@ -5,4 +5,4 @@ pub mod optimizer;
 pub mod trainer;
 
 pub use optimizer::{Optimizer, OptimizerConfig};
-pub use trainer::{SceneSpec, Schedule, StepStats, TrainConfig, Trainer};
+pub use trainer::{IndexRefresh, SceneSpec, Schedule, StepStats, TrainConfig, Trainer};

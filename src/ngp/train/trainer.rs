@@ -62,6 +62,14 @@ impl Default for TrainConfig {
     }
 }
 
+/// Index functions that follow the cover's occupancy grid: called with the cover's grid at
+/// the start and after every update of it, returns new index functions for the scenes it
+/// names (never scene 0). The engine does not know why (stealth training uses it to keep
+/// hidden scenes inside the entries the cover trains).
+pub trait IndexRefresh: Send + Sync {
+    fn refresh(&self, cover_grid: &OccupancyGrid) -> Vec<(usize, LevelIndices)>;
+}
+
 /// A scene to train: its training images and the index functions it is stored under.
 pub struct SceneSpec {
     pub dataset: Arc<Dataset>,
@@ -85,6 +93,8 @@ pub struct StepStats {
     pub step: u32,
     /// Mean loss per ray (summed over the scenes trained this step).
     pub loss: f32,
+    /// The cover's (scene 0's) mean loss per ray, `None` if the step did not train it.
+    pub cover_loss: Option<f32>,
     pub n_rays: u64,
     /// Samples that contributed to the loss (the reference's compacted samples).
     pub n_samples: u64,
@@ -174,6 +184,7 @@ pub struct Trainer {
     pub config: TrainConfig,
     scenes: Vec<SceneState>,
     workers: Vec<Worker>,
+    refresh: Option<Box<dyn IndexRefresh>>,
     pub step: u32,
 }
 
@@ -270,6 +281,7 @@ impl Trainer {
             config,
             scenes: states,
             workers,
+            refresh: None,
             step: 0,
         })
     }
@@ -294,6 +306,35 @@ impl Trainer {
         (s.rays_per_batch, s.measured_samples, s.measured_marched)
     }
 
+    /// Index functions of scene `i` as trained now.
+    pub fn indices(&self, i: usize) -> &LevelIndices {
+        &self.scenes[i].indices
+    }
+
+    /// Installs an [`IndexRefresh`] and applies it to the cover's current grid.
+    pub fn set_index_refresh(&mut self, refresh: Box<dyn IndexRefresh>) -> Result<()> {
+        self.refresh = Some(refresh);
+        self.apply_refresh()
+    }
+
+    fn apply_refresh(&mut self) -> Result<()> {
+        let Some(r) = &self.refresh else {
+            return Ok(());
+        };
+        let n_levels = self.net.layout.grid.levels.len();
+        for (i, indices) in r.refresh(&self.scenes[0].grid) {
+            if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
+                return Err(Error::Config(format!(
+                    "index refresh for scene {i} with {} levels ({} scenes, {n_levels} levels; scene 0 is never refreshed)",
+                    indices.len(),
+                    self.scenes.len()
+                )));
+            }
+            self.scenes[i].indices = indices;
+        }
+        Ok(())
+    }
+
     /// Weights to render with and to publish: the debiased EMA.
     pub fn inference_params(&self) -> Vec<f32> {
         self.optimizer.ema_params(&self.params)
@@ -307,7 +348,8 @@ impl Trainer {
         }
         let fraction = self.config.occupancy_fraction;
         let seed = self.config.seed;
-        for (si, s) in self.scenes.iter_mut().enumerate() {
+        for si in 0..self.scenes.len() {
+            let s = &mut self.scenes[si];
             let (nu, nn) = s.grid.update_sample_counts(step, fraction);
             let (pos, cells) = s
                 .grid
@@ -315,6 +357,11 @@ impl Trainer {
             let warped: Vec<[f32; 3]> = pos.iter().map(|&p| s.marcher.warp(p)).collect();
             let dens = density_batch(&self.net, &self.params, &s.indices, &warped);
             s.grid.splat(&cells, &dens);
+            if si == 0 {
+                // Refreshed indices take effect before the other scenes' grids are updated.
+                self.apply_refresh()
+                    .expect("index refresh was checked when it was installed");
+            }
         }
     }
 
@@ -363,7 +410,11 @@ impl Trainer {
                 stats.n_rays += w.n_rays;
             }
             stats.n_marched += marched;
-            stats.loss += (loss / n_rays as f64) as f32;
+            let scene_loss = (loss / n_rays as f64) as f32;
+            stats.loss += scene_loss;
+            if si == 0 {
+                stats.cover_loss = Some(scene_loss);
+            }
             stats.n_samples += used;
             let scene = &mut self.scenes[si];
             scene.measured_samples = used as u32;

@@ -1,0 +1,251 @@
+//! Which table entries an occupancy grid lets training reach.
+//!
+//! Training samples only in occupied cells, and a sample at position `p` reads the
+//! occupancy bit of cascade `max(mip_from_pos(p), mip_from_dt(dt))`. Every cascade above 0
+//! also holds the OR-pooled bits of the finer one, so a bit set at any cascade that covers
+//! `p` implies the bit of the coarsest cascade at `p`: the positions a training sample can
+//! ever take are exactly those in the coarsest cascade's occupied cells (clipped to the
+//! box). For aabb_scale 1 that is cascade 0 itself; for larger boxes it is a superset of
+//! what cone-stepped rays sample in practice.
+//!
+//! An entry of a level is *reachable* if some grid vertex of a level cell that intersects
+//! such a position maps to it under the level's index function. An analyst can compute
+//! this from a published file alone (its stored grid, with the reference index); so can a
+//! key holder, which is what lets hidden scenes be confined to the cover's entries.
+
+use super::index::LevelIndices;
+use super::layout::GridLayout;
+use crate::ngp::occupancy::{GRID_SIZE, OccupancyGrid};
+use crate::ngp::render::march::Marcher;
+use rayon::prelude::*;
+
+/// A set of entries `[0, size)` of one level, as a bitmap.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct EntrySet {
+    size: u32,
+    count: u32,
+    bits: Vec<u64>,
+}
+
+impl EntrySet {
+    pub fn new(size: u32) -> Self {
+        EntrySet {
+            size,
+            count: 0,
+            bits: vec![0; (size as usize).div_ceil(64)],
+        }
+    }
+
+    /// Every entry of the level.
+    pub fn full(size: u32) -> Self {
+        let mut s = EntrySet::new(size);
+        for i in 0..size {
+            s.insert(i);
+        }
+        s
+    }
+
+    /// Adds entry `i`; true if it was not there.
+    #[inline]
+    pub fn insert(&mut self, i: u32) -> bool {
+        let (w, b) = ((i / 64) as usize, i % 64);
+        let new = self.bits[w] >> b & 1 == 0;
+        self.bits[w] |= 1 << b;
+        self.count += new as u32;
+        new
+    }
+
+    #[inline]
+    pub fn contains(&self, i: u32) -> bool {
+        i < self.size && self.bits[(i / 64) as usize] >> (i % 64) & 1 != 0
+    }
+
+    /// Number of entries in the set.
+    pub fn len(&self) -> u32 {
+        self.count
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// Number of entries of the level.
+    pub fn size(&self) -> u32 {
+        self.size
+    }
+
+    pub fn is_full(&self) -> bool {
+        self.count == self.size
+    }
+
+    pub fn fraction(&self) -> f64 {
+        self.count as f64 / self.size.max(1) as f64
+    }
+}
+
+/// Network-space (`[0,1]³`) boxes of the coarsest cascade's occupied cells, clipped to the
+/// box; empty when no cell is occupied.
+pub fn occupied_boxes(grid: &OccupancyGrid, aabb_scale: u32) -> Vec<([f32; 3], [f32; 3])> {
+    let marcher = Marcher::new(aabb_scale);
+    let mip = grid.max_cascade();
+    let s = (mip as f32).exp2();
+    let g = GRID_SIZE as f32;
+    grid.occupied_cells(mip)
+        .into_iter()
+        .map(|cell| {
+            let mut lo = [0.0f32; 3];
+            let mut hi = [0.0f32; 3];
+            for d in 0..3 {
+                lo[d] = (cell[d] as f32 / g - 0.5) * s + 0.5;
+                hi[d] = ((cell[d] + 1) as f32 / g - 0.5) * s + 0.5;
+            }
+            let (lo, hi) = (marcher.warp(lo), marcher.warp(hi));
+            (lo.map(|v| v.clamp(0.0, 1.0)), hi.map(|v| v.clamp(0.0, 1.0)))
+        })
+        .collect()
+}
+
+/// The entries of every level of `layout` that training can reach through `indices` given
+/// the occupancy `grid` (see the module docs). Deterministic: the cover's trainer and a key
+/// holder reading the stored grid compute the same sets.
+pub fn reachable_entries(
+    layout: &GridLayout,
+    grid: &OccupancyGrid,
+    aabb_scale: u32,
+    indices: &LevelIndices,
+) -> Vec<EntrySet> {
+    let boxes = occupied_boxes(grid, aabb_scale);
+    layout
+        .levels
+        .par_iter()
+        .zip(indices.par_iter())
+        .map(|(level, index)| {
+            let mut set = EntrySet::new(level.size);
+            // Vertex ranges exactly as the encoding takes cells (`fma(scale, x, 0.5)`, floor),
+            // plus the far corner.
+            let range = |lo: f32, hi: f32| {
+                let a = level.scale.mul_add(lo, 0.5).floor() as i32 as u32;
+                let b = level.scale.mul_add(hi, 0.5).floor() as i32 as u32 + 1;
+                a..=b
+            };
+            'boxes: for (lo, hi) in &boxes {
+                let (rx, ry, rz) = (
+                    range(lo[0], hi[0]),
+                    range(lo[1], hi[1]),
+                    range(lo[2], hi[2]),
+                );
+                for z in rz {
+                    for y in ry.clone() {
+                        for x in rx.clone() {
+                            set.insert(index.index(x, y, z));
+                        }
+                    }
+                    if set.is_full() {
+                        break 'boxes;
+                    }
+                }
+            }
+            set
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ngp::encoding::{GridConfig, ReferenceIndex, reference_indices};
+    use crate::ngp::occupancy::N_CELLS;
+
+    fn grid_with(cells: &[[u32; 3]], n_cascades: usize) -> OccupancyGrid {
+        let mut density = vec![0.0f32; N_CELLS * n_cascades];
+        for c in cells {
+            density[crate::ngp::occupancy::morton3d(c[0], c[1], c[2]) as usize] = 1.0;
+        }
+        OccupancyGrid::from_density(density).unwrap()
+    }
+
+    fn small_layout() -> GridLayout {
+        let cfg = GridConfig {
+            n_levels: 4,
+            n_features: 2,
+            log2_hashmap_size: 12,
+            base_resolution: 16,
+        };
+        GridLayout::new(cfg, 1).unwrap()
+    }
+
+    #[test]
+    fn one_cell_reaches_the_vertices_around_it() {
+        // Cell (64, 64, 64) of a 1-cascade grid spans [0.5, 0.5 + 1/128]³. At level 0
+        // (scale 15) that is x·15 + 0.5 ∈ [8.0, 8.117]: vertices 8..=9 on each axis.
+        let layout = small_layout();
+        let grid = grid_with(&[[64, 64, 64]], 1);
+        let idx = reference_indices(&layout);
+        let sets = reachable_entries(&layout, &grid, 1, &idx);
+        let l0 = layout.levels[0];
+        assert_eq!(l0.scale, 15.0);
+        assert!(l0.dense);
+        let mut want = EntrySet::new(l0.size);
+        let r = ReferenceIndex::new(&l0);
+        for z in 8..=9 {
+            for y in 8..=9 {
+                for x in 8..=9 {
+                    want.insert(crate::ngp::encoding::LevelIndex::index(&r, x, y, z));
+                }
+            }
+        }
+        assert_eq!(sets[0], want);
+        assert_eq!(sets[0].len(), 8);
+        // The dense index by hand: 8 + 8·16 + 8·256 is one of them.
+        assert!(sets[0].contains(8 + 8 * 16 + 8 * 256));
+        assert!(!sets[0].contains(0));
+    }
+
+    #[test]
+    fn an_empty_grid_reaches_nothing_and_a_full_one_everything() {
+        let layout = small_layout();
+        let idx = reference_indices(&layout);
+        let empty = grid_with(&[], 1);
+        for s in reachable_entries(&layout, &empty, 1, &idx) {
+            assert!(s.is_empty());
+        }
+        let full = OccupancyGrid::from_density(vec![1.0; N_CELLS]).unwrap();
+        for (s, l) in reachable_entries(&layout, &full, 1, &idx)
+            .iter()
+            .zip(&layout.levels)
+        {
+            // Hashed levels: the coherent-prime hash of the whole vertex lattice covers the
+            // table; dense levels: every vertex is its own entry.
+            assert_eq!(s.len(), l.size, "level {}", l.level);
+        }
+    }
+
+    #[test]
+    fn the_coarsest_cascade_decides_for_larger_boxes() {
+        // aabb_scale 2: two cascades. A cell occupied only in cascade 0 is pooled into
+        // cascade 1, whose cell (twice as large in each axis) is what counts.
+        let layout = GridLayout::new(small_layout().config, 2).unwrap();
+        let idx = reference_indices(&layout);
+        let grid = grid_with(&[[64, 64, 64]], 2);
+        let boxes = occupied_boxes(&grid, 2);
+        assert_eq!(boxes.len(), 1);
+        // Cascade-0 cell 64 pools into cascade-1 cell 32 + 64/2 = 64: world
+        // [0.5, 0.5 + 2/128], which is network-space [0.5, 0.5 + 1/128] in the box [−0.5, 1.5].
+        let (lo, hi) = boxes[0];
+        assert_eq!(lo, [0.5; 3]);
+        assert!((hi[0] - (0.5 + 1.0 / 128.0)).abs() < 1e-6);
+        let sets = reachable_entries(&layout, &grid, 2, &idx);
+        assert!(sets.iter().all(|s| !s.is_empty()));
+    }
+
+    #[test]
+    fn entry_sets_count() {
+        let mut s = EntrySet::new(100);
+        assert!(s.insert(99));
+        assert!(!s.insert(99));
+        assert!(s.insert(0));
+        assert_eq!(s.len(), 2);
+        assert!(s.contains(99) && !s.contains(98) && !s.contains(100));
+        assert!(EntrySet::full(70).is_full());
+    }
+}
