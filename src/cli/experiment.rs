@@ -1,6 +1,8 @@
 use anyhow::{Result, bail};
 use std::path::PathBuf;
-use stegongp::experiments::{EXPERIMENTS, ExpConfig, KeySchemeArg, run_experiment};
+use stegongp::experiments::{
+    DetectOptions, EXPERIMENTS, ExpConfig, KeySchemeArg, run_detectability, run_experiment,
+};
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
@@ -13,10 +15,12 @@ pub enum SchemeArg {
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength
+    /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength |
+    /// detectability
     pub name: String,
     /// Output directory: the report goes to OUT/NAME/ (report.md, report.json, PNG grids),
-    /// generated scenes to OUT/data/.
+    /// generated scenes to OUT/data/ (detectability: its scenes and models to
+    /// OUT/detectability/{scenes,models}/, reused by a rerun with the same settings).
     #[arg(long, default_value = "out/experiments")]
     pub out: PathBuf,
     /// Cover scene (default: a generated object scene).
@@ -31,25 +35,28 @@ pub struct Args {
     /// Downscale factor of the hidden scenes' images.
     #[arg(long, default_value_t = 1)]
     pub hidden_downscale: u32,
-    /// Training steps per model.
-    #[arg(long, default_value_t = 300)]
-    pub steps: u32,
-    /// Samples per scene per step.
-    #[arg(long, default_value_t = 1 << 15)]
-    pub batch: u32,
+    /// Training steps per model [default: 300; detectability: 200].
+    #[arg(long)]
+    pub steps: Option<u32>,
+    /// Samples per scene per step [default: 32768; detectability: 4096].
+    #[arg(long)]
+    pub batch: Option<u32>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Held-out views evaluated per scene.
     #[arg(long, default_value_t = 8)]
     pub eval_views: usize,
-    #[arg(long, default_value_t = 0.125)]
-    pub occupancy_fraction: f32,
+    /// Fraction of the reference's occupancy-update samples [default: 0.125; detectability:
+    /// 0.03].
+    #[arg(long)]
+    pub occupancy_fraction: Option<f32>,
     #[arg(long, default_value_t = 16)]
     pub levels: u32,
     #[arg(long, default_value_t = 2)]
     pub features: u32,
-    #[arg(long, default_value_t = 19)]
-    pub log2_t: u32,
+    /// log2 of the hash table size per level [default: 19; detectability: 14].
+    #[arg(long)]
+    pub log2_t: Option<u32>,
     /// Key scheme of the hidden scenes (key-sensitivity and partial-keys always run both).
     #[arg(long, value_enum, default_value_t = SchemeArg::Prf)]
     pub scheme: SchemeArg,
@@ -60,10 +67,29 @@ pub struct Args {
     /// Use the paper's one-scene-per-step schedule instead of mixed batches.
     #[arg(long)]
     pub random_scene: bool,
-    /// Resolution of generated scenes.
-    #[arg(long, default_value_t = 64)]
-    pub res: u32,
+    /// Resolution of generated scenes [default: 64; detectability: 32].
+    #[arg(long)]
+    pub res: Option<u32>,
+    /// detectability: models per arm (plain, stego, stealth), each on its own pair of
+    /// generated cover and hidden scene.
+    #[arg(long, default_value_t = 20)]
+    pub models: usize,
+    /// detectability: leave out the stealth arm (plain and default stego models only).
+    #[arg(long)]
+    pub no_stealth_arm: bool,
 }
+
+/// detectability's defaults: 60 models (3 arms × 20) in about 15 minutes on 2 cores, the
+/// covers still recognisable, and 16 levels so the hashed levels the statistics read are
+/// there (see the report's fidelity table and timing note).
+const DETECT_STEPS: u32 = 200;
+const DETECT_BATCH: u32 = 1 << 12;
+const DETECT_LOG2_T: u32 = 14;
+const DETECT_RES: u32 = 32;
+/// At these sizes the occupancy updates of the first 256 steps (every cell, dozens of
+/// times) would cost more than the training itself; 0.03 still gives the grid its shape
+/// (occupied fraction within a few tenths of a percent of 0.125's).
+const DETECT_OCCUPANCY: f32 = 0.03;
 
 pub fn run(a: Args) -> Result<()> {
     if !EXPERIMENTS.contains(&a.name.as_str()) {
@@ -73,6 +99,15 @@ pub fn run(a: Args) -> Result<()> {
             EXPERIMENTS.join(", ")
         );
     }
+    let detect = a.name == "detectability";
+    if detect && (a.cover.is_some() || !a.hidden.is_empty() || a.stealth || a.random_scene) {
+        bail!(
+            "detectability generates its own scenes and trains every scheme, schedule and \
+             stealth itself: --cover, --hidden, --stealth and --random-scene do not apply \
+             (--no-stealth-arm leaves the stealth models out)"
+        );
+    }
+    let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
     std::fs::create_dir_all(&a.out)?;
     let data = a.out.join("data");
     let gen_scene = |name: &str, kind: SceneKind, seed: u64| -> Result<PathBuf> {
@@ -80,19 +115,19 @@ pub fn run(a: Args) -> Result<()> {
         if !dir.join("transforms_train.json").exists() {
             let opts = SynthOptions {
                 scene: kind,
-                resolution: a.res,
+                resolution: res,
                 n_train: 60,
                 n_val: 0,
                 n_test: 10,
                 seed,
                 aabb_scale: 1,
             };
-            eprintln!("generating {} ({} px)", dir.display(), a.res);
+            eprintln!("generating {} ({res} px)", dir.display());
             generate(&opts, &dir)?;
         }
         Ok(dir)
     };
-    let needs_scenes = a.name != "key-strength";
+    let needs_scenes = a.name != "key-strength" && !detect;
     let cover = match &a.cover {
         Some(c) => c.clone(),
         None if needs_scenes => gen_scene("cover_object", SceneKind::Object, 1)?,
@@ -116,15 +151,21 @@ pub fn run(a: Args) -> Result<()> {
         hidden,
         downscale: a.downscale,
         hidden_downscale: a.hidden_downscale,
-        steps: a.steps,
-        batch: a.batch,
+        steps: a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 }),
+        batch: a
+            .batch
+            .unwrap_or(if detect { DETECT_BATCH } else { 1 << 15 }),
         seed: a.seed,
         eval_views: a.eval_views,
-        occupancy_fraction: a.occupancy_fraction,
+        occupancy_fraction: a.occupancy_fraction.unwrap_or(if detect {
+            DETECT_OCCUPANCY
+        } else {
+            0.125
+        }),
         grid: GridConfig {
             n_levels: a.levels,
             n_features: a.features,
-            log2_hashmap_size: a.log2_t,
+            log2_hashmap_size: a.log2_t.unwrap_or(if detect { DETECT_LOG2_T } else { 19 }),
             base_resolution: 16,
         },
         scheme: match a.scheme {
@@ -139,7 +180,17 @@ pub fn run(a: Args) -> Result<()> {
         stealth: a.stealth,
         verbose: true,
     };
-    let report = run_experiment(&a.name, &cfg)?;
+    let report = if detect {
+        let opts = DetectOptions {
+            models: a.models,
+            stealth_arm: !a.no_stealth_arm,
+            res,
+            ..DetectOptions::default()
+        };
+        run_detectability(&cfg, &opts)?
+    } else {
+        run_experiment(&a.name, &cfg)?
+    };
     for t in &report.tables {
         println!("{}", t.markdown());
     }

@@ -2,7 +2,9 @@
 //! (or generated) scenes, evaluates held-out views, and writes a Markdown + JSON report with
 //! PNG image grids into its output directory.
 
+pub mod detectability;
 pub mod report;
 pub mod runs;
 
+pub use detectability::{DetectOptions, run_detectability};
 pub use runs::{EXPERIMENTS, ExpConfig, KeySchemeArg, run_experiment};

@@ -25,6 +25,7 @@ pub const EXPERIMENTS: &[&str] = &[
     "multi-hidden",
     "table-size",
     "key-strength",
+    "detectability",
 ];
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -247,6 +248,13 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
         )));
     }
     std::fs::create_dir_all(&cfg.out).map_err(|e| Error::io(&cfg.out, e))?;
+    if name == "detectability" {
+        // It generates its own population of scenes; the CLI passes its options directly.
+        return super::detectability::run_detectability(
+            cfg,
+            &super::detectability::DetectOptions::default(),
+        );
+    }
     let mut report = Report {
         name: name.into(),
         setup: setup_json(cfg),
@@ -591,4 +599,53 @@ fn key_strength_report(cfg: &ExpConfig, report: &mut Report) -> Result<()> {
 
 fn round2(x: f64) -> f64 {
     (x * 100.0).round() / 100.0
+}
+
+/// One model of an experiment that trains many scene pairs (detectability), with its
+/// held-out scores.
+pub(super) struct PairRun {
+    pub model: Model,
+    pub train_seconds: f64,
+    /// Scoring both scenes (for the hidden one, rebuilding its occupancy grid first).
+    pub eval_seconds: f64,
+    pub cover: EvalResult,
+    pub hidden: Option<EvalResult>,
+}
+
+/// Trains `cfg.cover` alone (`key: None`), or with `cfg.hidden[0]` under key number `key`
+/// of `cfg.scheme` (m = 1, drawn from `cfg.seed`), and scores the cover without a key and
+/// the hidden scene with its key on held-out views: the same training (schedule, stealth)
+/// and viewing as every other experiment, one scene pair at a time.
+pub(super) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Result<PairRun> {
+    let cover = load_scene(&cfg.cover, cfg.downscale, None)?;
+    let box_scale = Some(cover.train.aabb_scale);
+    let hidden = match (key, cfg.hidden.first()) {
+        (None, _) => Vec::new(),
+        (Some(_), Some(h)) => vec![load_scene(h, cfg.hidden_downscale, box_scale)?],
+        (Some(_), None) => {
+            return Err(Error::Config("a stego model needs a hidden scene".into()));
+        }
+    };
+    let ctx = Ctx { cfg, cover, hidden };
+    let pi = Key::reference();
+    let key = key
+        .map(|which| cfg.scheme.generate(1, cfg.seed, which))
+        .transpose()?;
+    let mut scenes = vec![(&ctx.cover, &pi)];
+    if let Some(k) = &key {
+        scenes.push((&ctx.hidden[0], k));
+    }
+    let trained = ctx.train(cfg.grid, &scenes, label)?;
+    let t0 = std::time::Instant::now();
+    let (cover, _) = ctx.score(&trained.model, &pi, &ctx.cover);
+    let hidden = key
+        .as_ref()
+        .map(|k| ctx.score(&trained.model, k, &ctx.hidden[0]).0);
+    Ok(PairRun {
+        model: trained.model,
+        train_seconds: trained.seconds,
+        eval_seconds: t0.elapsed().as_secs_f64(),
+        cover,
+        hidden,
+    })
 }

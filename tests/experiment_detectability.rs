@@ -1,0 +1,169 @@
+//! `stegongp experiment detectability` on a tiny population: the report's shape (files,
+//! tables, one row per statistic, AUCs in [0.5, 1]), the same numbers from the same seed,
+//! and a rerun that reuses every model file instead of training again.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn stegongp(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_stegongp"))
+        .args(args)
+        .output()
+        .expect("run stegongp")
+}
+
+fn run_ok(args: &[&str]) -> String {
+    let out = stegongp(args);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "stegongp {args:?} failed: {err}");
+    err
+}
+
+fn report(dir: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(dir.join("detectability/report.json")).unwrap()).unwrap()
+}
+
+/// The table whose title starts with `prefix`.
+fn table<'a>(json: &'a serde_json::Value, prefix: &str) -> &'a Vec<serde_json::Value> {
+    json["tables"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|t| t["title"].as_str().unwrap().starts_with(prefix))
+        .unwrap_or_else(|| panic!("no table '{prefix}…' in {json}"))["rows"]
+        .as_array()
+        .unwrap()
+}
+
+fn auc_ok(v: &serde_json::Value, what: &str) {
+    let a = v
+        .as_f64()
+        .unwrap_or_else(|| panic!("{what}: not a number: {v}"));
+    assert!((0.5..=1.0).contains(&a), "{what} = {a}");
+}
+
+#[test]
+fn tiny_population_report_reproducible_and_resumable() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().to_str().unwrap();
+    // Two pairs (the least that leaves one to fit the detector on and one to score), three
+    // arms, 16 px scenes, 8 levels, T = 2^10, a few steps: the plumbing is under test, the
+    // numbers are BENCHMARKS.md's. Scoring the hidden scenes (rebuilding their occupancy
+    // grids at 128³) is most of the time.
+    let args = [
+        "experiment",
+        "detectability",
+        "--out",
+        out,
+        "--models",
+        "2",
+        "--res",
+        "16",
+        "--steps",
+        "8",
+        "--batch",
+        "1024",
+        "--levels",
+        "8",
+        "--log2-t",
+        "10",
+        "--eval-views",
+        "1",
+        "--seed",
+        "3",
+    ];
+    run_ok(&args);
+    let dir = d.path().join("detectability");
+    for f in [
+        "report.md",
+        "features.json",
+        "detector_stego.json",
+        "detector_stealth.json",
+    ] {
+        assert!(dir.join(f).is_file(), "{f} missing");
+    }
+    let png = std::fs::read(dir.join("roc.png")).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    for arm in ["plain", "stego", "stealth"] {
+        for i in 0..2 {
+            assert!(dir.join(format!("models/{arm}_{i:02}.ingp")).is_file());
+        }
+    }
+    let json = report(d.path());
+    assert_eq!(json["experiment"], "detectability");
+    assert_eq!(json["setup"]["models_per_arm"], 2);
+
+    let fid = table(&json, "Fidelity");
+    assert_eq!(fid.len(), 3);
+    for (row, arm) in fid.iter().zip(["plain", "stego", "stealth"]) {
+        assert_eq!(row["arm"], arm);
+        assert_eq!(row["models"], 2);
+        let c = row["cover_psnr"].as_f64().unwrap();
+        assert!(c.is_finite() && c > 0.0, "{row}");
+        // The plain arm hides nothing, so it has no hidden-scene score.
+        assert_eq!(row.get("hidden_psnr").is_some(), arm != "plain", "{row}");
+    }
+
+    // One row per statistic, and every statistic a model file gave.
+    let feats: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("features.json")).unwrap()).unwrap();
+    let feats = feats.as_array().unwrap();
+    assert_eq!(feats.len(), 6);
+    let names: Vec<&String> = feats[0]["features"].as_object().unwrap().keys().collect();
+    assert!(names.len() >= 10, "{names:?}");
+    let stats = table(&json, "Per statistic");
+    assert_eq!(stats.len(), names.len());
+    for (row, name) in stats.iter().zip(&names) {
+        assert_eq!(row["statistic"].as_str().unwrap(), name.as_str());
+        for arm in ["stego", "stealth"] {
+            auc_ok(&row[format!("{arm}_auc")], &format!("{name} {arm}"));
+            let dir = row[format!("{arm}_direction")].as_str().unwrap();
+            assert!(dir == "higher in stego" || dir == "lower in stego");
+        }
+    }
+    let comb = table(&json, "Combined detector");
+    // plain vs stego, plain vs stealth, and the stego detector scored on stealth models.
+    assert_eq!(comb.len(), 3, "{comb:?}");
+    for r in comb {
+        // Scored on the held-out pair: one model of each class, so 0, 0.5 or 1.
+        let a = r["auc"].as_f64().unwrap();
+        assert!([0.0, 0.5, 1.0].contains(&a), "{r}");
+        assert_eq!(r["scored_models"], 2);
+    }
+    let models = table(&json, "Models");
+    assert_eq!(models.len(), 6);
+    let keys: Vec<&str> = models.iter().map(|m| m["key"].as_str().unwrap()).collect();
+    // Pair 0 uses a prf key, pair 1 a primes key; plain models none.
+    assert_eq!(keys, ["-", "prf", "prf", "-", "primes", "primes"]);
+
+    // Same seed, fresh folder: the same numbers.
+    let again = tempfile::tempdir().unwrap();
+    let mut args2 = args;
+    args2[3] = again.path().to_str().unwrap();
+    run_ok(&args2);
+    assert_eq!(json["tables"], report(again.path())["tables"]);
+
+    // Rerun in the first folder: every model is reused (none retrained, files untouched).
+    let mtime = |f: &str| {
+        std::fs::metadata(dir.join("models").join(f))
+            .unwrap()
+            .modified()
+            .unwrap()
+    };
+    let before = mtime("stealth_01.ingp");
+    let err = run_ok(&args);
+    assert_eq!(err.matches("reusing").count(), 6, "{err}");
+    assert!(!err.contains("trained "), "{err}");
+    assert_eq!(mtime("stealth_01.ingp"), before);
+    assert_eq!(json["tables"], report(d.path())["tables"]);
+
+    // A model whose sidecar records another configuration is trained again, alone.
+    let side = dir.join("models/plain_00.json");
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&side).unwrap()).unwrap();
+    v["config"]["steps"] = 999.into();
+    std::fs::write(&side, serde_json::to_vec(&v).unwrap()).unwrap();
+    let err = run_ok(&args);
+    assert_eq!(err.matches("reusing").count(), 5, "{err}");
+    assert!(err.contains("trained plain_00"), "{err}");
+    assert_eq!(json["tables"], report(d.path())["tables"]);
+}
