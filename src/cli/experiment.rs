@@ -79,9 +79,11 @@ pub struct Args {
     pub no_stealth_arm: bool,
 }
 
-/// detectability's defaults: 60 models (3 arms × 20) in about 15 minutes on 2 cores, the
-/// covers still recognisable, and 16 levels so the hashed levels the statistics read are
-/// there (see the report's fidelity table and timing note).
+/// detectability's defaults: 16 levels, so the hashed levels the statistics read are there;
+/// covers still recognisable (about 24 dB); 60 models (3 arms × 20) in about 20 minutes
+/// on 2 cores. Below 256 rays a step (the trainer's floor) a smaller batch saves nothing,
+/// and fewer steps mostly cost quality: the first steps' occupancy updates and, for stego
+/// models, rebuilding the hidden scene's grid to score it are fixed costs.
 const DETECT_STEPS: u32 = 200;
 const DETECT_BATCH: u32 = 1 << 12;
 const DETECT_LOG2_T: u32 = 14;
