@@ -12,7 +12,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::stego::stealth::{StealthRefresh, hidden_indices};
+use stegongp::stego::stealth::{StealthRefresh, cover_entries, hidden_indices};
 use stegongp::stego::{Key, generate_prf, open_scene};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
@@ -75,12 +75,8 @@ fn train(mode: Mode, cover: &Arc<Dataset>, hidden: &Arc<Dataset>, key: &Key) -> 
     };
     let mut t = Trainer::new(cfg, scenes, tc).unwrap();
     if matches!(mode, Mode::Stealth) {
-        t.set_index_refresh(Box::new(StealthRefresh::new(
-            layout.grid.clone(),
-            1,
-            vec![key.clone()],
-        )))
-        .unwrap();
+        t.set_index_refresh(Box::new(StealthRefresh::new(layout, vec![key.clone()])))
+            .unwrap();
     }
     for _ in 0..STEPS {
         let st = t.train_step();
@@ -143,25 +139,39 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
     Model::from_trainer(&stealth_t, 0.0).save(&path).unwrap();
     let stealth = Model::load(&path).unwrap();
     let layout = stealth.net.layout.grid.clone();
-    let holder = hidden_indices(&key, &layout, &stealth.grid, 1, true);
+    let holder = hidden_indices(
+        &key,
+        &stealth.net.layout,
+        &stealth.grid,
+        &stealth.params,
+        true,
+    );
     let reach = reachable_entries(&layout, &stealth.grid, 1, &reference_indices(&layout));
+    let moved = cover_entries(&stealth.net.layout, &stealth.grid, &stealth.params);
     let trained = stealth_t.indices(1);
+    let (mut same, mut total) = (0u32, 0u32);
     for (l, lv) in layout.levels.iter().enumerate() {
         let r = lv.resolution;
         for i in 0..4000u32 {
             let (x, y, z) = (i * 7 % r, i * 13 % r, i * 29 % r);
             let h = holder[l].index(x, y, z);
-            assert_eq!(
-                h,
-                trained[l].index(x, y, z),
-                "level {l}: key holder ≠ trainer"
-            );
+            same += (h == trained[l].index(x, y, z)) as u32;
+            total += 1;
             assert!(
                 reach[l].contains(h),
+                "level {l}: hidden index {h} is not reachable"
+            );
+            assert!(
+                moved[l].contains(h),
                 "level {l}: hidden index {h} is not the cover's"
             );
         }
     }
+
+    // The key holder's map is the trainer's last one but for entries the cover first moved
+    // after the last grid update (none or a handful).
+    eprintln!("key holder's index = trainer's for {same} of {total} vertices");
+    assert!(same as f64 >= 0.999 * total as f64, "{same} of {total}");
 
     let plain_t = train(Mode::Plain, &ctrain, &htrain, &key);
     let plain_path = dir.path().join("plain.msgpack");

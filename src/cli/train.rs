@@ -195,11 +195,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let mut trainer = Trainer::new(config, scenes, cfg)?;
     if a.stealth {
-        trainer.set_index_refresh(Box::new(StealthRefresh::new(
-            layout.grid.clone(),
-            config.aabb_scale,
-            hidden_keys,
-        )))?;
+        trainer.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), hidden_keys)))?;
     }
     if !a.json {
         for i in 0..trainer.n_scenes() {

@@ -157,11 +157,7 @@ impl Ctx<'_> {
         let mut t = Trainer::new(config, specs, tc)?;
         if self.cfg.stealth && scenes.len() > 1 {
             let keys = scenes[1..].iter().map(|(_, k)| (*k).clone()).collect();
-            t.set_index_refresh(Box::new(StealthRefresh::new(
-                layout.grid.clone(),
-                config.aabb_scale,
-                keys,
-            )))?;
+            t.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), keys)))?;
         }
         // RandomScene trains one scene per step: give each scene the same number of steps.
         let steps = match self.cfg.schedule {

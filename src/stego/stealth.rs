@@ -4,14 +4,19 @@
 //! reach stay at their initialisation, entries reached only before the occupancy grid pruned
 //! empty space freeze where Adam left them. A hidden scene indexed across the whole table
 //! trains those entries to the end, and an analyst can count that from the file alone
-//! (`stegongp detect`). Stealth training maps every hidden-scene index into the cover's
-//! *reachable set*: the entries that the cover's occupancy grid lets training reach under the
-//! reference index ([`reachable_entries`]).
+//! (`stegongp detect`). Stealth training maps every hidden-scene index into the entries the
+//! cover keeps training: those its occupancy grid lets training reach under the reference
+//! index ([`reachable_entries`]) *and* that have left their initial value. The second
+//! condition matters: the grid also marks cells no training ray ever samples (the inside of
+//! an opaque object), whose entries a plain model leaves at initialisation.
 //!
-//! The set depends only on the cover's occupancy grid, which the published file stores, so a
-//! key holder recomputes it exactly and nothing is added to the file. During training it is
-//! recomputed after every update of the cover's grid, from the grid as the file will store it
-//! (fp16), so the mapping of the last steps is the one a key holder rebuilds.
+//! Both conditions are read from what the published file stores (the fp16 occupancy grid and
+//! the fp16 EMA weights), so a key holder recomputes the set and nothing is added to the
+//! file. During training it is recomputed after every update of the cover's grid; hidden
+//! scenes never move an entry outside it, so an entry off its initial value is one the cover
+//! moved. The key holder's set can differ from the last one used in training only by
+//! entries the cover first reached in the last ≤ 16 steps, which late in training are
+//! none or a handful (their slot runs map differently; nothing else does).
 //!
 //! The mapping (per level, public, keyless): slots are visited in a fixed pseudo-random order
 //! (`i ↦ a·i + c mod size`); a keyed index that lands on an unreachable slot moves to the next
@@ -21,8 +26,10 @@
 use super::keys::Key;
 use crate::ngp::encoding::reach::{EntrySet, reachable_entries};
 use crate::ngp::encoding::{GridLayout, LevelIndex, LevelIndices, reference_indices};
+use crate::ngp::network::NerfLayout;
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::train::IndexRefresh;
+use crate::steganalysis::INIT_BOUND;
 use std::sync::Arc;
 
 /// A level's keyed index followed by the public map into the cover's reachable entries.
@@ -85,30 +92,55 @@ pub fn confinement_map(set: &EntrySet) -> Vec<u32> {
     map
 }
 
-/// The cover's reachable entries as a key holder computes them from the stored grid: the
-/// grid's values rounded to fp16 first (what the file holds), so training and reading agree
-/// bit for bit.
-pub fn cover_reachable(
-    layout: &GridLayout,
-    grid: &OccupancyGrid,
-    aabb_scale: u32,
-) -> Vec<EntrySet> {
+/// The entries the cover trains, as a key holder computes them from the file: reachable from
+/// the stored (fp16) grid and off their initial value in the stored (fp16) weights.
+pub fn cover_entries(layout: &NerfLayout, grid: &OccupancyGrid, params: &[f32]) -> Vec<EntrySet> {
     let stored: Vec<f32> = grid
         .density
         .iter()
         .map(|&v| half::f16::from_f32(v).to_f32())
         .collect();
     let stored = OccupancyGrid::from_density(stored).unwrap_or_else(|| grid.clone());
-    reachable_entries(layout, &stored, aabb_scale, &reference_indices(layout))
+    let aabb_scale = layout.config.aabb_scale;
+    let mut sets = reachable_entries(
+        &layout.grid,
+        &stored,
+        aabb_scale,
+        &reference_indices(&layout.grid),
+    );
+    let f = layout.config.grid.n_features as usize;
+    for (set, lv) in sets.iter_mut().zip(&layout.grid.levels) {
+        let start = layout.grid_offset + lv.offset as usize * f;
+        let table = &params[start..start + lv.size as usize * f];
+        let mut moved = EntrySet::new(lv.size);
+        for (e, feats) in table.chunks_exact(f).enumerate() {
+            let at_init = feats
+                .iter()
+                .all(|&v| half::f16::from_f32(v).to_f32().abs() <= INIT_BOUND);
+            if !at_init && set.contains(e as u32) {
+                moved.insert(e as u32);
+            }
+        }
+        // Before the cover has moved anything (the first step), every hidden index of the
+        // level goes to one reachable entry rather than anywhere: at most one entry a level
+        // is touched that the cover might not have.
+        if moved.is_empty()
+            && let Some(first) = (0..lv.size).find(|&e| set.contains(e))
+        {
+            moved.insert(first);
+        }
+        *set = moved;
+    }
+    sets
 }
 
-/// The level maps of a cover grid (shared by every hidden scene).
+/// The level maps of a cover (shared by every hidden scene).
 pub fn confinement_maps(
-    layout: &GridLayout,
+    layout: &NerfLayout,
     grid: &OccupancyGrid,
-    aabb_scale: u32,
+    params: &[f32],
 ) -> Vec<Arc<[u32]>> {
-    cover_reachable(layout, grid, aabb_scale)
+    cover_entries(layout, grid, params)
         .iter()
         .map(|s| Arc::from(confinement_map(s)))
         .collect()
@@ -129,51 +161,47 @@ pub fn confine(key: &Key, layout: &GridLayout, maps: &[Arc<[u32]>]) -> LevelIndi
 }
 
 /// The index functions a key holder renders a hidden scene with: the key's, confined to the
-/// reachable entries of the model's stored grid when the model was trained with stealth.
+/// cover's entries (from the model's stored grid and weights) when the model was trained
+/// with stealth.
 pub fn hidden_indices(
     key: &Key,
-    layout: &GridLayout,
+    layout: &NerfLayout,
     cover_grid: &OccupancyGrid,
-    aabb_scale: u32,
+    params: &[f32],
     stealth: bool,
 ) -> LevelIndices {
     if stealth && !key.is_reference() {
         confine(
             key,
-            layout,
-            &confinement_maps(layout, cover_grid, aabb_scale),
+            &layout.grid,
+            &confinement_maps(layout, cover_grid, params),
         )
     } else {
-        key.level_indices(layout)
+        key.level_indices(&layout.grid)
     }
 }
 
 /// The trainer hook of stealth training: after every update of the cover's grid, the hidden
-/// scenes (scenes 1..) get their keys' indices confined to the new reachable set.
+/// scenes (scenes 1..) get their keys' indices confined to the cover's entries anew.
 pub struct StealthRefresh {
-    layout: GridLayout,
-    aabb_scale: u32,
+    layout: NerfLayout,
     keys: Vec<Key>,
 }
 
 impl StealthRefresh {
     /// `keys[i]` is the key of scene `i + 1`.
-    pub fn new(layout: GridLayout, aabb_scale: u32, keys: Vec<Key>) -> Self {
-        StealthRefresh {
-            layout,
-            aabb_scale,
-            keys,
-        }
+    pub fn new(layout: NerfLayout, keys: Vec<Key>) -> Self {
+        StealthRefresh { layout, keys }
     }
 }
 
 impl IndexRefresh for StealthRefresh {
-    fn refresh(&self, cover_grid: &OccupancyGrid) -> Vec<(usize, LevelIndices)> {
-        let maps = confinement_maps(&self.layout, cover_grid, self.aabb_scale);
+    fn refresh(&self, cover_grid: &OccupancyGrid, params: &[f32]) -> Vec<(usize, LevelIndices)> {
+        let maps = confinement_maps(&self.layout, cover_grid, params);
         self.keys
             .iter()
             .enumerate()
-            .map(|(i, k)| (i + 1, confine(k, &self.layout, &maps)))
+            .map(|(i, k)| (i + 1, confine(k, &self.layout.grid, &maps)))
             .collect()
     }
 }

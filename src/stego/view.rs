@@ -30,7 +30,7 @@ pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) ->
     let layout = &model.net.layout.grid;
     match key {
         Some(k) if !k.is_reference() => {
-            let indices = hidden_indices(k, layout, &model.grid, model.config.aabb_scale, stealth);
+            let indices = hidden_indices(k, &model.net.layout, &model.grid, &model.params, stealth);
             let rebuilt = rebuild_occupancy(
                 &model.net,
                 &model.params,

@@ -62,12 +62,13 @@ impl Default for TrainConfig {
     }
 }
 
-/// Index functions that follow the cover's occupancy grid: called with the cover's grid at
-/// the start and after every update of it, returns new index functions for the scenes it
-/// names (never scene 0). The engine does not know why (stealth training uses it to keep
-/// hidden scenes inside the entries the cover trains).
+/// Index functions that follow the cover's occupancy grid: called with the cover's grid and
+/// the weights as they would be published (the EMA) at the start and after every update of
+/// the grid, returns new index functions for the scenes it names (never scene 0). The
+/// engine does not know why (stealth training uses it to keep hidden scenes inside the
+/// entries the cover trains).
 pub trait IndexRefresh: Send + Sync {
-    fn refresh(&self, cover_grid: &OccupancyGrid) -> Vec<(usize, LevelIndices)>;
+    fn refresh(&self, cover_grid: &OccupancyGrid, params: &[f32]) -> Vec<(usize, LevelIndices)>;
 }
 
 /// A scene to train: its training images and the index functions it is stored under.
@@ -322,7 +323,8 @@ impl Trainer {
             return Ok(());
         };
         let n_levels = self.net.layout.grid.levels.len();
-        for (i, indices) in r.refresh(&self.scenes[0].grid) {
+        let published = self.optimizer.ema_params(&self.params);
+        for (i, indices) in r.refresh(&self.scenes[0].grid, &published) {
             if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
                 return Err(Error::Config(format!(
                     "index refresh for scene {i} with {} levels ({} scenes, {n_levels} levels; scene 0 is never refreshed)",
