@@ -2,7 +2,8 @@ use super::common::{Background, SplitArg, ensure_dir};
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::ngp::data::{Dataset, LoadOptions, save_png_rgb};
-use stegongp::ngp::eval::{evaluate, spread_views};
+use stegongp::ngp::eval::{evaluate_each, spread_views};
+use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::RenderOptions;
 
@@ -42,9 +43,13 @@ pub struct Args {
     /// Also write each rendering (and ground truth) as PNG into this directory.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Print one JSON object (psnr, ssim, n_views, per-view scores).
+    /// Print one JSON object (psnr, ssim, lpips, n_views, the empty render's scores,
+    /// per-view scores; lpips is null with --no-lpips).
     #[arg(long)]
     pub json: bool,
+    /// Skip LPIPS (AlexNet v0.1, computed on the CPU from the embedded weights).
+    #[arg(long)]
+    pub no_lpips: bool,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -77,7 +82,9 @@ pub fn run(a: Args) -> Result<()> {
     };
     let which = spread_views(data.frames.len(), a.views);
     let mut io_err = None;
-    let r = evaluate(&view, &data, &opts, Some(&which), |i, img, gt| {
+    let lpips = (!a.no_lpips).then(Lpips::embedded);
+    let r = evaluate_each(&view, &data, &opts, Some(&which), lpips, |v, img, gt| {
+        let i = v.index;
         if let Some(dir) = &a.out {
             let res = save_png_rgb(
                 &dir.join(format!("rgb_{i:03}.png")),
@@ -99,8 +106,12 @@ pub fn run(a: Args) -> Result<()> {
         }
         if !a.json {
             eprintln!(
-                "view {i:3}: PSNR {:.2} dB",
-                stegongp::ngp::metrics::psnr(&img.rgb, gt)
+                "view {i:3}: PSNR {:.2} dB, SSIM {:.4}{}",
+                v.psnr,
+                v.ssim,
+                v.lpips
+                    .map(|l| format!(", LPIPS {l:.4}"))
+                    .unwrap_or_default()
             );
         }
     });
@@ -110,10 +121,24 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         println!("{}", serde_json::to_string(&r)?);
     } else {
+        let lp = |l: Option<f64>| l.map(|l| format!(", LPIPS {l:.4}")).unwrap_or_default();
         println!(
-            "{} views: PSNR {:.3} dB, SSIM {:.4} ({:.1} s); an empty render scores {:.2} dB, SSIM {:.4}",
-            r.n_views, r.psnr, r.ssim, r.seconds, r.blank_psnr, r.blank_ssim
+            "{} views: PSNR {:.3} dB, SSIM {:.4}{} ({:.1} s); an empty render scores {:.2} dB, SSIM {:.4}{}",
+            r.n_views,
+            r.psnr,
+            r.ssim,
+            lp(r.lpips),
+            r.seconds,
+            r.blank_psnr,
+            r.blank_ssim,
+            lp(r.blank_lpips)
         );
+        if !a.no_lpips && r.lpips.is_none() {
+            println!(
+                "LPIPS: no view is large enough (AlexNet needs at least {0}×{0} pixels)",
+                stegongp::ngp::lpips::MIN_SIZE
+            );
+        }
     }
     Ok(())
 }

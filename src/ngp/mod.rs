@@ -5,6 +5,7 @@ pub mod camera;
 pub mod data;
 pub mod encoding;
 pub mod eval;
+pub mod lpips;
 pub mod metrics;
 pub mod model;
 pub mod network;
