@@ -1,5 +1,7 @@
 use anyhow::{Result, bail};
 use std::path::PathBuf;
+use stegongp::ngp::data::LoadOptions;
+use stegongp::synth::cameras_from::generate_from_cameras;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -8,6 +10,9 @@ pub enum SceneArg {
     Object,
     /// Extruded 3D text (the natural hidden message).
     Text,
+    /// A 3D logo drawn from --seed: a ring, shield or polygon frame around a plate, with a
+    /// star, chevrons or a cross in front (extruded, flat colours).
+    Logo,
     /// The object inside a room, cameras inside the room: a capture-like unbounded scene in
     /// the instant-ngp format (needs --aabb-scale ≥ 2).
     Room,
@@ -23,20 +28,38 @@ pub struct Args {
     /// Output directory (must be empty or absent unless --force).
     #[arg(long)]
     pub out: PathBuf,
-    /// Width and height of every view.
-    #[arg(long, default_value_t = 200)]
-    pub res: u32,
-    #[arg(long, default_value_t = 100)]
-    pub train: usize,
-    #[arg(long, default_value_t = 25)]
-    pub test: usize,
-    #[arg(long, default_value_t = 0)]
-    pub val: usize,
+    /// Width and height of every view [default: 200].
+    #[arg(long)]
+    pub res: Option<u32>,
+    /// Train views [default: 100].
+    #[arg(long)]
+    pub train: Option<usize>,
+    /// Test views [default: 25].
+    #[arg(long)]
+    pub test: Option<usize>,
+    /// Val views [default: 0].
+    #[arg(long)]
+    pub val: Option<usize>,
+    /// Seed of the cameras, and of the logo.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// `aabb_scale` written into the transforms (a room's walls are placed inside its box).
-    #[arg(long, default_value_t = 1)]
-    pub aabb_scale: u32,
+    /// `aabb_scale` written into the transforms (a room's walls are placed inside its box)
+    /// [default: 1]; with --cameras-from, overrides the source's as `train --aabb-scale` would.
+    #[arg(long)]
+    pub aabb_scale: Option<u32>,
+    /// Render the scene from exactly the cameras of this dataset (any format `train` reads;
+    /// its splits, intrinsics, image sizes and poses), placed at the box centre where they
+    /// look. Counts and sizes come from DIR: --res, --train, --val, --test are refused.
+    #[arg(long, value_name = "DIR")]
+    pub cameras_from: Option<PathBuf>,
+    /// With --cameras-from: read DIR's cameras at this downscale (the views are rendered at
+    /// DIR's image size divided by it).
+    #[arg(long)]
+    pub downscale: Option<u32>,
+    /// With --cameras-from: the COLMAP / LLFF image folder whose size the cameras take
+    /// (e.g. images_8), as `train --images`.
+    #[arg(long)]
+    pub images: Option<String>,
     /// Write into a non-empty directory.
     #[arg(long)]
     pub force: bool,
@@ -52,32 +75,79 @@ pub fn run(a: Args) -> Result<()> {
             a.out.display()
         );
     }
-    let opts = SynthOptions {
-        scene: match a.scene {
-            SceneArg::Object => SceneKind::Object,
-            SceneArg::Text => SceneKind::Text(a.text.clone()),
-            SceneArg::Room => SceneKind::Room,
-        },
-        resolution: a.res,
-        n_train: a.train,
-        n_val: a.val,
-        n_test: a.test,
-        seed: a.seed,
-        aabb_scale: a.aabb_scale,
+    let scene = match a.scene {
+        SceneArg::Object => SceneKind::Object,
+        SceneArg::Text => SceneKind::Text(a.text.clone()),
+        SceneArg::Logo => SceneKind::Logo,
+        SceneArg::Room => SceneKind::Room,
     };
-    let s = generate(&opts, &a.out)?;
+    let s = if let Some(from) = &a.cameras_from {
+        let given: Vec<&str> = [
+            ("--res", a.res.is_some()),
+            ("--train", a.train.is_some()),
+            ("--val", a.val.is_some()),
+            ("--test", a.test.is_some()),
+        ]
+        .into_iter()
+        .filter_map(|(n, g)| g.then_some(n))
+        .collect();
+        if !given.is_empty() {
+            bail!(
+                "{} cannot be used with --cameras-from: the views, their count and size are \
+                 those of {} (use --downscale N for smaller views)",
+                given.join(", "),
+                from.display()
+            );
+        }
+        if a.scene == SceneArg::Room {
+            bail!(
+                "--scene room cannot be used with --cameras-from: the room places its own \
+                 cameras inside its walls (use object, text or logo)"
+            );
+        }
+        let load = LoadOptions {
+            downscale: a.downscale.unwrap_or(1),
+            images: a.images.clone(),
+            aabb_scale: a.aabb_scale,
+        };
+        generate_from_cameras(&scene, a.seed, from, &load, &a.out)?
+    } else {
+        if a.downscale.is_some() || a.images.is_some() {
+            bail!("--downscale and --images only apply with --cameras-from DIR");
+        }
+        let opts = SynthOptions {
+            scene,
+            resolution: a.res.unwrap_or(200),
+            n_train: a.train.unwrap_or(100),
+            n_val: a.val.unwrap_or(0),
+            n_test: a.test.unwrap_or(25),
+            seed: a.seed,
+            aabb_scale: a.aabb_scale.unwrap_or(1),
+        };
+        generate(&opts, &a.out)?
+    };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
     } else {
+        let size = match &s.cameras_from {
+            Some(c) => format!(
+                "{}×{} from the cameras of {} ({}; {} of {} views see the box centre)",
+                c.width,
+                c.height,
+                c.source.display(),
+                c.format,
+                c.views_seeing_centre,
+                c.views
+            ),
+            None => format!("{}×{}", s.resolution, s.resolution),
+        };
         eprintln!(
-            "{}: {} scene, {} train + {} val + {} test views at {}×{} in {:.1} s",
+            "{}: {} scene, {} train + {} val + {} test views at {size} in {:.1} s",
             a.out.display(),
             s.scene,
             s.n_train,
             s.n_val,
             s.n_test,
-            s.resolution,
-            s.resolution,
             s.seconds
         );
     }

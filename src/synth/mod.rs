@@ -4,13 +4,21 @@
 //! Train views are random on the upper hemisphere (radius 4, looking at the origin, like the
 //! Blender scenes); test and val views circle the object at a few elevations.
 //!
+//! The `logo` scene ([`logo`]) is a seeded 3-D logo rendered exactly like the text.
+//!
+//! [`cameras_from::generate_from_cameras`] renders any of the bounded scenes from the
+//! cameras of an existing dataset instead (its splits, intrinsics, sizes and poses, bit for
+//! bit as the loader reads them): a hidden scene seen from the cover's very cameras.
+//!
 //! The `room` scene is the layout of a real capture instead: the object inside a room whose
 //! walls are a far, opaque background, cameras inside the room (and inside the scene's box
 //! for the chosen `aabb_scale`), written in the instant-ngp format (`transforms.json` with
 //! `fl_x`/`fl_y`/`cx`/`cy`/`aabb_scale`, opaque PNGs in `images/`, every 8th view held out
 //! by the loader).
 
+pub mod cameras_from;
 pub mod font;
+pub mod logo;
 pub mod scene;
 
 use crate::error::{Error, Result};
@@ -34,6 +42,26 @@ pub enum SceneKind {
     Text(String),
     /// The object inside a room (an unbounded-looking capture); needs `aabb_scale` ≥ 2.
     Room,
+    /// A generated 3-D logo ([`logo::Logo`]), drawn from [`SynthOptions::seed`].
+    Logo,
+}
+
+/// The bounded scene of a kind (room excluded) and its name for summaries; `seed` picks
+/// the logo.
+pub fn bounded_scene(kind: &SceneKind, seed: u64) -> Result<(Scene, String)> {
+    Ok(match kind {
+        SceneKind::Object => (object_scene(), "object".to_string()),
+        SceneKind::Text(t) => (text_scene(&layout_text(t)?), format!("text {t:?}")),
+        SceneKind::Logo => {
+            let l = logo::Logo::from_seed(seed);
+            (l.scene(), format!("logo ({}, seed {seed})", l.describe()))
+        }
+        SceneKind::Room => {
+            return Err(Error::Config(
+                "the room scene is not a bounded scene: it brings its own cameras and walls".into(),
+            ));
+        }
+    })
 }
 
 #[derive(Clone, Debug)]
@@ -99,11 +127,15 @@ fn room_poses(n: usize, radius: f32, seed: u64) -> Vec<[[f32; 4]; 4]> {
 pub struct SynthSummary {
     pub dir: PathBuf,
     pub scene: String,
+    /// Width of every view (and its height, but with `cameras_from`).
     pub resolution: u32,
     pub n_train: usize,
     pub n_val: usize,
     pub n_test: usize,
     pub seconds: f64,
+    /// Set when the cameras came from a dataset ([`cameras_from`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub cameras_from: Option<cameras_from::CamerasFromInfo>,
 }
 
 /// Splits a message into lines of at most [`LINE_CHARS`], at spaces where possible, and
@@ -240,7 +272,7 @@ pub fn render_view(scene: &Scene, c2w: &[[f32; 4]; 4], res: u32) -> Vec<u8> {
     out
 }
 
-fn encode_png(w: u32, h: u32, rgba: &[u8]) -> std::io::Result<Vec<u8>> {
+pub(crate) fn encode_png(w: u32, h: u32, rgba: &[u8]) -> std::io::Result<Vec<u8>> {
     let mut buf = Vec::new();
     {
         let mut enc = png::Encoder::new(&mut buf, w, h);
@@ -274,9 +306,8 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
         )));
     }
     let (scene, name) = match &opts.scene {
-        SceneKind::Object => (object_scene(), "object".to_string()),
-        SceneKind::Text(t) => (text_scene(&layout_text(t)?), format!("text {t:?}")),
         SceneKind::Room => return generate_room(opts, out_dir, t0),
+        kind => bounded_scene(kind, opts.seed)?,
     };
     let splits = [
         ("train", opts.n_train, true, 1u64),
@@ -321,6 +352,7 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
         n_val: opts.n_val,
         n_test: opts.n_test,
         seconds: t0.elapsed().as_secs_f64(),
+        cameras_from: None,
     })
 }
 
@@ -375,6 +407,7 @@ fn generate_room(
         n_val: 0,
         n_test,
         seconds: t0.elapsed().as_secs_f64(),
+        cameras_from: None,
     })
 }
 
@@ -468,5 +501,88 @@ mod tests {
         assert!(!d.path().join("a/transforms_val.json").exists());
         let other = poses(3, true, 5, 1);
         assert_ne!(other, poses(3, true, 4, 1));
+    }
+
+    #[test]
+    fn prism_hits_its_faces_with_outward_normals() {
+        // A unit square in x–z, y in [−0.5, 0.5], given clockwise (prism() fixes it).
+        let sq = scene::prism(
+            [[-0.5, -0.5], [-0.5, 0.5], [0.5, 0.5], [0.5, -0.5]],
+            -0.5,
+            0.5,
+        );
+        let hit = |o: V3, d: V3| sq.intersect(o, d, [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]]);
+        let (t, n) = hit([0.1, -3.0, 0.2], [0.0, 1.0, 0.0]).unwrap();
+        assert!((t - 2.5).abs() < 1e-4 && n == [0.0, -1.0, 0.0]);
+        let (t, n) = hit([3.0, 0.0, 0.0], [-1.0, 0.0, 0.0]).unwrap();
+        assert!((t - 2.5).abs() < 1e-4 && (n[0] - 1.0).abs() < 1e-6);
+        let (t, n) = hit([0.0, 0.0, -3.0], normalize([0.0, 0.1, 1.0])).unwrap();
+        assert!(t > 2.5 && (n[2] + 1.0).abs() < 1e-6, "{t} {n:?}");
+        // From inside: the exit, facing out.
+        let (t, n) = hit([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]).unwrap();
+        assert!((t - 0.5).abs() < 1e-4 && (n[2] - 1.0).abs() < 1e-6);
+        assert!(hit([0.7, -3.0, 0.0], [0.0, 1.0, 0.0]).is_none());
+        assert!(hit([0.0, -3.0, 0.0], [0.0, -1.0, 0.0]).is_none());
+        // A triangle repeats its last point.
+        let tri = scene::prism([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [0.0, 1.0]], 0.0, 0.1);
+        let d = [0.0, 1.0, 0.0];
+        let inv = [f32::INFINITY, 1.0, f32::INFINITY];
+        assert!(tri.intersect([0.2, -1.0, 0.2], d, inv).is_some());
+        assert!(tri.intersect([0.6, -1.0, 0.6], d, inv).is_none());
+    }
+
+    /// The front view (from −y, as view 0 of the test ring nearly is) at 32×32.
+    fn front(scene: &Scene) -> Vec<u8> {
+        render_view(scene, &look_at([0.0, -CAMERA_RADIUS, 0.0]), 32)
+    }
+
+    #[test]
+    fn logo_is_deterministic_non_empty_and_differs_by_seed() {
+        assert_eq!(logo::Logo::from_seed(7), logo::Logo::from_seed(7));
+        assert_eq!(front(&logo::logo_scene(7)), front(&logo::logo_scene(7)));
+        let mut views = Vec::new();
+        let mut kinds = std::collections::HashSet::new();
+        for seed in 0..12 {
+            let l = logo::Logo::from_seed(seed);
+            kinds.insert(l.describe());
+            let img = front(&l.scene());
+            let alpha = |x: usize, y: usize| img[(y * 32 + x) * 4 + 3];
+            // Opaque in the middle, clear in the corners, a good part of the view covered.
+            assert_eq!(alpha(16, 16), 255, "seed {seed}");
+            assert_eq!(alpha(0, 0), 0, "seed {seed}");
+            let covered = (0..32 * 32).filter(|i| img[i * 4 + 3] > 0).count();
+            assert!(covered > 200, "seed {seed}: {covered} pixels");
+            views.push(img);
+        }
+        for i in 0..views.len() {
+            for j in 0..i {
+                assert_ne!(views[i], views[j], "seeds {i} and {j} look the same");
+            }
+        }
+        assert!(kinds.len() >= 6, "{kinds:?}");
+        // Not the text: another silhouette altogether.
+        let text = front(&text_scene(&layout_text("(c) StegoNGP 2026").unwrap()));
+        let differ = (0..32 * 32)
+            .filter(|i| (text[i * 4 + 3] > 127) != (views[0][i * 4 + 3] > 127))
+            .count();
+        assert!(differ > 150, "{differ}");
+    }
+
+    #[test]
+    fn logo_generates_like_text() {
+        let d = tempfile::tempdir().unwrap();
+        let opts = SynthOptions {
+            scene: SceneKind::Logo,
+            resolution: 16,
+            n_train: 2,
+            n_test: 1,
+            seed: 9,
+            ..Default::default()
+        };
+        let s = generate(&opts, d.path()).unwrap();
+        assert!(s.scene.starts_with("logo ("), "{}", s.scene);
+        assert!(d.path().join("train/r_1.png").is_file());
+        assert!(d.path().join("transforms_test.json").is_file());
+        assert!(bounded_scene(&SceneKind::Room, 0).is_err());
     }
 }

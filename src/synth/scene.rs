@@ -1,6 +1,7 @@
 //! Analytic geometry and procedural materials: spheres, axis-aligned boxes, vertical
-//! cylinders and discs, shaded with Lambert + ambient under one directional light, with
-//! shadows. World coordinates are Blender's: z up, metres, everything inside |x|,|y|,|z| < 1.3.
+//! cylinders and discs, and convex polygons of the x–z plane extruded along y (prisms),
+//! shaded with Lambert + ambient under one directional light, with shadows. World
+//! coordinates are Blender's: z up, metres, everything inside |x|,|y|,|z| < 1.3.
 
 pub type V3 = [f32; 3];
 
@@ -68,6 +69,33 @@ pub enum Shape {
         z0: f32,
         z1: f32,
     },
+    /// A convex polygon of the x–z plane (points `[x, z]`, counter-clockwise, a triangle
+    /// repeating its last point) extruded along y from `y0` to `y1`: the face is seen from
+    /// −y, like the text. Build it with [`prism`], which fixes the winding.
+    Prism {
+        pts: [[f32; 2]; 4],
+        y0: f32,
+        y1: f32,
+    },
+}
+
+/// An extruded convex polygon of 3 or 4 points `[x, z]` (either winding) between `y0` and
+/// `y1`; a triangle is `[a, b, c, c]`.
+pub fn prism(mut pts: [[f32; 2]; 4], y0: f32, y1: f32) -> Shape {
+    let area: f32 = (0..4)
+        .map(|i| {
+            let (a, b) = (pts[i], pts[(i + 1) % 4]);
+            a[0] * b[1] - b[0] * a[1]
+        })
+        .sum();
+    if area < 0.0 {
+        pts.reverse();
+    }
+    Shape::Prism {
+        pts,
+        y0: y0.min(y1),
+        y1: y0.max(y1),
+    }
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -201,6 +229,61 @@ impl Shape {
                 }
                 best
             }
+            Shape::Prism { pts, y0, y1 } => {
+                // Cyrus–Beck: the ray enters at the latest entering plane, leaves at the
+                // earliest leaving one; planes are the two caps and the polygon's edges.
+                let (mut t0, mut t1) = (f32::NEG_INFINITY, f32::INFINITY);
+                let (mut n0, mut n1) = ([0.0f32; 3], [0.0f32; 3]);
+                if d[1] == 0.0 {
+                    if o[1] < y0 || o[1] > y1 {
+                        return None;
+                    }
+                } else {
+                    let (a, b) = ((y0 - o[1]) * inv[1], (y1 - o[1]) * inv[1]);
+                    (t0, n0, t1, n1) = if a < b {
+                        (a, [0.0, -1.0, 0.0], b, [0.0, 1.0, 0.0])
+                    } else {
+                        (b, [0.0, 1.0, 0.0], a, [0.0, -1.0, 0.0])
+                    };
+                }
+                for i in 0..4 {
+                    let (a, b) = (pts[i], pts[(i + 1) % 4]);
+                    let e = [b[0] - a[0], b[1] - a[1]];
+                    let len = (e[0] * e[0] + e[1] * e[1]).sqrt();
+                    if len < 1e-9 {
+                        continue;
+                    }
+                    // Outward normal of a counter-clockwise edge in (x, z). Every edge moves
+                    // out by 1e-5 so that rays along a seam between two prisms (a fan's
+                    // triangles) hit one of them.
+                    let n = [e[1] / len, -e[0] / len];
+                    let num = n[0] * (o[0] - a[0]) + n[1] * (o[2] - a[1]) - 1e-5;
+                    let den = n[0] * d[0] + n[1] * d[2];
+                    if den == 0.0 {
+                        if num > 0.0 {
+                            return None;
+                        }
+                        continue;
+                    }
+                    let t = -num / den;
+                    if den < 0.0 {
+                        if t > t0 {
+                            t0 = t;
+                            n0 = [n[0], 0.0, n[1]];
+                        }
+                    } else if t < t1 {
+                        t1 = t;
+                        n1 = [n[0], 0.0, n[1]];
+                    }
+                }
+                if t0 > t1 || t1 <= EPS {
+                    None
+                } else if t0 > EPS {
+                    Some((t0, n0))
+                } else {
+                    Some((t1, n1))
+                }
+            }
         }
     }
 }
@@ -247,6 +330,19 @@ impl Scene {
                 Shape::Box { lo, hi } => (lo, hi),
                 Shape::Cylinder { c, r, z0, z1 } => {
                     ([c[0] - r, c[1] - r, z0], [c[0] + r, c[1] + r, z1])
+                }
+                Shape::Prism { pts, y0, y1 } => {
+                    let (mut a, mut b) = (
+                        [f32::INFINITY, y0, f32::INFINITY],
+                        [f32::NEG_INFINITY, y1, f32::NEG_INFINITY],
+                    );
+                    for p in pts {
+                        a[0] = a[0].min(p[0]);
+                        a[2] = a[2].min(p[1]);
+                        b[0] = b[0].max(p[0]);
+                        b[2] = b[2].max(p[1]);
+                    }
+                    (a, b)
                 }
             };
             for k in 0..3 {
