@@ -80,3 +80,28 @@ fn bench_corners() {
         println!("{name:16} {h:8.2} {d:8.2} {a:8.2}");
     }
 }
+
+/// The cost of one brute-force key trial ([`super::strength::key_trial_cost`]):
+/// `cargo test --release --lib stego::bench::bench_key_trial -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn bench_key_trial() {
+    use super::strength::{PROBE_POINTS, key_trial_cost};
+    let g = GridLayout::new(GridConfig::default(), 1).unwrap();
+    println!("one key trial, {PROBE_POINTS} probes × 16 levels × 8 corners, one core:");
+    println!(
+        "{:8} {:>3} {:>10} {:>10} {:>10}",
+        "scheme", "m", "trial ms", "derive ms", "index ms"
+    );
+    for (prf, m) in [(false, 1), (false, 16), (true, 1), (true, 16)] {
+        let c = key_trial_cost(prf, m, &g, PROBE_POINTS, 9, 3).unwrap();
+        println!(
+            "{:8} {:>3} {:>10.3} {:>10.3} {:>10.3}",
+            c.scheme,
+            m,
+            c.trial_seconds * 1e3,
+            c.derive_seconds * 1e3,
+            c.index_seconds * 1e3
+        );
+    }
+}

@@ -27,10 +27,21 @@
 //!   its own, `levels:P`) does not depend on j.
 //! - `prf` version 1 (shares of one secret): the undisclosed shares' bits, e.g. 16 for
 //!   m = 16 and j = 15.
+//!
+//! Time, not only bits: [`key_trial_cost`] measures what one brute-force trial costs on
+//! this machine (derive a candidate key's index functions, index a fixed set of probe
+//! points with them, compare with what the true key gives), and
+//! [`brute_force_years_log10`] turns bits and that cost into the expected search time —
+//! the paper's brute-force column, from a measurement instead of an assumed frame rate.
 
-use super::keys::{GroupKey, Key, KeyScheme, PI, share_range};
+use super::keys::{GroupKey, Key, KeyScheme, PI, generate_with, share_range};
 use super::primes::PRIMES_IN_RANGE;
+use crate::error::Result;
 use crate::ngp::encoding::GridLayout;
+use crate::ngp::encoding::grid::cell_of;
+use crate::rng::Pcg32;
+use std::hint::black_box;
+use std::time::Instant;
 
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct LevelStrength {
@@ -203,4 +214,199 @@ fn disclosures_by(
             }
         })
         .collect()
+}
+
+/// Probe points per key trial: the fewest with which a candidate can be told apart by
+/// running the model. Recognising a hidden scene needs a few rays' colours (a coherent
+/// patch against noise): 32 rays × 128 samples, or 64 × 64, is 4096 encoded points, and
+/// each encodes on every level (8 corners). Fewer rays cannot tell a scene from noise
+/// reliably; an attacker's trial is at least this much index work (and the MLP besides,
+/// which is left out: the figure is a lower bound on the attacker's cost per trial).
+pub const PROBE_POINTS: usize = 4096;
+
+/// Seconds per Julian year, for [`brute_force_years_log10`].
+pub const SECONDS_PER_YEAR: f64 = 365.25 * 86_400.0;
+
+/// What one brute-force key trial costs on this machine, on one core (medians of several
+/// warm runs).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct KeyTrialCost {
+    pub scheme: String,
+    pub m: usize,
+    pub probes: usize,
+    pub levels: usize,
+    /// Corner indices computed per trial: probes × levels × 8.
+    pub lookups: usize,
+    /// One whole trial: derive the candidate's index functions (`Key::level_indices`, the
+    /// dense levels' permutation tables included), index every probe's 8 corners on every
+    /// level, compare with the true key's indices.
+    pub trial_seconds: f64,
+    /// The derivation alone.
+    pub derive_seconds: f64,
+    /// Indexing and comparing alone (index functions already derived): no trial costs
+    /// less, so it bounds the attacker's cost from below (one who permutes only the
+    /// probes' dense-level corners, lazily, pays between this and `trial_seconds`).
+    pub index_seconds: f64,
+    /// Timed runs (after one warm-up run), and trials per run.
+    pub runs: usize,
+    pub trials_per_run: usize,
+}
+
+/// Measures [`KeyTrialCost`] for a `prf` (`prf = true`) or `primes` key of `m` groups on
+/// `layout`: `probes` points uniform in the unit cube (fixed, seeded), one true key and
+/// `trials_per_run` candidate keys drawn from a seeded generator (drawn before timing: an
+/// attacker enumerates candidates, e.g. from a prime sieve, for next to nothing), `runs`
+/// timed runs after a warm-up, the median per trial reported.
+pub fn key_trial_cost(
+    prf: bool,
+    m: usize,
+    layout: &GridLayout,
+    probes: usize,
+    runs: usize,
+    trials_per_run: usize,
+) -> Result<KeyTrialCost> {
+    let (runs, trials_per_run, probes) = (runs.max(1), trials_per_run.max(1), probes.max(1));
+    let mut rng = Pcg32::new(0x7e57, 9);
+    let points: Vec<[f32; 3]> = (0..probes)
+        .map(|_| [rng.next_f32(), rng.next_f32(), rng.next_f32()])
+        .collect();
+    // Level-major: each level's cells of every probe, then its indices (the order an
+    // attacker would pick, one index function at a time).
+    let cells: Vec<Vec<[u32; 3]>> = layout
+        .levels
+        .iter()
+        .map(|lv| points.iter().map(|&p| cell_of(lv, p).0).collect())
+        .collect();
+    let mut draw = |stream: u64| {
+        let mut r = Pcg32::new(0x6b65_7973, stream);
+        generate_with(prf, m, move || {
+            Ok((r.next_u32() as u64) << 32 | r.next_u32() as u64)
+        })
+    };
+    let truth = draw(0)?;
+    let index_all = |idx: &crate::ngp::encoding::LevelIndices, out: &mut Vec<u32>| {
+        out.clear();
+        let mut c = [0u32; 8];
+        for (l, cl) in cells.iter().enumerate() {
+            let f = &idx[l];
+            for &cell in cl {
+                f.corners(cell, &mut c);
+                out.extend_from_slice(&c);
+            }
+        }
+    };
+    let mut expected = Vec::new();
+    index_all(&truth.level_indices(layout), &mut expected);
+    let candidates: Vec<Key> = (1..=trials_per_run as u64)
+        .map(&mut draw)
+        .collect::<Result<_>>()?;
+    let compare = |idx: &crate::ngp::encoding::LevelIndices| -> usize {
+        let mut matches = 0usize;
+        let mut c = [0u32; 8];
+        let mut k = 0;
+        for (l, cl) in cells.iter().enumerate() {
+            let f = &idx[l];
+            for &cell in cl {
+                f.corners(black_box(cell), &mut c);
+                matches += c
+                    .iter()
+                    .zip(&expected[k..k + 8])
+                    .filter(|(a, b)| a == b)
+                    .count();
+                k += 8;
+            }
+        }
+        matches
+    };
+    let derived: Vec<_> = candidates.iter().map(|k| k.level_indices(layout)).collect();
+    let median_of = |f: &mut dyn FnMut() -> usize| -> f64 {
+        let mut times = Vec::with_capacity(runs);
+        for r in 0..=runs {
+            let t = Instant::now();
+            black_box(f());
+            let s = t.elapsed().as_secs_f64() / trials_per_run as f64;
+            if r > 0 {
+                times.push(s);
+            }
+        }
+        times.sort_by(f64::total_cmp);
+        times[times.len() / 2]
+    };
+    let trial_seconds = median_of(&mut || {
+        candidates
+            .iter()
+            .map(|k| compare(&black_box(k).level_indices(layout)))
+            .sum()
+    });
+    let derive_seconds = median_of(&mut || {
+        candidates
+            .iter()
+            .map(|k| black_box(black_box(k).level_indices(layout)).len())
+            .sum()
+    });
+    let index_seconds = median_of(&mut || derived.iter().map(&compare).sum());
+    Ok(KeyTrialCost {
+        scheme: truth.scheme().name().into(),
+        m,
+        probes,
+        levels: layout.levels.len(),
+        lookups: probes * layout.levels.len() * 8,
+        trial_seconds,
+        derive_seconds,
+        index_seconds,
+        runs,
+        trials_per_run,
+    })
+}
+
+/// log10 of the expected years of a brute-force search over `bits` bits at
+/// `trial_seconds` per candidate: half the space on average, 2^(bits−1) trials. A log
+/// because 2^1379 overflows an f64. `None` for an empty key space.
+pub fn brute_force_years_log10(bits: f64, trial_seconds: f64) -> Option<f64> {
+    (bits > 0.0 && trial_seconds > 0.0)
+        .then(|| (bits - 1.0) * 2f64.log10() + trial_seconds.log10() - SECONDS_PER_YEAR.log10())
+}
+
+/// `10^x` written as `7.43e16` (3 significant digits), for any x an f64 can hold.
+pub fn format_pow10(x: f64) -> String {
+    let mut e = x.floor();
+    let mut mant = 10f64.powf(x - e);
+    if (mant * 100.0).round() >= 1000.0 {
+        mant /= 10.0;
+        e += 1.0;
+    }
+    format!("{mant:.2}e{}", e as i64)
+}
+
+#[cfg(test)]
+mod trial_tests {
+    use super::*;
+    use crate::ngp::encoding::GridConfig;
+
+    #[test]
+    fn paper_arithmetic_and_formatting() {
+        // The paper: U³ ≈ 9.364e25 keys, half searched at 20 FPS, 3.15e7 s a year: 7.43e16.
+        let bits = 9.364e25f64.log2();
+        let y = brute_force_years_log10(bits, 1.0 / 20.0).unwrap();
+        // Our year is 3.156e7 s, the paper's 3.15e7: 7.42e16.
+        assert_eq!(format_pow10(y), "7.42e16");
+        assert_eq!(format_pow10(0.0), "1.00e0");
+        assert_eq!(format_pow10(2.0f64.log10() + 300.0), "2.00e300");
+        assert_eq!(format_pow10(0.999_999_9), "1.00e1");
+        assert!(brute_force_years_log10(0.0, 1.0).is_none());
+        // 1380 bits: far past f64, still a number.
+        assert!(brute_force_years_log10(1380.0, 0.01).unwrap() > 400.0);
+    }
+
+    #[test]
+    fn a_trial_is_measured_for_both_schemes() {
+        let g = GridLayout::new(GridConfig::default(), 1).unwrap();
+        for prf in [true, false] {
+            let c = key_trial_cost(prf, 2, &g, 64, 3, 1).unwrap();
+            assert_eq!(c.scheme, if prf { "prf" } else { "primes" });
+            assert_eq!(c.lookups, 64 * 16 * 8);
+            assert!(c.trial_seconds > 0.0 && c.derive_seconds > 0.0 && c.index_seconds > 0.0);
+            assert!(c.index_seconds < c.trial_seconds, "{c:?}");
+        }
+    }
 }
