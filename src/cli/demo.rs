@@ -124,7 +124,7 @@ pub fn run(a: Args) -> Result<()> {
     let wrong = Key::wrong(a.seed ^ 0x5eed, &key);
     let mut rows = Vec::new();
     let mut tiles = Vec::new();
-    let mut blank = (0.0, 0.0);
+    let mut blank = (0.0, 0.0, None);
     let cases: [(&str, Option<&Key>, &Dataset); 4] = [
         ("no key → cover", None, &cover_test),
         ("no key vs hidden text", None, &hidden_test),
@@ -154,14 +154,14 @@ pub fn run(a: Args) -> Result<()> {
             &img,
         )?;
         tiles.push(img);
-        rows.push((label, r.psnr, r.ssim));
+        rows.push((label, r.psnr, r.ssim, r.lpips));
         if std::ptr::eq(data, &hidden_test) {
-            blank = (r.blank_psnr, r.blank_ssim);
+            blank = (r.blank_psnr, r.blank_ssim, r.blank_lpips);
         }
     }
     // What an image of background only scores on the hidden views: a wrong key lands
     // near it (a faint haze), i.e. it shows nothing, not something cover-like.
-    rows.push(("empty image vs hidden text", blank.0, blank.1));
+    rows.push(("empty image vs hidden text", blank.0, blank.1, blank.2));
     tiles.insert(0, ground_truth(&hidden_test, views[0], [1.0; 3]));
     tiles.insert(0, ground_truth(&cover_test, views[0], [1.0; 3]));
     let grid_path = a.out.join("demo.png");
@@ -172,9 +172,13 @@ pub fn run(a: Args) -> Result<()> {
         secs,
         samples as f64 / secs / 1e3
     );
-    println!("{:<28} {:>9} {:>7}", "rendering", "PSNR dB", "SSIM");
-    for (label, p, s) in &rows {
-        println!("{label:<28} {p:>9.2} {s:>7.3}");
+    println!(
+        "{:<28} {:>9} {:>7} {:>7}",
+        "rendering", "PSNR dB", "SSIM", "LPIPS"
+    );
+    for (label, p, s, l) in &rows {
+        let l = l.map_or("—".to_string(), |l| format!("{l:.3}"));
+        println!("{label:<28} {p:>9.2} {s:>7.3} {l:>7}");
     }
     println!(
         "\nmodel: {} (a plain instant-ngp snapshot; no key inside)",

@@ -1,7 +1,8 @@
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::experiments::{
-    DetectOptions, EXPERIMENTS, ExpConfig, KeySchemeArg, run_detectability, run_experiment,
+    DetectOptions, EXPERIMENTS, ExpConfig, KeySchemeArg, PairSpec, PairsOptions, read_pairs_file,
+    run_detectability, run_experiment, run_pairs,
 };
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
@@ -16,7 +17,7 @@ pub enum SchemeArg {
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength |
-    /// detectability
+    /// detectability | pairs
     pub name: String,
     /// Output directory: the report goes to OUT/NAME/ (report.md, report.json, PNG grids),
     /// generated scenes to OUT/data/ (detectability: its scenes and models to
@@ -77,6 +78,22 @@ pub struct Args {
     /// detectability: leave out the stealth arm (plain and default stego models only).
     #[arg(long)]
     pub no_stealth_arm: bool,
+    /// pairs: a cover/hidden pair of dataset folders, COVER:HIDDEN (repeatable) [default:
+    /// --cover with each --hidden; without those, a generated object cover with a generated
+    /// text and a generated logo].
+    #[arg(long = "pair", value_name = "COVER:HIDDEN")]
+    pub pairs: Vec<PairSpec>,
+    /// pairs: a JSON file of pairs (a list of "COVER:HIDDEN" strings or {"cover", "hidden"}
+    /// objects, paths relative to the file), added to --pair.
+    #[arg(long = "pairs", value_name = "FILE")]
+    pub pairs_file: Option<PathBuf>,
+    /// pairs: train each cover's plain model this many minutes and give every model of its
+    /// pairs the steps it reached (instead of --steps).
+    #[arg(long)]
+    pub minutes: Option<f64>,
+    /// Skip LPIPS (PSNR and SSIM only).
+    #[arg(long)]
+    pub no_lpips: bool,
 }
 
 /// detectability's defaults: 16 levels, so the hashed levels the statistics read are there;
@@ -102,6 +119,17 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     let detect = a.name == "detectability";
+    let pairs_exp = a.name == "pairs";
+    let explicit_pairs = !a.pairs.is_empty() || a.pairs_file.is_some();
+    if !pairs_exp && (explicit_pairs || a.minutes.is_some()) {
+        bail!("--pair, --pairs and --minutes belong to `experiment pairs`");
+    }
+    if explicit_pairs && (a.cover.is_some() || !a.hidden.is_empty()) {
+        bail!("give the scenes either as --pair/--pairs or as --cover/--hidden, not both");
+    }
+    if a.minutes.is_some() && a.steps.is_some() {
+        bail!("--minutes and --steps both set the budget: give one");
+    }
     if detect && (a.cover.is_some() || !a.hidden.is_empty() || a.stealth || a.random_scene) {
         bail!(
             "detectability generates its own scenes and trains every scheme, schedule and \
@@ -129,7 +157,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         Ok(dir)
     };
-    let needs_scenes = a.name != "key-strength" && !detect;
+    let needs_scenes = a.name != "key-strength" && !detect && !explicit_pairs;
     let cover = match &a.cover {
         Some(c) => c.clone(),
         None if needs_scenes => gen_scene("cover_object", SceneKind::Object, 1)?,
@@ -145,6 +173,10 @@ pub fn run(a: Args) -> Result<()> {
                 SceneKind::Text(text.into()),
                 10 + i as u64,
             )?);
+        }
+        if pairs_exp {
+            // The paper hides two different logos; ours: a text and a logo.
+            hidden.push(gen_scene("hidden_logo_1", SceneKind::Logo, 20)?);
         }
     }
     let cfg = ExpConfig {
@@ -180,9 +212,31 @@ pub fn run(a: Args) -> Result<()> {
             Schedule::Mixed
         },
         stealth: a.stealth,
+        lpips: !a.no_lpips,
         verbose: true,
     };
-    let report = if detect {
+    let report = if pairs_exp {
+        let mut pairs = a.pairs.clone();
+        if let Some(f) = &a.pairs_file {
+            pairs.extend(read_pairs_file(f)?);
+        }
+        if pairs.is_empty() {
+            pairs = cfg
+                .hidden
+                .iter()
+                .map(|h| PairSpec {
+                    cover: cfg.cover.clone(),
+                    hidden: h.clone(),
+                })
+                .collect();
+        }
+        let opts = PairsOptions {
+            pairs,
+            minutes: a.minutes,
+            lpips: cfg.lpips,
+        };
+        run_pairs(&cfg, &opts)?
+    } else if detect {
         let opts = DetectOptions {
             models: a.models,
             stealth_arm: !a.no_stealth_arm,

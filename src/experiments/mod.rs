@@ -3,8 +3,10 @@
 //! PNG image grids into its output directory.
 
 pub mod detectability;
+pub mod pairs;
 pub mod report;
 pub mod runs;
 
 pub use detectability::{DetectOptions, run_detectability};
+pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};
 pub use runs::{EXPERIMENTS, ExpConfig, KeySchemeArg, run_experiment};

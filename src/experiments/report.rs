@@ -59,6 +59,7 @@ impl Table {
                         _ => n.to_string(),
                     },
                     Some(Value::String(t)) => t.clone(),
+                    Some(Value::Null) => "—".into(),
                     Some(v) => v.to_string(),
                     None => String::new(),
                 })

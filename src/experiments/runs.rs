@@ -4,7 +4,8 @@ use super::report::{Report, Table, save_grid};
 use crate::error::{Error, Result};
 use crate::ngp::data::{Dataset, LoadOptions, Split};
 use crate::ngp::encoding::GridConfig;
-use crate::ngp::eval::{EvalResult, evaluate, spread_views};
+use crate::ngp::eval::{EvalResult, evaluate_with, spread_views};
+use crate::ngp::lpips::Lpips;
 use crate::ngp::model::Model;
 use crate::ngp::network::{ModelConfig, NerfLayout};
 use crate::ngp::render::image::RenderOptions;
@@ -26,6 +27,7 @@ pub const EXPERIMENTS: &[&str] = &[
     "table-size",
     "key-strength",
     "detectability",
+    "pairs",
 ];
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -35,7 +37,7 @@ pub enum KeySchemeArg {
 }
 
 impl KeySchemeArg {
-    fn name(self) -> &'static str {
+    pub(super) fn name(self) -> &'static str {
         match self {
             KeySchemeArg::Prf => "prf",
             KeySchemeArg::Primes => "primes",
@@ -43,7 +45,7 @@ impl KeySchemeArg {
     }
     /// The experiment's key number `which` for `m` groups: drawn from the run's seed, so a
     /// report can be reproduced exactly (these keys protect nothing).
-    fn generate(self, m: usize, seed: u64, which: u64) -> Result<Key> {
+    pub(super) fn generate(self, m: usize, seed: u64, which: u64) -> Result<Key> {
         let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
         let next = move || Ok(((rng.next_u32() as u64) << 32) | rng.next_u32() as u64);
         generate_with(self == KeySchemeArg::Prf, m, next)
@@ -73,19 +75,21 @@ pub struct ExpConfig {
     pub schedule: Schedule,
     /// Stealth training: hidden scenes confined to the cover's reachable entries.
     pub stealth: bool,
+    /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
+    pub lpips: bool,
     /// Progress lines on stderr.
     pub verbose: bool,
 }
 
-struct Scene {
-    train: Arc<Dataset>,
-    test: Dataset,
-    name: String,
+pub(super) struct Scene {
+    pub train: Arc<Dataset>,
+    pub test: Dataset,
+    pub name: String,
 }
 
 /// Loads a scene's splits, placed in the box of `aabb_scale` when given (hidden scenes take
 /// the cover's: every model of an experiment shares the cover's box).
-fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) -> Result<Scene> {
+pub(super) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) -> Result<Scene> {
     let opts = LoadOptions {
         downscale,
         ..Default::default()
@@ -113,10 +117,87 @@ struct Ctx<'a> {
 }
 
 /// A trained model and how long its training took.
-struct Trained {
-    model: Model,
-    seconds: f64,
-    samples_per_s: f64,
+pub(super) struct Trained {
+    pub model: Model,
+    pub seconds: f64,
+    pub samples_per_s: f64,
+    /// Steps per scene (a random-scene schedule ran this many times the scene count).
+    pub steps: u32,
+}
+
+/// How long a model trains.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) enum Budget {
+    /// Steps per scene: every scene is trained this many times, whatever the schedule.
+    Steps(u32),
+    /// Training seconds (step time only, not setup); the steps reached are recorded.
+    Seconds(f64),
+}
+
+/// Trains one model of `config` on `scenes` (dataset, key; the cover first, under the
+/// reference key) with the experiment's batch, schedule, seed and stealth.
+pub(super) fn train_scenes(
+    cfg: &ExpConfig,
+    config: ModelConfig,
+    scenes: &[(&Scene, &Key)],
+    budget: Budget,
+    label: &str,
+) -> Result<Trained> {
+    let layout = NerfLayout::new(config)?;
+    let specs = scenes
+        .iter()
+        .map(|(s, k)| {
+            k.validate_for(&layout.grid)?;
+            Ok(SceneSpec {
+                dataset: s.train.clone(),
+                indices: k.level_indices(&layout.grid),
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let tc = TrainConfig {
+        seed: cfg.seed,
+        batch_samples: cfg.batch,
+        occupancy_fraction: cfg.occupancy_fraction,
+        schedule: cfg.schedule,
+        ..Default::default()
+    };
+    let mut t = Trainer::new(config, specs, tc)?;
+    if cfg.stealth && scenes.len() > 1 {
+        let keys = scenes[1..].iter().map(|(_, k)| (*k).clone()).collect();
+        t.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), keys)))?;
+    }
+    // RandomScene trains one scene per step: give each scene the same number of steps.
+    let per_step = match cfg.schedule {
+        Schedule::Mixed => 1,
+        Schedule::RandomScene => scenes.len() as u32,
+    };
+    let (mut secs, mut samples, mut loss, mut steps) = (0.0, 0u64, 0.0f32, 0u32);
+    loop {
+        let done = match budget {
+            Budget::Steps(n) => steps >= n * per_step,
+            Budget::Seconds(s) => secs >= s && steps % per_step == 0,
+        };
+        if done {
+            break;
+        }
+        let st = t.train_step();
+        secs += st.seconds;
+        samples += st.n_samples;
+        loss = st.cover_loss.unwrap_or(loss);
+        steps += 1;
+    }
+    if cfg.verbose {
+        eprintln!(
+            "  trained {label}: {steps} steps in {secs:.1} s ({:.0} k samples/s), loss {loss:.5}",
+            samples as f64 / secs.max(1e-9) / 1e3
+        );
+    }
+    Ok(Trained {
+        model: Model::from_trainer(&t, loss),
+        seconds: secs,
+        samples_per_s: samples as f64 / secs.max(1e-9),
+        steps: steps / per_step,
+    })
 }
 
 impl Ctx<'_> {
@@ -133,53 +214,16 @@ impl Ctx<'_> {
         }
     }
 
-    /// Trains one model on `scenes` (dataset, key) — the cover uses the reference key.
+    /// Trains one model on `scenes` (dataset, key) for `cfg.steps` steps per scene — the
+    /// cover uses the reference key.
     fn train(&self, grid: GridConfig, scenes: &[(&Scene, &Key)], label: &str) -> Result<Trained> {
-        let config = self.model_config(grid);
-        let layout = NerfLayout::new(config)?;
-        let specs = scenes
-            .iter()
-            .map(|(s, k)| {
-                k.validate_for(&layout.grid)?;
-                Ok(SceneSpec {
-                    dataset: s.train.clone(),
-                    indices: k.level_indices(&layout.grid),
-                })
-            })
-            .collect::<Result<Vec<_>>>()?;
-        let tc = TrainConfig {
-            seed: self.cfg.seed,
-            batch_samples: self.cfg.batch,
-            occupancy_fraction: self.cfg.occupancy_fraction,
-            schedule: self.cfg.schedule,
-            ..Default::default()
-        };
-        let mut t = Trainer::new(config, specs, tc)?;
-        if self.cfg.stealth && scenes.len() > 1 {
-            let keys = scenes[1..].iter().map(|(_, k)| (*k).clone()).collect();
-            t.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), keys)))?;
-        }
-        // RandomScene trains one scene per step: give each scene the same number of steps.
-        let steps = match self.cfg.schedule {
-            Schedule::Mixed => self.cfg.steps,
-            Schedule::RandomScene => self.cfg.steps * scenes.len() as u32,
-        };
-        let (mut secs, mut samples, mut loss) = (0.0, 0u64, 0.0f32);
-        for _ in 0..steps {
-            let st = t.train_step();
-            secs += st.seconds;
-            samples += st.n_samples;
-            loss = st.cover_loss.unwrap_or(loss);
-        }
-        self.log(&format!(
-            "  trained {label}: {steps} steps in {secs:.1} s ({:.0} k samples/s), loss {loss:.5}",
-            samples as f64 / secs / 1e3
-        ));
-        Ok(Trained {
-            model: Model::from_trainer(&t, loss),
-            seconds: secs,
-            samples_per_s: samples as f64 / secs,
-        })
+        train_scenes(
+            self.cfg,
+            self.model_config(grid),
+            scenes,
+            Budget::Steps(self.cfg.steps),
+            label,
+        )
     }
 
     fn render_opts(&self) -> RenderOptions {
@@ -195,11 +239,12 @@ impl Ctx<'_> {
         let view = opened.view(model);
         let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
         let mut first = None;
-        let r = evaluate(
+        let r = evaluate_with(
             &view,
             &scene.test,
             &self.render_opts(),
             Some(&which),
+            self.cfg.lpips.then(Lpips::embedded),
             |_, img, _| {
                 if first.is_none() {
                     first = Some(img.rgb.clone());
@@ -230,7 +275,7 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
-        "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
+        "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth, "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(),
     })
 }
@@ -250,6 +295,22 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
             cfg,
             &super::detectability::DetectOptions::default(),
         );
+    }
+    if name == "pairs" {
+        // The cover with each hidden scene; the CLI passes its own pairs and options.
+        let opts = super::pairs::PairsOptions {
+            pairs: cfg
+                .hidden
+                .iter()
+                .map(|h| super::pairs::PairSpec {
+                    cover: cfg.cover.clone(),
+                    hidden: h.clone(),
+                })
+                .collect(),
+            minutes: None,
+            lpips: cfg.lpips,
+        };
+        return super::pairs::run_pairs(cfg, &opts);
     }
     let mut report = Report {
         name: name.into(),
@@ -308,7 +369,7 @@ fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         ("plain", &h.name, &ph, &plain_h),
         ("stego (key)", &h.name, &sh, &stego),
     ] {
-        t.push(json!({"model": model, "scene": scene, "psnr": r.psnr, "ssim": r.ssim, "views": r.n_views,
+        t.push(json!({"model": model, "scene": scene, "psnr": r.psnr, "ssim": r.ssim, "lpips": r.lpips, "views": r.n_views,
             "train_s": tr.seconds, "samples_per_s": tr.samples_per_s.round()}));
     }
     report.tables.push(t);
@@ -373,7 +434,7 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         for (label, k) in &variants {
             let (vs_hidden, img) = ctx.score(&stego.model, k, h);
             let (vs_cover, _) = ctx.score(&stego.model, k, &ctx.cover);
-            t.push(json!({"key": label, "psnr_vs_hidden": vs_hidden.psnr, "ssim_vs_hidden": vs_hidden.ssim,
+            t.push(json!({"key": label, "psnr_vs_hidden": vs_hidden.psnr, "ssim_vs_hidden": vs_hidden.ssim, "lpips_vs_hidden": vs_hidden.lpips,
                 "psnr_vs_cover": vs_cover.psnr, "empty_render_vs_hidden": vs_hidden.blank_psnr}));
             tiles.push(img);
         }
@@ -435,9 +496,13 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
                 for &p in &fractions {
                     let (r, img) = ctx.score(&stego.model, &disclose(&key, p), h);
                     row.insert(format!("{}%", (p * 100.0) as u32), json!(r.psnr));
+                    if p == 1.0 {
+                        row.insert("LPIPS 100%".into(), json!(r.lpips));
+                    }
                     tiles.push(img);
                 }
                 row.insert("wrong key".into(), json!(wrong.psnr));
+                row.insert("LPIPS wrong key".into(), json!(wrong.lpips));
                 row.insert("empty render".into(), json!(wrong.blank_psnr));
                 t.push(serde_json::Value::Object(row));
                 let file = format!(
@@ -480,12 +545,14 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
         let mut row = serde_json::Map::new();
         row.insert("phi".into(), json!(phi));
         row.insert("cover".into(), json!(c.psnr));
+        row.insert("cover LPIPS".into(), json!(c.lpips));
         tiles.push(img_c);
-        let mut hs = vec![];
+        let (mut hs, mut hl) = (vec![], vec![]);
         for (i, k) in keys.iter().enumerate() {
             let (r, img) = ctx.score(&m.model, k, ctx.hidden(i));
             row.insert(format!("hidden {}", i + 1), json!(r.psnr));
             hs.push(r.psnr);
+            hl.extend(r.lpips);
             if i == 0 {
                 tiles.push(img);
             }
@@ -493,6 +560,10 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
         row.insert(
             "hidden mean".into(),
             json!(hs.iter().sum::<f64>() / hs.len() as f64),
+        );
+        row.insert(
+            "hidden mean LPIPS".into(),
+            json!((!hl.is_empty()).then(|| hl.iter().sum::<f64>() / hl.len() as f64)),
         );
         t.push(serde_json::Value::Object(row));
     }
@@ -524,7 +595,7 @@ fn table_size(ctx: &Ctx, report: &mut Report) -> Result<()> {
         let (c, _) = ctx.score(&m.model, &pi, &ctx.cover);
         let (hs, _) = ctx.score(&m.model, &key, h);
         t.push(json!({"T": format!("2^{log2_t}"), "params": m.model.net.layout.n_params, "cover_psnr": c.psnr,
-            "hidden_psnr": hs.psnr, "train_s": m.seconds}));
+            "cover_lpips": c.lpips, "hidden_psnr": hs.psnr, "hidden_lpips": hs.lpips, "train_s": m.seconds}));
     }
     report.tables.push(t);
     Ok(())
