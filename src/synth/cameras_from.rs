@@ -18,12 +18,11 @@
 //! snapshot trained on it then reads 1 and 0, which nothing but that metadata uses).
 
 use super::scene::{Scene, V3, dot, normalize};
-use super::{SceneKind, SynthSummary, bounded_scene, encode_png};
+use super::{SceneKind, SynthSummary, bounded_scene, encode_png, render_rgba};
 use crate::error::{Error, Result};
 use crate::ngp::camera::Camera;
 use crate::ngp::data::{Dataset, DatasetFormat, DatasetMeta, LoadOptions, Split};
 use crate::util::{write_atomic, write_atomic_with};
-use rayon::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -155,33 +154,10 @@ pub fn scene_radius(scene: &Scene) -> f32 {
 /// Straight-alpha RGBA8 rendering of `scene` placed by `place`, seen by `cam` (its own size
 /// and lens), 2×2 stratified samples per pixel.
 pub fn render_camera(scene: &Scene, cam: &Camera, place: &Placement) -> Vec<u8> {
-    let (w, h) = (cam.width as usize, cam.height as usize);
-    let mut out = vec![0u8; w * h * 4];
-    out.par_chunks_mut(w * 4).enumerate().for_each(|(j, row)| {
-        for i in 0..w {
-            let (mut acc, mut hits) = ([0.0f32; 3], 0u32);
-            for s in 0..4 {
-                let (sx, sy) = (0.25 + 0.5 * (s & 1) as f32, 0.25 + 0.5 * (s >> 1) as f32);
-                let ray = cam.ray(i as f32 + sx, j as f32 + sy);
-                let o = place.to_scene(ray.o);
-                let d = normalize(place.dir_to_scene(ray.d));
-                if let Some(c) = scene.shade(o, d) {
-                    for k in 0..3 {
-                        acc[k] += c[k];
-                    }
-                    hits += 1;
-                }
-            }
-            let px = &mut row[i * 4..i * 4 + 4];
-            if hits > 0 {
-                for k in 0..3 {
-                    px[k] = (acc[k] / hits as f32 * 255.0 + 0.5).clamp(0.0, 255.0) as u8;
-                }
-                px[3] = (hits * 255 / 4) as u8;
-            }
-        }
-    });
-    out
+    render_rgba(scene, cam.width as usize, cam.height as usize, |x, y| {
+        let ray = cam.ray(x, y);
+        (place.to_scene(ray.o), normalize(place.dir_to_scene(ray.d)))
+    })
 }
 
 /// What `generate_from_cameras` took from the source.

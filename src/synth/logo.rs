@@ -8,7 +8,7 @@
 //! Every piece is a convex prism ([`super::scene::prism`]): curved outlines are polygons
 //! of many segments, filled shapes are fans of triangles, outlines bands of trapezoids.
 
-use super::scene::{Material, Object, Scene, prism};
+use super::scene::{Material, Object, Scene, hsv, prism};
 use crate::rng::Pcg32;
 use std::f32::consts::{PI, TAU};
 
@@ -54,20 +54,6 @@ const RADIUS: f32 = 1.0;
 const PLATE_Y: (f32, f32) = (-0.04, 0.12);
 const FRAME_Y: (f32, f32) = (-0.14, 0.16);
 const MOTIF_Y: (f32, f32) = (-0.3, 0.08);
-
-fn hsv(h: f32, s: f32, v: f32) -> [f32; 3] {
-    let h = h.rem_euclid(1.0) * 6.0;
-    let (i, f) = (h.floor(), h - h.floor());
-    let (p, q, t) = (v * (1.0 - s), v * (1.0 - s * f), v * (1.0 - s * (1.0 - f)));
-    match i as i32 {
-        0 => [v, t, p],
-        1 => [q, v, p],
-        2 => [p, v, t],
-        3 => [p, q, v],
-        4 => [t, p, v],
-        _ => [v, p, q],
-    }
-}
 
 impl Logo {
     /// The logo of a seed (deterministic).

@@ -235,40 +235,51 @@ fn poses(n: usize, random: bool, seed: u64, stream: u64) -> Vec<[[f32; 4]; 4]> {
 pub fn render_view(scene: &Scene, c2w: &[[f32; 4]; 4], res: u32) -> Vec<u8> {
     let focal = 0.5 * res as f32 / (0.5 * CAMERA_ANGLE_X).tan();
     let o = [c2w[0][3], c2w[1][3], c2w[2][3]];
-    let mut out = vec![0u8; (res * res * 4) as usize];
-    out.par_chunks_mut(res as usize * 4)
-        .enumerate()
-        .for_each(|(j, row)| {
-            for i in 0..res as usize {
-                let (mut acc, mut hits) = ([0.0f32; 3], 0u32);
-                for s in 0..4 {
-                    let (sx, sy) = (0.25 + 0.5 * (s & 1) as f32, 0.25 + 0.5 * (s >> 1) as f32);
-                    let dc = [
-                        (i as f32 + sx - 0.5 * res as f32) / focal,
-                        -(j as f32 + sy - 0.5 * res as f32) / focal,
-                        -1.0,
-                    ];
-                    let d = normalize([
-                        c2w[0][0] * dc[0] + c2w[0][1] * dc[1] + c2w[0][2] * dc[2],
-                        c2w[1][0] * dc[0] + c2w[1][1] * dc[1] + c2w[1][2] * dc[2],
-                        c2w[2][0] * dc[0] + c2w[2][1] * dc[1] + c2w[2][2] * dc[2],
-                    ]);
-                    if let Some(c) = scene.shade(o, d) {
-                        for k in 0..3 {
-                            acc[k] += c[k];
-                        }
-                        hits += 1;
-                    }
-                }
-                let px = &mut row[i * 4..i * 4 + 4];
-                if hits > 0 {
+    let half = 0.5 * res as f32;
+    render_rgba(scene, res as usize, res as usize, |x, y| {
+        let dc = [(x - half) / focal, -(y - half) / focal, -1.0];
+        let d = normalize([
+            c2w[0][0] * dc[0] + c2w[0][1] * dc[1] + c2w[0][2] * dc[2],
+            c2w[1][0] * dc[0] + c2w[1][1] * dc[1] + c2w[1][2] * dc[2],
+            c2w[2][0] * dc[0] + c2w[2][1] * dc[1] + c2w[2][2] * dc[2],
+        ]);
+        (o, d)
+    })
+}
+
+/// Straight-alpha RGBA8 rendering of a `w×h` image: `ray(x, y)` gives the ray (origin,
+/// unit direction, in the scene's frame) through pixel position (x, y); 2×2 stratified
+/// samples per pixel, alpha the fraction that hit the scene.
+pub(crate) fn render_rgba(
+    scene: &Scene,
+    w: usize,
+    h: usize,
+    ray: impl Fn(f32, f32) -> (V3, V3) + Sync,
+) -> Vec<u8> {
+    let mut out = vec![0u8; w * h * 4];
+    out.par_chunks_mut(w * 4).enumerate().for_each(|(j, row)| {
+        for i in 0..w {
+            let (mut acc, mut hits) = ([0.0f32; 3], 0u32);
+            for s in 0..4 {
+                let (sx, sy) = (0.25 + 0.5 * (s & 1) as f32, 0.25 + 0.5 * (s >> 1) as f32);
+                let (o, d) = ray(i as f32 + sx, j as f32 + sy);
+                if let Some(c) = scene.shade(o, d) {
                     for k in 0..3 {
-                        px[k] = (acc[k] / hits as f32 * 255.0 + 0.5).clamp(0.0, 255.0) as u8;
+                        acc[k] += c[k];
                     }
-                    px[3] = (hits * 255 / 4) as u8;
+                    hits += 1;
                 }
             }
-        });
+            let px = &mut row[i * 4..i * 4 + 4];
+            if hits > 0 {
+                for k in 0..3 {
+                    px[k] = (acc[k] / hits as f32 * 255.0 + 0.5).clamp(0.0, 255.0) as u8;
+                }
+                px[3] = (hits * 255 / 4) as u8;
+            }
+        }
+    });
+    debug_assert_eq!(out.len(), w * h * 4);
     out
 }
 

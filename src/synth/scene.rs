@@ -124,7 +124,7 @@ pub struct Hit {
     pub obj: usize,
 }
 
-fn hsv(h: f32, s: f32, v: f32) -> V3 {
+pub(crate) fn hsv(h: f32, s: f32, v: f32) -> V3 {
     let h = h.rem_euclid(1.0) * 6.0;
     let i = h.floor();
     let f = h - i;
