@@ -55,6 +55,8 @@ impl Table {
                 .iter()
                 .map(|c| match r.get(*c) {
                     Some(Value::Number(n)) => match n.as_f64() {
+                        // Four places below 1 (SSIM, LPIPS, AUC), three above (dB, s).
+                        Some(f) if n.is_f64() && f.abs() < 1.0 => format!("{f:.4}"),
                         Some(f) if n.is_f64() => format!("{f:.3}"),
                         _ => n.to_string(),
                     },
@@ -154,5 +156,8 @@ mod tests {
         assert!(md.contains("|---|---|---|\n"));
         assert!(md.contains("| 1 | 2.500 |  |"));
         assert!(md.contains("| 4 | 1 | 5 |"));
+        // LPIPS-sized values keep a fourth place.
+        t.push(serde_json::json!({"a": 0.01234, "b": -0.5}));
+        assert!(t.markdown().contains("| 0.0123 | -0.5000 |"));
     }
 }
