@@ -2,8 +2,94 @@
 
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::Path;
-use stegongp::ngp::data::Split;
+use std::path::{Path, PathBuf};
+use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::eval::spread_views;
+use stegongp::ngp::model::Model;
+use stegongp::ngp::render::image::RenderOptions;
+use stegongp::stego::OpenedScene;
+
+/// What `render` and `eval` both take: a model, seen through an optional key, and the
+/// cameras of a dataset's split.
+#[derive(clap::Args, Debug)]
+pub struct ViewArgs {
+    /// Model file (.ingp or .msgpack).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Dataset whose cameras (and, for eval, images) to use.
+    #[arg(long)]
+    pub data: PathBuf,
+    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
+    pub split: SplitArg,
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// COLMAP / LLFF data: the image folder to read (e.g. images_4).
+    #[arg(long)]
+    pub images: Option<String>,
+    /// At most this many views, spread over the split (0 = all).
+    #[arg(long, default_value_t = 0)]
+    pub views: usize,
+    #[arg(long, value_enum, default_value_t = Background::White)]
+    pub background: Background,
+    /// Key file: the hidden scene it unlocks instead of the cover.
+    #[arg(long)]
+    pub key: Option<PathBuf>,
+    /// Diagnostic variant of --key: partial:P (the first P of the m keys, the rest Π; for
+    /// prf the first P of the secret's m shares, the rest zero), levels:P (the subkeys of the
+    /// first P of the m level groups, the other levels Π), mixed:pi1k2k3, mixed:pi1pi2k3,
+    /// wrong[:SEED].
+    #[arg(long)]
+    pub key_variant: Option<String>,
+    /// The model was trained with `train --stealth`: apply --key as stealth training did
+    /// (confined to the cover's reachable table entries, computed from the stored grid).
+    #[arg(long)]
+    pub stealth: bool,
+}
+
+/// A model opened for viewing on a dataset's cameras.
+pub struct Viewing {
+    pub model: Model,
+    pub data: Dataset,
+    pub scene: OpenedScene,
+    pub opts: RenderOptions,
+    /// The views to render.
+    pub which: Vec<usize>,
+}
+
+impl ViewArgs {
+    pub fn open(&self) -> Result<Viewing> {
+        if self.downscale == 0 {
+            bail!("--downscale must be at least 1");
+        }
+        let model = Model::load(&self.model)?;
+        let data = Dataset::load(
+            &self.data,
+            self.split.into(),
+            &LoadOptions {
+                downscale: self.downscale,
+                images: self.images.clone(),
+                ..Default::default()
+            },
+        )?;
+        let scene = super::scene_for_key(
+            &model,
+            self.key.as_deref(),
+            self.key_variant.as_deref(),
+            self.stealth,
+        )?;
+        let which = spread_views(data.frames.len(), self.views);
+        Ok(Viewing {
+            model,
+            data,
+            scene,
+            opts: RenderOptions {
+                background: self.background.rgb(),
+                ..Default::default()
+            },
+            which,
+        })
+    }
+}
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum SplitArg {

@@ -1,45 +1,14 @@
-use super::common::{Background, SplitArg, ensure_dir};
-use anyhow::{Result, bail};
+use super::common::{ViewArgs, Viewing, ensure_dir};
+use anyhow::Result;
 use std::path::PathBuf;
-use stegongp::ngp::data::{Dataset, LoadOptions, save_png_rgb};
-use stegongp::ngp::eval::{evaluate_each, spread_views};
+use stegongp::ngp::data::save_png_rgb;
+use stegongp::ngp::eval::evaluate_each;
 use stegongp::ngp::lpips::Lpips;
-use stegongp::ngp::model::Model;
-use stegongp::ngp::render::image::RenderOptions;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Model file (.ingp or .msgpack).
-    #[arg(long)]
-    pub model: PathBuf,
-    /// Dataset with the held-out views.
-    #[arg(long)]
-    pub data: PathBuf,
-    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
-    pub split: SplitArg,
-    #[arg(long, default_value_t = 1)]
-    pub downscale: u32,
-    /// COLMAP / LLFF data: the image folder to read (e.g. images_4).
-    #[arg(long)]
-    pub images: Option<String>,
-    /// Evaluate at most this many views, spread over the split (0 = all).
-    #[arg(long, default_value_t = 0)]
-    pub views: usize,
-    #[arg(long, value_enum, default_value_t = Background::White)]
-    pub background: Background,
-    /// Key file: evaluate the hidden scene it unlocks.
-    #[arg(long)]
-    pub key: Option<PathBuf>,
-    /// Diagnostic variant of --key: partial:P (the first P of the m keys, the rest Π; for
-    /// prf the first P of the secret's m shares, the rest zero), levels:P (the subkeys of the
-    /// first P of the m level groups, the other levels Π), mixed:pi1k2k3, mixed:pi1pi2k3,
-    /// wrong[:SEED].
-    #[arg(long)]
-    pub key_variant: Option<String>,
-    /// The model was trained with `train --stealth`: apply --key as stealth training did
-    /// (confined to the cover's reachable table entries, computed from the stored grid).
-    #[arg(long)]
-    pub stealth: bool,
+    #[command(flatten)]
+    pub view: ViewArgs,
     /// Also write each rendering (and ground truth) as PNG into this directory.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -53,34 +22,17 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    if a.downscale == 0 {
-        bail!("--downscale must be at least 1");
-    }
-    let model = Model::load(&a.model)?;
-    let data = Dataset::load(
-        &a.data,
-        a.split.into(),
-        &LoadOptions {
-            downscale: a.downscale,
-            images: a.images.clone(),
-            ..Default::default()
-        },
-    )?;
-    let scene = super::scene_for_key(
-        &model,
-        a.key.as_deref(),
-        a.key_variant.as_deref(),
-        a.stealth,
-    )?;
+    let Viewing {
+        model,
+        data,
+        scene,
+        opts,
+        which,
+    } = a.view.open()?;
     let view = scene.view(&model);
     if let Some(dir) = &a.out {
         ensure_dir(dir)?;
     }
-    let opts = RenderOptions {
-        background: a.background.rgb(),
-        ..Default::default()
-    };
-    let which = spread_views(data.frames.len(), a.views);
     let mut io_err = None;
     let lpips = (!a.no_lpips).then(Lpips::embedded);
     let r = evaluate_each(&view, &data, &opts, Some(&which), lpips, |v, img, gt| {

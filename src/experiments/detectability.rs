@@ -123,6 +123,9 @@ struct ModelRecord {
     hidden_kind: String,
     cover_psnr: f64,
     hidden_psnr: Option<f64>,
+    /// LPIPS (None when not scored: `--no-lpips`, or a model trained before LPIPS existed).
+    cover_lpips: Option<f64>,
+    hidden_lpips: Option<f64>,
     train_s: f64,
     eval_s: f64,
     analyse_s: f64,
@@ -392,6 +395,8 @@ fn model(
                 "config": config, "train_s": run.train_seconds, "eval_s": run.eval_seconds,
                 "cover_psnr": run.cover.psnr,
                 "hidden_psnr": run.hidden.as_ref().map(|h| h.psnr),
+                "cover_lpips": run.cover.lpips,
+                "hidden_lpips": run.hidden.as_ref().and_then(|h| h.lpips),
             });
             // The sidecar goes last: a model without one is retrained.
             let text = serde_json::to_string_pretty(&v).map_err(|e| Error::Other(e.to_string()))?;
@@ -410,6 +415,8 @@ fn model(
         hidden_kind: hidden_kind.into(),
         cover_psnr: info["cover_psnr"].as_f64().unwrap_or(f64::NAN),
         hidden_psnr: info["hidden_psnr"].as_f64(),
+        cover_lpips: info["cover_lpips"].as_f64(),
+        hidden_lpips: info["hidden_lpips"].as_f64(),
         train_s: info["train_s"].as_f64().unwrap_or(f64::NAN),
         eval_s: info["eval_s"].as_f64().unwrap_or(f64::NAN),
         analyse_s: t0.elapsed().as_secs_f64(),
@@ -711,15 +718,17 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
 
     // Fidelity per arm: what the stego and stealth models cost the scenes.
     let mut fid = Table::new(
-        "Fidelity per arm: mean PSNR (dB) on held-out views, the cover without a key and the hidden scene with its key",
+        "Fidelity per arm: mean PSNR (dB) and LPIPS on held-out views, the cover without a key and the hidden scene with its key",
     );
     for &a in &arms {
         let mut row = json!({
             "arm": a.name(), "models": of(a).count(),
             "cover_psnr": num(mean(of(a).map(|m| m.cover_psnr))),
+            "cover_lpips": num(mean(of(a).filter_map(|m| m.cover_lpips))),
         });
         if a != Arm::Plain {
             row["hidden_psnr"] = num(mean(of(a).filter_map(|m| m.hidden_psnr)));
+            row["hidden_lpips"] = num(mean(of(a).filter_map(|m| m.hidden_lpips)));
         }
         fid.push(row);
     }
