@@ -134,14 +134,26 @@ struct Scores {
 }
 
 impl Scores {
-    fn add(&mut self, pred: &[f32], reference: &[f32], w: usize, h: usize, lp: Option<&Lpips>) {
-        self.psnr += psnr(pred, reference);
-        self.ssim += ssim(pred, reference, w, h);
-        if let Some(d) = lp.and_then(|l| l.distance(pred, reference, w, h)) {
+    /// One view: `lpips` is its LPIPS when there is one.
+    fn add(&mut self, pred: &[f32], reference: &[f32], w: usize, h: usize, lpips: Option<f64>) {
+        self.push(psnr(pred, reference), ssim(pred, reference, w, h), lpips);
+    }
+
+    fn push(&mut self, psnr: f64, ssim: f64, lpips: Option<f64>) {
+        self.psnr += psnr;
+        self.ssim += ssim;
+        if let Some(d) = lpips {
             self.lpips += d;
             self.n_lpips += 1;
         }
         self.n += 1;
+    }
+
+    /// Adds `other`'s means as one item (Table 1 averages pairs, each its views' mean).
+    fn push_means(&mut self, other: &Scores) {
+        let n = other.n.max(1) as f64;
+        let lpips = (other.n_lpips > 0).then(|| other.lpips / other.n_lpips as f64);
+        self.push(other.psnr / n, other.ssim / n, lpips);
     }
 
     fn mean(&self) -> Value {
@@ -300,9 +312,22 @@ fn score_scene(
         let b = render_image(&s_view, cam, &opts);
         let gt = ground_truth(&scene.test, i, opts.background);
         let (w, h) = (a.width as usize, a.height as usize);
-        out.plain.add(&a.rgb, &gt, w, h, lp);
-        out.stego.add(&b.rgb, &gt, w, h, lp);
-        out.stego_vs_plain.add(&b.rgb, &a.rgb, w, h, lp);
+        // Each image goes through the LPIPS network once for its three comparisons.
+        let feats = lp.map(|l| {
+            let (fg, (fa, fb)) = rayon::join(
+                || l.features(&gt, w, h),
+                || rayon::join(|| l.features(&a.rgb, w, h), || l.features(&b.rgb, w, h)),
+            );
+            (l, fg, fa, fb)
+        });
+        let d = |x: usize, y: usize| {
+            let (l, fg, fa, fb) = feats.as_ref()?;
+            let f = [fg, fa, fb];
+            Some(l.distance_features(f[x].as_ref()?, f[y].as_ref()?))
+        };
+        out.plain.add(&a.rgb, &gt, w, h, d(1, 0));
+        out.stego.add(&b.rgb, &gt, w, h, d(2, 0));
+        out.stego_vs_plain.add(&b.rgb, &a.rgb, w, h, d(2, 1));
         if out.tiles.is_empty() {
             out.size = (a.width, a.height);
             out.tiles = vec![gt, a.rgb, b.rgb];
@@ -426,14 +451,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             .iter_mut()
             .zip([&sc.plain, &sc.stego, &sh.plain, &sh.stego])
         {
-            let n = s.n.max(1) as f64;
-            acc.psnr += s.psnr / n;
-            acc.ssim += s.ssim / n;
-            if s.n_lpips > 0 {
-                acc.lpips += s.lpips / s.n_lpips as f64;
-                acc.n_lpips += 1;
-            }
-            acc.n += 1;
+            acc.push_means(s);
         }
         let row = |label: &str, s: &Scores| {
             let m = s.mean();
