@@ -22,6 +22,7 @@
 
 use super::report::{Report, Table};
 use super::runs::{ExpConfig, KeySchemeArg, train_pair};
+use super::store::reuse_or_train;
 use crate::error::{Error, Result};
 use crate::ngp::data::save_png_rgb;
 use crate::ngp::train::Schedule;
@@ -360,50 +361,32 @@ fn model(
     let config = model_config(cfg, arm, scenes, seed, combo);
     let stem = format!("{}_{i:02}", arm.name());
     let path = models_dir.join(format!("{stem}.ingp"));
-    let side = models_dir.join(format!("{stem}.json"));
-    let reused: Option<Value> = (path.exists())
-        .then(|| std::fs::read(&side).ok())
-        .flatten()
-        .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
-        .filter(|v| v["config"] == config);
-    let info = match reused {
-        Some(v) => {
-            if cfg.verbose {
-                eprintln!("  {stem}: reusing {}", path.display());
-            }
-            v
-        }
-        None => {
-            let mcfg = ExpConfig {
-                cover: scenes.0.to_path_buf(),
-                hidden: vec![scenes.1.to_path_buf()],
-                seed,
-                scheme: combo.0,
-                schedule: if arm == Arm::Plain {
-                    Schedule::Mixed
-                } else {
-                    combo.1
-                },
-                stealth: arm == Arm::Stealth,
-                ..cfg.clone()
-            };
-            // Key number i under the pair's seed: stego and stealth pair i share their key.
-            let key = (arm != Arm::Plain).then_some(i as u64);
-            let run = train_pair(&mcfg, key, &stem)?;
-            run.model.save(&path)?;
-            let v = json!({
-                "config": config, "train_s": run.train_seconds, "eval_s": run.eval_seconds,
-                "cover_psnr": run.cover.psnr,
-                "hidden_psnr": run.hidden.as_ref().map(|h| h.psnr),
-                "cover_lpips": run.cover.lpips,
-                "hidden_lpips": run.hidden.as_ref().and_then(|h| h.lpips),
-            });
-            // The sidecar goes last: a model without one is retrained.
-            let text = serde_json::to_string_pretty(&v).map_err(|e| Error::Other(e.to_string()))?;
-            write_atomic(&side, text.as_bytes())?;
-            v
-        }
-    };
+    let (info, _) = reuse_or_train(&path, &config, cfg.verbose, || {
+        let mcfg = ExpConfig {
+            cover: scenes.0.to_path_buf(),
+            hidden: vec![scenes.1.to_path_buf()],
+            seed,
+            scheme: combo.0,
+            schedule: if arm == Arm::Plain {
+                Schedule::Mixed
+            } else {
+                combo.1
+            },
+            stealth: arm == Arm::Stealth,
+            ..cfg.clone()
+        };
+        // Key number i under the pair's seed: stego and stealth pair i share their key.
+        let key = (arm != Arm::Plain).then_some(i as u64);
+        let run = train_pair(&mcfg, key, &stem)?;
+        let fields = json!({
+            "train_s": run.train_seconds, "eval_s": run.eval_seconds,
+            "cover_psnr": run.cover.psnr,
+            "hidden_psnr": run.hidden.as_ref().map(|h| h.psnr),
+            "cover_lpips": run.cover.lpips,
+            "hidden_lpips": run.hidden.as_ref().and_then(|h| h.lpips),
+        });
+        Ok((run.model, fields.as_object().cloned().unwrap_or_default()))
+    })?;
     let t0 = Instant::now();
     let analysis = analyse_file(&path)?;
     let features = analysis.features();

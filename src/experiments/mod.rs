@@ -6,6 +6,7 @@ pub mod detectability;
 pub mod pairs;
 pub mod report;
 pub mod runs;
+mod store;
 
 pub use detectability::{DetectOptions, run_detectability};
 pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};

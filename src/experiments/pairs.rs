@@ -16,6 +16,7 @@
 
 use super::report::{Report, Table, save_grid};
 use super::runs::{Budget, ExpConfig, Scene, load_scene, train_scenes};
+use super::store::reuse_or_train;
 use crate::error::{Error, Result};
 use crate::ngp::eval::{ground_truth, spread_views};
 use crate::ngp::lpips::Lpips;
@@ -24,7 +25,6 @@ use crate::ngp::model::Model;
 use crate::ngp::network::ModelConfig;
 use crate::ngp::render::image::{RenderOptions, render_image};
 use crate::stego::{Key, open_scene};
-use crate::util::write_atomic;
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 
@@ -238,36 +238,22 @@ impl Models<'_> {
     ) -> Result<Stored> {
         let tag = format!("{:016x}", fnv64(&config.to_string()));
         let path = self.dir.join(format!("{stem}-{}.ingp", &tag[..8]));
-        let side = path.with_extension("json");
-        let info = std::fs::read(&side)
-            .ok()
-            .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
-            .filter(|v| v["config"] == config && path.exists());
-        if let Some(v) = info {
-            if self.cfg.verbose {
-                eprintln!("  {stem}: reusing {}", path.display());
-            }
+        let (v, reused) = reuse_or_train(&path, &config, self.cfg.verbose, || {
+            let (model, steps, train_s) = train()?;
+            let fields = json!({"steps": steps, "train_s": train_s});
+            Ok((model, fields.as_object().cloned().unwrap_or_default()))
+        })?;
+        if reused {
             self.reused += 1;
-            return Ok(Stored {
-                model: Model::load(&path)?,
-                steps: v["steps"].as_u64().unwrap_or(0) as u32,
-                train_s: v["train_s"].as_f64().unwrap_or(f64::NAN),
-                reused: true,
-            });
+        } else {
+            self.trained += 1;
         }
-        let (model, steps, train_s) = train()?;
-        model.save(&path)?;
-        // Score what the file holds (half-precision weights), as a rerun will.
-        let model = Model::load(&path)?;
-        let v = json!({"config": config, "steps": steps, "train_s": train_s});
-        let text = serde_json::to_string_pretty(&v).map_err(|e| Error::Other(e.to_string()))?;
-        write_atomic(&side, text.as_bytes())?;
-        self.trained += 1;
+        // Score what the file holds (half-precision weights), as a rerun does.
         Ok(Stored {
-            model,
-            steps,
-            train_s,
-            reused: false,
+            model: Model::load(&path)?,
+            steps: v["steps"].as_u64().unwrap_or(0) as u32,
+            train_s: v["train_s"].as_f64().unwrap_or(f64::NAN),
+            reused,
         })
     }
 }
