@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::eval::spread_views;
 use stegongp::ngp::model::Model;
-use stegongp::ngp::render::image::RenderOptions;
-use stegongp::stego::OpenedScene;
+use stegongp::ngp::render::image::{Background, RenderOptions};
+use stegongp::stego::{KeyVariant, OpenedScene};
 
 /// What `render` and `eval` both take: a model, seen through an optional key, and the
 /// cameras of a dataset's split.
@@ -19,8 +19,8 @@ pub struct ViewArgs {
     /// Dataset whose cameras (and, for eval, images) to use.
     #[arg(long)]
     pub data: PathBuf,
-    #[arg(long, value_enum, default_value_t = SplitArg::Test)]
-    pub split: SplitArg,
+    #[arg(long, value_enum, default_value_t = Split::Test)]
+    pub split: Split,
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
     /// COLMAP / LLFF data: the image folder to read (e.g. images_4).
@@ -39,7 +39,7 @@ pub struct ViewArgs {
     /// first P of the m level groups, the other levels Π), mixed:pi1k2k3, mixed:pi1pi2k3,
     /// wrong[:SEED].
     #[arg(long)]
-    pub key_variant: Option<String>,
+    pub key_variant: Option<KeyVariant>,
     /// The model was trained with `train --stealth`: apply --key as stealth training did
     /// (confined to the cover's reachable table entries, computed from the stored grid).
     #[arg(long)]
@@ -64,19 +64,15 @@ impl ViewArgs {
         let model = Model::load(&self.model)?;
         let data = Dataset::load(
             &self.data,
-            self.split.into(),
+            self.split,
             &LoadOptions {
                 downscale: self.downscale,
                 images: self.images.clone(),
                 ..Default::default()
             },
         )?;
-        let scene = super::scene_for_key(
-            &model,
-            self.key.as_deref(),
-            self.key_variant.as_deref(),
-            self.stealth,
-        )?;
+        let scene =
+            super::scene_for_key(&model, self.key.as_deref(), self.key_variant, self.stealth)?;
         let which = spread_views(data.frames.len(), self.views);
         Ok(Viewing {
             model,
@@ -88,38 +84,6 @@ impl ViewArgs {
             },
             which,
         })
-    }
-}
-
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SplitArg {
-    Train,
-    Val,
-    Test,
-}
-
-impl From<SplitArg> for Split {
-    fn from(s: SplitArg) -> Split {
-        match s {
-            SplitArg::Train => Split::Train,
-            SplitArg::Val => Split::Val,
-            SplitArg::Test => Split::Test,
-        }
-    }
-}
-
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Background {
-    White,
-    Black,
-}
-
-impl Background {
-    pub fn rgb(self) -> [f32; 3] {
-        match self {
-            Background::White => [1.0; 3],
-            Background::Black => [0.0; 3],
-        }
     }
 }
 

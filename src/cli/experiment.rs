@@ -1,24 +1,18 @@
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::experiments::{
-    DetectOptions, EXPERIMENTS, ExpConfig, KeySchemeArg, PairSpec, PairsOptions, read_pairs_file,
+    DetectOptions, ExpConfig, Experiment, KeySchemeArg, PairSpec, PairsOptions, read_pairs_file,
     run_detectability, run_experiment, run_pairs,
 };
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SchemeArg {
-    Prf,
-    Primes,
-}
-
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength |
     /// detectability | pairs
-    pub name: String,
+    pub name: Experiment,
     /// Output directory: the report goes to OUT/NAME/ (report.md, report.json, PNG grids),
     /// generated scenes to OUT/data/ (detectability: its scenes and models to
     /// OUT/detectability/{scenes,models}/, reused by a rerun with the same settings).
@@ -59,8 +53,8 @@ pub struct Args {
     #[arg(long)]
     pub log2_t: Option<u32>,
     /// Key scheme of the hidden scenes (key-sensitivity and partial-keys always run both).
-    #[arg(long, value_enum, default_value_t = SchemeArg::Prf)]
-    pub scheme: SchemeArg,
+    #[arg(long, value_enum, default_value_t = KeySchemeArg::Prf)]
+    pub scheme: KeySchemeArg,
     /// Train the stego models with stealth (hidden scenes confined to the cover's reachable
     /// table entries; see `train --stealth`).
     #[arg(long)]
@@ -111,15 +105,8 @@ const DETECT_RES: u32 = 32;
 const DETECT_OCCUPANCY: f32 = 0.03;
 
 pub fn run(a: Args) -> Result<()> {
-    if !EXPERIMENTS.contains(&a.name.as_str()) {
-        bail!(
-            "unknown experiment '{}': one of {}",
-            a.name,
-            EXPERIMENTS.join(", ")
-        );
-    }
-    let detect = a.name == "detectability";
-    let pairs_exp = a.name == "pairs";
+    let detect = a.name == Experiment::Detectability;
+    let pairs_exp = a.name == Experiment::Pairs;
     let explicit_pairs = !a.pairs.is_empty() || a.pairs_file.is_some();
     if !pairs_exp && (explicit_pairs || a.minutes.is_some()) {
         bail!("--pair, --pairs and --minutes belong to `experiment pairs`");
@@ -157,7 +144,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         Ok(dir)
     };
-    let needs_scenes = a.name != "key-strength" && !detect && !explicit_pairs;
+    let needs_scenes = a.name != Experiment::KeyStrength && !detect && !explicit_pairs;
     let cover = match &a.cover {
         Some(c) => c.clone(),
         None if needs_scenes => gen_scene("cover_object", SceneKind::Object, 1)?,
@@ -165,7 +152,11 @@ pub fn run(a: Args) -> Result<()> {
     };
     let mut hidden = a.hidden.clone();
     if hidden.is_empty() && needs_scenes {
-        let n = if a.name == "multi-hidden" { 4 } else { 1 };
+        let n = if a.name == Experiment::MultiHidden {
+            4
+        } else {
+            1
+        };
         for i in 0..n {
             let text = ["(c) StegoNGP", "SECRET 2", "HIDDEN #3", "KEY 4 ONLY"][i];
             hidden.push(gen_scene(
@@ -180,7 +171,7 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     let cfg = ExpConfig {
-        out: a.out.join(&a.name),
+        out: a.out.join(a.name.name()),
         cover,
         hidden,
         downscale: a.downscale,
@@ -202,10 +193,7 @@ pub fn run(a: Args) -> Result<()> {
             log2_hashmap_size: a.log2_t.unwrap_or(if detect { DETECT_LOG2_T } else { 19 }),
             base_resolution: 16,
         },
-        scheme: match a.scheme {
-            SchemeArg::Prf => KeySchemeArg::Prf,
-            SchemeArg::Primes => KeySchemeArg::Primes,
-        },
+        scheme: a.scheme,
         schedule: if a.random_scene {
             Schedule::RandomScene
         } else {
@@ -245,7 +233,7 @@ pub fn run(a: Args) -> Result<()> {
         };
         run_detectability(&cfg, &opts)?
     } else {
-        run_experiment(&a.name, &cfg)?
+        run_experiment(a.name, &cfg)?
     };
     for t in &report.tables {
         println!("{}", t.markdown());

@@ -4,30 +4,15 @@
 use anyhow::bail;
 use std::io::{BufRead, IsTerminal};
 use std::path::{Path, PathBuf};
+use stegongp::experiments::KeySchemeArg;
 use stegongp::ngp::encoding::{GridConfig, GridLayout};
 use stegongp::stego::{self, DenseMode, Key, key_strength};
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum Scheme {
-    /// The paper's: m triples of random primes in [1e7, 1e10].
-    Primes,
-    /// A 256-bit secret and SipHash-2-4 per level (stronger; default).
-    Prf,
-}
-
-#[derive(Clone, Copy, Debug, clap::ValueEnum)]
-pub enum Dense {
-    /// Keyed permutation of the dense levels' slots (no collisions).
-    Permute,
-    /// Keyed hash modulo the dense level size.
-    Hash,
-}
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Key scheme.
-    #[arg(long, value_enum, default_value = "prf")]
-    pub scheme: Scheme,
+    #[arg(long, value_enum, default_value_t = KeySchemeArg::Prf)]
+    pub scheme: KeySchemeArg,
     /// Number of keys (groups of levels; level l uses key l mod m), 1 ≤ m ≤ levels.
     #[arg(long, default_value_t = 1)]
     pub m: usize,
@@ -40,8 +25,8 @@ pub struct Args {
     #[arg(long, requires = "passphrase")]
     pub salt: Option<String>,
     /// How dense (coarse) levels are keyed.
-    #[arg(long, value_enum, default_value = "permute")]
-    pub dense: Dense,
+    #[arg(long, value_enum, default_value_t = DenseMode::Permute)]
+    pub dense: DenseMode,
     /// Grid levels the key is meant for (checks m, and the strength report).
     #[arg(long, default_value_t = 16)]
     pub levels: u32,
@@ -89,10 +74,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     let key = match (args.scheme, args.passphrase) {
-        (Scheme::Primes, true) => bail!("--passphrase applies to --scheme prf only"),
-        (Scheme::Primes, false) => stego::generate_primes(args.m)?,
-        (Scheme::Prf, false) => stego::generate_prf(args.m)?,
-        (Scheme::Prf, true) => {
+        (KeySchemeArg::Primes, true) => bail!("--passphrase applies to --scheme prf only"),
+        (KeySchemeArg::Primes, false) => stego::generate_primes(args.m)?,
+        (KeySchemeArg::Prf, false) => stego::generate_prf(args.m)?,
+        (KeySchemeArg::Prf, true) => {
             let salt = match &args.salt {
                 Some(s) if s.is_empty() => bail!("--salt must not be empty"),
                 Some(s) => s.clone(),
@@ -105,10 +90,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             stego::derive_prf_from_passphrase(&pass, &salt, args.m)?
         }
     };
-    let key = key.with_dense(match args.dense {
-        Dense::Permute => DenseMode::Permute,
-        Dense::Hash => DenseMode::Hash,
-    });
+    let key = key.with_dense(args.dense);
     key.validate_for(&layout)?;
     // The error already names the file.
     stego::save_key(&args.out, &key, args.force)?;
@@ -140,7 +122,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             args.log2_hashmap_size,
             strength.total_bits,
             strength.oracle_bits,
-            if key.scheme().name() == "prf" {
+            if key.scheme().is_prf() {
                 "level"
             } else {
                 "key"

@@ -19,7 +19,7 @@ use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::NerfLayout;
 use stegongp::ngp::train::SceneSpec;
-use stegongp::stego::{Key, Mixed, OpenedScene, open_scene};
+use stegongp::stego::{Key, KeyVariant, OpenedScene, open_scene};
 
 /// The hidden scenes of a `train --hidden … --key …` call, each with its key's indices.
 pub fn stego_scenes(
@@ -66,55 +66,12 @@ pub fn stego_scenes(
     Ok((out, loaded.into_iter().map(|(k, _)| k).collect()))
 }
 
-/// Diagnostic variants of a key, for experiments by hand.
-#[derive(Clone, Debug)]
-pub enum KeyVariant {
-    Partial(f64),
-    Levels(f64),
-    Mixed(Mixed),
-    Wrong(u64),
-}
-
-pub fn parse_key_variant(s: &str) -> Result<KeyVariant> {
-    let (kind, val) = s.split_once(':').unwrap_or((s, ""));
-    Ok(match kind {
-        "partial" | "levels" => {
-            let p: f64 = val.trim_end_matches('%').parse().with_context(|| {
-                format!(
-                    "--key-variant {s}: expected {kind}:FRACTION, e.g. {kind}:0.5 or {kind}:50%"
-                )
-            })?;
-            let p = if val.ends_with('%') { p / 100.0 } else { p };
-            if !(0.0..=1.0).contains(&p) {
-                bail!("--key-variant {s}: the fraction must be in [0, 1]");
-            }
-            if kind == "partial" {
-                KeyVariant::Partial(p)
-            } else {
-                KeyVariant::Levels(p)
-            }
-        }
-        "mixed" => match val {
-            "pi1k2k3" => KeyVariant::Mixed(Mixed::Pi1K2K3),
-            "pi1pi2k3" => KeyVariant::Mixed(Mixed::Pi1Pi2K3),
-            _ => bail!("--key-variant {s}: expected mixed:pi1k2k3 or mixed:pi1pi2k3"),
-        },
-        "wrong" if val.is_empty() => KeyVariant::Wrong(1),
-        "wrong" => KeyVariant::Wrong(val.parse().with_context(|| {
-            format!("--key-variant {s}: expected wrong or wrong:SEED (a whole number)")
-        })?),
-        _ => bail!(
-            "--key-variant {s}: expected partial:P, levels:P, mixed:pi1k2k3, mixed:pi1pi2k3 or wrong[:SEED]"
-        ),
-    })
-}
-
 /// What renders a model: without a key the cover; with a key (or one of its diagnostic
 /// variants) the hidden scene it unlocks, confined as the model was trained when `stealth`.
 pub fn scene_for_key(
     model: &Model,
     key: Option<&Path>,
-    variant: Option<&str>,
+    variant: Option<KeyVariant>,
     stealth: bool,
 ) -> Result<OpenedScene> {
     let Some(kp) = key else {
@@ -130,50 +87,7 @@ pub fn scene_for_key(
     key.validate_for(&model.net.layout.grid)
         .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
     if let Some(v) = variant {
-        key = match parse_key_variant(v)? {
-            KeyVariant::Partial(p) => key.partial(p),
-            KeyVariant::Levels(p) => key.disclose_levels(p),
-            KeyVariant::Mixed(m) => key.mixed(m),
-            KeyVariant::Wrong(seed) => Key::wrong(seed, &key),
-        };
+        key = v.apply(&key);
     }
     Ok(open_scene(model, Some(&key), stealth, 0))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::{KeyVariant, parse_key_variant};
-    use stegongp::stego::Mixed;
-
-    #[test]
-    fn key_variants_parse_and_bad_ones_are_refused() {
-        assert!(matches!(parse_key_variant("partial:0.5"), Ok(KeyVariant::Partial(p)) if p == 0.5));
-        assert!(
-            matches!(parse_key_variant("partial:75%"), Ok(KeyVariant::Partial(p)) if p == 0.75)
-        );
-        assert!(matches!(parse_key_variant("levels:25%"), Ok(KeyVariant::Levels(p)) if p == 0.25));
-        assert!(matches!(
-            parse_key_variant("mixed:pi1k2k3"),
-            Ok(KeyVariant::Mixed(Mixed::Pi1K2K3))
-        ));
-        assert!(matches!(
-            parse_key_variant("wrong:7"),
-            Ok(KeyVariant::Wrong(7))
-        ));
-        assert!(matches!(
-            parse_key_variant("wrong"),
-            Ok(KeyVariant::Wrong(1))
-        ));
-        for bad in [
-            "wrong:x",
-            "partial:25",
-            "partial:x",
-            "levels:-1",
-            "mixed:k1",
-            "half",
-            "partial",
-        ] {
-            assert!(parse_key_variant(bad).is_err(), "{bad}");
-        }
-    }
 }

@@ -4,24 +4,10 @@ use stegongp::ngp::data::LoadOptions;
 use stegongp::synth::cameras_from::generate_from_cameras;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum SceneArg {
-    /// Textured primitives on a checkered platform.
-    Object,
-    /// Extruded 3D text (the natural hidden message).
-    Text,
-    /// A 3D logo drawn from --seed: a ring, shield or polygon frame around a plate, with a
-    /// star, chevrons or a cross in front (extruded, flat colours).
-    Logo,
-    /// The object inside a room, cameras inside the room: a capture-like unbounded scene in
-    /// the instant-ngp format (needs --aabb-scale ≥ 2).
-    Room,
-}
-
 #[derive(clap::Args, Debug)]
 pub struct Args {
     #[arg(long, value_enum)]
-    pub scene: SceneArg,
+    pub scene: SceneKind,
     /// The message of a text scene.
     #[arg(long, default_value = "(c) StegoNGP 2026")]
     pub text: String,
@@ -75,12 +61,7 @@ pub fn run(a: Args) -> Result<()> {
             a.out.display()
         );
     }
-    let scene = match a.scene {
-        SceneArg::Object => SceneKind::Object,
-        SceneArg::Text => SceneKind::Text(a.text.clone()),
-        SceneArg::Logo => SceneKind::Logo,
-        SceneArg::Room => SceneKind::Room,
-    };
+    let scene = a.scene.clone().with_text(&a.text);
     let s = if let Some(from) = &a.cameras_from {
         let given: Vec<&str> = [
             ("--res", a.res.is_some()),
@@ -99,7 +80,7 @@ pub fn run(a: Args) -> Result<()> {
                 from.display()
             );
         }
-        if a.scene == SceneArg::Room {
+        if scene == SceneKind::Room {
             bail!(
                 "--scene room cannot be used with --cameras-from: the room places its own \
                  cameras inside its walls (use object, text or logo)"

@@ -1,4 +1,4 @@
-use super::common::{Background, check_model_path, progress};
+use super::common::{check_model_path, progress};
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -8,17 +8,9 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
-use stegongp::ngp::render::image::RenderOptions;
+use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use stegongp::stego::stealth::StealthRefresh;
-
-#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum ScheduleArg {
-    /// Every batch mixes rays of all scenes.
-    Mixed,
-    /// One scene per step (the StegoNGP paper's Algorithm 1).
-    RandomScene,
-}
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -75,8 +67,8 @@ pub struct Args {
     /// Key file of the matching --hidden scene.
     #[arg(long)]
     pub key: Vec<PathBuf>,
-    #[arg(long, value_enum, default_value_t = ScheduleArg::Mixed)]
-    pub schedule: ScheduleArg,
+    #[arg(long, value_enum, default_value_t = Schedule::Mixed)]
+    pub schedule: Schedule,
     /// Loss weight of each hidden scene relative to the cover's 1: where the scenes share
     /// table entries, a larger weight moves quality from the cover to the hidden scenes.
     #[arg(long, default_value_t = 1.0)]
@@ -185,10 +177,7 @@ pub fn run(a: Args) -> Result<()> {
         seed: a.seed,
         batch_samples: a.batch,
         occupancy_fraction: a.occupancy_fraction,
-        schedule: match a.schedule {
-            ScheduleArg::Mixed => Schedule::Mixed,
-            ScheduleArg::RandomScene => Schedule::RandomScene,
-        },
+        schedule: a.schedule,
         hidden_loss_weight: a.hidden_weight,
         workers: a.workers,
         ..Default::default()

@@ -21,7 +21,7 @@
 //! matches, so an interrupted run resumes.
 
 use super::report::{Report, Table};
-use super::runs::{ExpConfig, KeySchemeArg, train_pair};
+use super::runs::{ExpConfig, Experiment, KeySchemeArg, train_pair};
 use super::store::reuse_or_train;
 use crate::error::{Error, Result};
 use crate::ngp::data::save_png_rgb;
@@ -77,13 +77,6 @@ impl Arm {
             Arm::Stego => "stego",
             Arm::Stealth => "stealth",
         }
-    }
-}
-
-fn scheme_name(s: KeySchemeArg) -> &'static str {
-    match s {
-        KeySchemeArg::Prf => "prf",
-        KeySchemeArg::Primes => "primes",
     }
 }
 
@@ -336,7 +329,7 @@ fn model_config(
     json!({
         "format": MODEL_FORMAT, "arm": arm.name(), "cover": rel(scenes.0),
         "hidden": if arm == Arm::Plain { Value::Null } else { json!(rel(scenes.1)) },
-        "seed": seed, "scheme": if arm == Arm::Plain { Value::Null } else { json!(scheme_name(combo.0)) },
+        "seed": seed, "scheme": if arm == Arm::Plain { Value::Null } else { json!(combo.0.name()) },
         "schedule": if arm == Arm::Plain { Value::Null } else { json!(schedule_name(combo.1)) },
         // A string: serde_json's float parsing does not round-trip every f64 exactly, and a
         // sidecar must compare equal to what wrote it.
@@ -665,7 +658,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
                 "detectability: pair {}/{} ({} key, {} schedule, hidden {hidden_kind})",
                 i + 1,
                 opts.models,
-                scheme_name(s),
+                s.name(),
                 schedule_name(sc)
             );
         }
@@ -684,7 +677,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let n_fit = opts.models.div_ceil(2);
     let of = |a: Arm| models.iter().filter(move |m| m.arm == a);
     let mut report = Report {
-        name: "detectability".into(),
+        name: Experiment::Detectability.to_string(),
         setup: json!({
             "models_per_arm": opts.models, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
             "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
@@ -849,7 +842,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let mut per_model = Table::new("Models");
     for m in &models {
         per_model.push(json!({
-            "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(scheme_name).unwrap_or("-"),
+            "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(KeySchemeArg::name).unwrap_or("-"),
             "schedule": if m.arm == Arm::Plain { "-" } else { schedule_name(m.schedule) },
             "hidden": if m.arm == Arm::Plain { "-" } else { m.hidden_kind.as_str() },
             "cover_psnr": num(m.cover_psnr), "hidden_psnr": m.hidden_psnr.map(num).unwrap_or(json!("-")),

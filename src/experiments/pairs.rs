@@ -15,7 +15,7 @@
 //! pairs is trained once (per box and budget).
 
 use super::report::{Report, Table, save_grid};
-use super::runs::{Budget, ExpConfig, Scene, load_scene, train_scenes};
+use super::runs::{Budget, ExpConfig, Experiment, Scene, load_scene, train_scenes};
 use super::store::reuse_or_train;
 use crate::error::{Error, Result};
 use crate::ngp::eval::{ground_truth, spread_views};
@@ -356,7 +356,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
     );
     let mut budgets = Table::new("Budget and training time per model");
     let mut report = Report {
-        name: "pairs".into(),
+        name: Experiment::Pairs.to_string(),
         ..Default::default()
     };
     // Sums for Table 1: [plain cover, stego cover, plain hidden, stego hidden].

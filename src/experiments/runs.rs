@@ -19,25 +19,81 @@ use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-pub const EXPERIMENTS: &[&str] = &[
-    "fidelity",
-    "key-sensitivity",
-    "partial-keys",
-    "multi-hidden",
-    "table-size",
-    "key-strength",
-    "detectability",
-    "pairs",
-];
+/// One of the experiments, named as `stegongp experiment NAME` takes it; the name is also
+/// its report's folder and its report's `experiment` field.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Experiment {
+    Fidelity,
+    KeySensitivity,
+    PartialKeys,
+    MultiHidden,
+    TableSize,
+    KeyStrength,
+    Detectability,
+    Pairs,
+}
 
+impl Experiment {
+    /// Every experiment, in the order the CLI lists them.
+    pub const ALL: [Experiment; 8] = [
+        Experiment::Fidelity,
+        Experiment::KeySensitivity,
+        Experiment::PartialKeys,
+        Experiment::MultiHidden,
+        Experiment::TableSize,
+        Experiment::KeyStrength,
+        Experiment::Detectability,
+        Experiment::Pairs,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Experiment::Fidelity => "fidelity",
+            Experiment::KeySensitivity => "key-sensitivity",
+            Experiment::PartialKeys => "partial-keys",
+            Experiment::MultiHidden => "multi-hidden",
+            Experiment::TableSize => "table-size",
+            Experiment::KeyStrength => "key-strength",
+            Experiment::Detectability => "detectability",
+            Experiment::Pairs => "pairs",
+        }
+    }
+}
+
+impl std::fmt::Display for Experiment {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Experiment {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Experiment::ALL
+            .into_iter()
+            .find(|e| e.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Experiment::ALL.iter().map(|e| e.name()).collect();
+                Error::Config(format!(
+                    "unknown experiment '{s}' (one of: {})",
+                    names.join(", ")
+                ))
+            })
+    }
+}
+
+/// The key scheme an experiment draws its keys from (and `keygen --scheme`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum KeySchemeArg {
-    Prf,
+    /// The paper's: m triples of random primes in [1e7, 1e10].
     Primes,
+    /// A 256-bit secret and SipHash-2-4 per level (stronger; default).
+    Prf,
 }
 
 impl KeySchemeArg {
-    pub(super) fn name(self) -> &'static str {
+    pub fn name(self) -> &'static str {
         match self {
             KeySchemeArg::Prf => "prf",
             KeySchemeArg::Primes => "primes",
@@ -281,22 +337,16 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
 }
 
 /// Runs experiment `name` and writes its report into `cfg.out`.
-pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
-    if !EXPERIMENTS.contains(&name) {
-        return Err(Error::Config(format!(
-            "unknown experiment '{name}' (one of: {})",
-            EXPERIMENTS.join(", ")
-        )));
-    }
+pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
     std::fs::create_dir_all(&cfg.out).map_err(|e| Error::io(&cfg.out, e))?;
-    if name == "detectability" {
+    if name == Experiment::Detectability {
         // It generates its own population of scenes; the CLI passes its options directly.
         return super::detectability::run_detectability(
             cfg,
             &super::detectability::DetectOptions::default(),
         );
     }
-    if name == "pairs" {
+    if name == Experiment::Pairs {
         // The cover with each hidden scene; the CLI passes its own pairs and options.
         let opts = super::pairs::PairsOptions {
             pairs: cfg
@@ -313,11 +363,11 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
         return super::pairs::run_pairs(cfg, &opts);
     }
     let mut report = Report {
-        name: name.into(),
+        name: name.to_string(),
         setup: setup_json(cfg),
         ..Default::default()
     };
-    if name == "key-strength" {
+    if name == Experiment::KeyStrength {
         key_strength_report(cfg, &mut report)?;
         report.write(&cfg.out)?;
         return Ok(report);
@@ -339,12 +389,14 @@ pub fn run_experiment(name: &str, cfg: &ExpConfig) -> Result<Report> {
             .collect::<Result<_>>()?,
     };
     match name {
-        "fidelity" => fidelity(&ctx, &mut report)?,
-        "key-sensitivity" => key_sensitivity(&ctx, &mut report)?,
-        "partial-keys" => partial_keys(&ctx, &mut report)?,
-        "multi-hidden" => multi_hidden(&ctx, &mut report)?,
-        "table-size" => table_size(&ctx, &mut report)?,
-        _ => unreachable!("checked above"),
+        Experiment::Fidelity => fidelity(&ctx, &mut report)?,
+        Experiment::KeySensitivity => key_sensitivity(&ctx, &mut report)?,
+        Experiment::PartialKeys => partial_keys(&ctx, &mut report)?,
+        Experiment::MultiHidden => multi_hidden(&ctx, &mut report)?,
+        Experiment::TableSize => table_size(&ctx, &mut report)?,
+        Experiment::KeyStrength | Experiment::Detectability | Experiment::Pairs => {
+            unreachable!("run above")
+        }
     }
     report.write(&cfg.out)?;
     Ok(report)
@@ -753,4 +805,40 @@ pub(super) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Resu
         cover,
         hidden,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Experiment;
+
+    #[test]
+    fn experiment_names_read_back_and_name_the_report_folders() {
+        // The names are the CLI's and the report folders' (OUT/NAME/): they must not change.
+        let names: Vec<String> = Experiment::ALL.iter().map(|e| e.to_string()).collect();
+        assert_eq!(
+            names,
+            [
+                "fidelity",
+                "key-sensitivity",
+                "partial-keys",
+                "multi-hidden",
+                "table-size",
+                "key-strength",
+                "detectability",
+                "pairs"
+            ]
+        );
+        for e in Experiment::ALL {
+            assert_eq!(e.to_string().parse::<Experiment>().unwrap(), e);
+            assert_eq!(e.name(), e.to_string());
+        }
+        for bad in ["Fidelity", "key_strength", "", "pair"] {
+            let err = bad.parse::<Experiment>().unwrap_err().to_string();
+            assert!(
+                err.contains(&format!("unknown experiment '{bad}'")),
+                "{err}"
+            );
+            assert!(err.contains(&names.join(", ")), "{err}");
+        }
+    }
 }

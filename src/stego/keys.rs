@@ -18,14 +18,21 @@ pub const PI: [u64; 3] = [
 /// Largest number of key groups (the grid has at most 32 levels).
 pub const MAX_GROUPS: usize = 32;
 
-/// How a keyed dense level (res³ ≤ T) indexes its table.
+/// How a keyed dense level (res³ ≤ T) indexes its table. (The first paragraph of each
+/// variant's comment is `keygen --dense`'s help.)
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum DenseMode {
-    /// Keyed permutation of the dense index: the hidden scene's cells stay collision-free.
+    /// Keyed permutation of the dense levels' slots (no collisions).
+    ///
+    /// A permutation of the reference dense index: the hidden scene's cells stay
+    /// collision-free, as the cover's are.
     #[default]
     Permute,
-    /// Keyed hash modulo the level size (collides ~37% of the cells, leaves ~37% unused).
+    /// Keyed hash modulo the dense level size.
+    ///
+    /// Collides ~37% of the cells and leaves ~37% of the slots unused.
     Hash,
 }
 

@@ -42,6 +42,7 @@ pub mod prf;
 pub mod primes;
 pub mod stealth;
 pub mod strength;
+pub mod variant;
 pub mod view;
 
 #[cfg(test)]
@@ -57,4 +58,5 @@ pub use keys::{
     derive_prf_from_passphrase_with, generate_prf, generate_primes, generate_with, random_salt,
 };
 pub use strength::{Disclosure, KeyStrength, key_strength};
+pub use variant::KeyVariant;
 pub use view::{OpenedScene, open_scene};

@@ -36,14 +36,70 @@ pub const CAMERA_RADIUS: f32 = 4.0;
 /// Most characters per line of a text scene before it wraps.
 const LINE_CHARS: usize = 10;
 
+/// What a generated scene shows. With the `cli` feature it parses (clap's `ValueEnum`) from
+/// its name alone, `object`, `text`, `logo` or `room`; a text scene parsed so has an empty
+/// message until [`SceneKind::with_text`] gives it one.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum SceneKind {
+    /// Textured primitives on a checkered platform.
     Object,
+    /// Extruded 3D text (the natural hidden message).
     Text(String),
     /// The object inside a room (an unbounded-looking capture); needs `aabb_scale` ≥ 2.
     Room,
     /// A generated 3-D logo ([`logo::Logo`]), drawn from [`SynthOptions::seed`].
     Logo,
+}
+
+impl SceneKind {
+    /// The kind's name: `object`, `text`, `logo` or `room`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            SceneKind::Object => "object",
+            SceneKind::Text(_) => "text",
+            SceneKind::Logo => "logo",
+            SceneKind::Room => "room",
+        }
+    }
+
+    /// This kind, with `text` as its message when it is a text scene.
+    pub fn with_text(self, text: &str) -> SceneKind {
+        match self {
+            SceneKind::Text(_) => SceneKind::Text(text.into()),
+            other => other,
+        }
+    }
+}
+
+/// By hand, as a text scene carries its message: the kinds in `synth --scene`'s order, the
+/// text one with an empty message.
+#[cfg(feature = "cli")]
+impl clap::ValueEnum for SceneKind {
+    fn value_variants<'a>() -> &'a [Self] {
+        const KINDS: &[SceneKind] = &[
+            SceneKind::Object,
+            SceneKind::Text(String::new()),
+            SceneKind::Logo,
+            SceneKind::Room,
+        ];
+        KINDS
+    }
+
+    fn to_possible_value(&self) -> Option<clap::builder::PossibleValue> {
+        let help = match self {
+            SceneKind::Object => "Textured primitives on a checkered platform",
+            SceneKind::Text(_) => "Extruded 3D text (the natural hidden message)",
+            SceneKind::Logo => {
+                "A 3D logo drawn from --seed: a ring, shield or polygon frame around a plate, \
+                 with a star, chevrons or a cross in front (extruded, flat colours)"
+            }
+            SceneKind::Room => {
+                "The object inside a room, cameras inside the room: a capture-like unbounded \
+                 scene in the instant-ngp format (needs --aabb-scale ≥ 2)"
+            }
+        };
+        Some(clap::builder::PossibleValue::new(self.name()).help(help))
+    }
 }
 
 /// The bounded scene of a kind (room excluded) and its name for summaries; `seed` picks
@@ -425,6 +481,21 @@ fn generate_room(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg(feature = "cli")]
+    #[test]
+    fn scene_kinds_parse_by_name_and_take_their_text() {
+        use clap::ValueEnum;
+        for kind in SceneKind::value_variants() {
+            let parsed = SceneKind::from_str(kind.name(), false).unwrap();
+            assert_eq!(&parsed, kind);
+        }
+        let text = SceneKind::from_str("text", false).unwrap();
+        assert_eq!(text, SceneKind::Text(String::new()));
+        assert_eq!(text.with_text("HI"), SceneKind::Text("HI".into()));
+        assert_eq!(SceneKind::Logo.with_text("HI"), SceneKind::Logo);
+        assert!(SceneKind::from_str("castle", false).is_err());
+    }
 
     #[test]
     fn cameras_look_at_the_origin() {

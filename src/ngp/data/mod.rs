@@ -38,6 +38,7 @@ use colmap2nerf::{ImportedScene, to_transforms};
 use transforms::{FrameSpec, Transforms, nerf_to_ngp, parse_transforms, parse_transforms_value};
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Split {
     Train,
     Val,

@@ -10,9 +10,28 @@ use crate::ngp::network::nerf::{CHUNK, NerfNetwork};
 use crate::ngp::occupancy::OccupancyGrid;
 use rayon::prelude::*;
 
+/// The background a rendering is composited over (instant-ngp's test-time white or black).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum Background {
+    #[default]
+    White,
+    Black,
+}
+
+impl Background {
+    /// The colour, for [`RenderOptions::background`].
+    pub fn rgb(self) -> [f32; 3] {
+        match self {
+            Background::White => [1.0; 3],
+            Background::Black => [0.0; 3],
+        }
+    }
+}
+
 #[derive(Clone, Copy, Debug)]
 pub struct RenderOptions {
-    /// Background colour (sRGB, [0,1]).
+    /// Background colour (sRGB, [0,1]); [`Background::rgb`] gives the usual two.
     pub background: [f32; 3],
     /// A ray stops below this transmittance (instant-ngp's run.py evaluates with 1e-4).
     pub min_transmittance: f32,
