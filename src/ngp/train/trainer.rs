@@ -25,10 +25,15 @@ use std::sync::Arc;
 
 /// How the scenes of a multi-scene model share the steps.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Schedule {
-    /// Every batch holds rays of every scene (our default).
+    /// Every batch mixes rays of all scenes.
+    ///
+    /// Our default.
     Mixed,
-    /// One scene per step, drawn at random (the StegoNGP paper's Algorithm 1).
+    /// One scene per step (the StegoNGP paper's Algorithm 1).
+    ///
+    /// The scene is drawn at random.
     RandomScene,
 }
 
