@@ -1,11 +1,12 @@
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::experiments::{
-    DetectOptions, ExpConfig, Experiment, KeySchemeArg, PairSpec, PairsOptions, read_pairs_file,
+    DetectOptions, ExpConfig, Experiment, PairSpec, PairsOptions, read_pairs_file,
     run_detectability, run_experiment, run_pairs,
 };
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
+use stegongp::stego::SchemeKind;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
@@ -53,8 +54,8 @@ pub struct Args {
     #[arg(long)]
     pub log2_t: Option<u32>,
     /// Key scheme of the hidden scenes (key-sensitivity and partial-keys always run both).
-    #[arg(long, value_enum, default_value_t = KeySchemeArg::Prf)]
-    pub scheme: KeySchemeArg,
+    #[arg(long, value_enum, default_value_t = SchemeKind::Prf)]
+    pub scheme: SchemeKind,
     /// Train the stego models with stealth (hidden scenes confined to the cover's reachable
     /// table entries; see `train --stealth`).
     #[arg(long)]

@@ -4,15 +4,14 @@
 use anyhow::bail;
 use std::io::{BufRead, IsTerminal};
 use std::path::{Path, PathBuf};
-use stegongp::experiments::KeySchemeArg;
 use stegongp::ngp::encoding::{GridConfig, GridLayout};
-use stegongp::stego::{self, DenseMode, Key, key_strength};
+use stegongp::stego::{self, DenseMode, Key, SchemeKind, key_strength};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
     /// Key scheme.
-    #[arg(long, value_enum, default_value_t = KeySchemeArg::Prf)]
-    pub scheme: KeySchemeArg,
+    #[arg(long, value_enum, default_value_t = SchemeKind::Prf)]
+    pub scheme: SchemeKind,
     /// Number of keys (groups of levels; level l uses key l mod m), 1 ≤ m ≤ levels.
     #[arg(long, default_value_t = 1)]
     pub m: usize,
@@ -74,10 +73,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         );
     }
     let key = match (args.scheme, args.passphrase) {
-        (KeySchemeArg::Primes, true) => bail!("--passphrase applies to --scheme prf only"),
-        (KeySchemeArg::Primes, false) => stego::generate_primes(args.m)?,
-        (KeySchemeArg::Prf, false) => stego::generate_prf(args.m)?,
-        (KeySchemeArg::Prf, true) => {
+        (SchemeKind::Primes, true) => bail!("--passphrase applies to --scheme prf only"),
+        (SchemeKind::Primes, false) => stego::generate_primes(args.m)?,
+        (SchemeKind::Prf, false) => stego::generate_prf(args.m)?,
+        (SchemeKind::Prf, true) => {
             let salt = match &args.salt {
                 Some(s) if s.is_empty() => bail!("--salt must not be empty"),
                 Some(s) => s.clone(),

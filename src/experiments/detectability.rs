@@ -21,13 +21,14 @@
 //! matches, so an interrupted run resumes.
 
 use super::report::{Report, Table};
-use super::runs::{ExpConfig, Experiment, KeySchemeArg, train_pair};
+use super::runs::{ExpConfig, Experiment, train_pair};
 use super::store::reuse_or_train;
 use crate::error::{Error, Result};
 use crate::ngp::data::save_png_rgb;
 use crate::ngp::train::Schedule;
 use crate::rng::Pcg32;
 use crate::steganalysis::{Detector, analyse_file, feature_matrix, roc_auc};
+use crate::stego::SchemeKind;
 use crate::synth::scene::{Material, Object, Scene, Shape, V3, text_scene};
 use crate::synth::{CAMERA_ANGLE_X, CAMERA_RADIUS, layout_text, look_at, render_view};
 use crate::util::write_atomic;
@@ -89,11 +90,11 @@ fn schedule_name(s: Schedule) -> &'static str {
 
 /// Pair `i`'s key scheme and schedule: consecutive pairs cover all four combinations, so
 /// both halves of the population (fit and scored) hold every one.
-fn combination(i: usize) -> (KeySchemeArg, Schedule) {
+fn combination(i: usize) -> (SchemeKind, Schedule) {
     let scheme = if i.is_multiple_of(2) {
-        KeySchemeArg::Prf
+        SchemeKind::Prf
     } else {
-        KeySchemeArg::Primes
+        SchemeKind::Primes
     };
     let schedule = if (i / 2).is_multiple_of(2) {
         Schedule::Mixed
@@ -112,7 +113,7 @@ fn pair_seed(seed: u64, i: usize) -> u64 {
 struct ModelRecord {
     arm: Arm,
     index: usize,
-    scheme: Option<KeySchemeArg>,
+    scheme: Option<SchemeKind>,
     schedule: Schedule,
     hidden_kind: String,
     cover_psnr: f64,
@@ -321,7 +322,7 @@ fn model_config(
     arm: Arm,
     scenes: (&Path, &Path),
     seed: u64,
-    combo: (KeySchemeArg, Schedule),
+    combo: (SchemeKind, Schedule),
 ) -> Value {
     let g = &cfg.grid;
     // Relative to the output folder, so a moved folder still resumes.
@@ -842,7 +843,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let mut per_model = Table::new("Models");
     for m in &models {
         per_model.push(json!({
-            "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(KeySchemeArg::name).unwrap_or("-"),
+            "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(SchemeKind::name).unwrap_or("-"),
             "schedule": if m.arm == Arm::Plain { "-" } else { schedule_name(m.schedule) },
             "hidden": if m.arm == Arm::Plain { "-" } else { m.hidden_kind.as_str() },
             "cover_psnr": num(m.cover_psnr), "hidden_psnr": m.hidden_psnr.map(num).unwrap_or(json!("-")),
@@ -970,7 +971,7 @@ mod tests {
     #[test]
     fn pairs_cycle_through_all_four_combinations() {
         let c: Vec<_> = (0..4).map(combination).collect();
-        for s in [KeySchemeArg::Prf, KeySchemeArg::Primes] {
+        for s in [SchemeKind::Prf, SchemeKind::Primes] {
             for sc in [Schedule::Mixed, Schedule::RandomScene] {
                 assert_eq!(c.iter().filter(|x| **x == (s, sc)).count(), 1);
             }

@@ -10,4 +10,4 @@ mod store;
 
 pub use detectability::{DetectOptions, run_detectability};
 pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};
-pub use runs::{ExpConfig, Experiment, KeySchemeArg, run_experiment};
+pub use runs::{ExpConfig, Experiment, run_experiment};

@@ -15,7 +15,7 @@
 //! pairs is trained once (per box and budget).
 
 use super::report::{Report, Table, save_grid};
-use super::runs::{Budget, ExpConfig, Experiment, Scene, load_scene, train_scenes};
+use super::runs::{Budget, ExpConfig, Experiment, Scene, experiment_key, load_scene, train_scenes};
 use super::store::reuse_or_train;
 use crate::error::{Error, Result};
 use crate::ngp::eval::{ground_truth, spread_views};
@@ -412,7 +412,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             cover_dir.display(),
             hidden_dir.display()
         ));
-        let key = cfg.scheme.generate(1, cfg.seed, which)?;
+        let key = experiment_key(cfg.scheme, 1, cfg.seed, which)?;
         let stego = models.get(
             &format!("stego-{cl}-{hl}"),
             json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,

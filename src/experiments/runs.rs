@@ -13,7 +13,7 @@ use crate::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use crate::rng::Pcg32;
 use crate::stego::stealth::StealthRefresh;
 use crate::stego::{
-    Key, Mixed, generate_prf, generate_primes, generate_with, key_strength, open_scene,
+    Key, Mixed, SchemeKind, generate_prf, generate_primes, generate_with, key_strength, open_scene,
 };
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -82,30 +82,12 @@ impl std::str::FromStr for Experiment {
     }
 }
 
-/// The key scheme an experiment draws its keys from (and `keygen --scheme`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
-pub enum KeySchemeArg {
-    /// The paper's: m triples of random primes in [1e7, 1e10].
-    Primes,
-    /// A 256-bit secret and SipHash-2-4 per level (stronger; default).
-    Prf,
-}
-
-impl KeySchemeArg {
-    pub fn name(self) -> &'static str {
-        match self {
-            KeySchemeArg::Prf => "prf",
-            KeySchemeArg::Primes => "primes",
-        }
-    }
-    /// The experiment's key number `which` for `m` groups: drawn from the run's seed, so a
-    /// report can be reproduced exactly (these keys protect nothing).
-    pub(super) fn generate(self, m: usize, seed: u64, which: u64) -> Result<Key> {
-        let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
-        let next = move || Ok(((rng.next_u32() as u64) << 32) | rng.next_u32() as u64);
-        generate_with(self == KeySchemeArg::Prf, m, next)
-    }
+/// An experiment's key number `which` of `kind` for `m` groups: drawn from the run's seed, so
+/// a report can be reproduced exactly (these keys protect nothing).
+pub(super) fn experiment_key(kind: SchemeKind, m: usize, seed: u64, which: u64) -> Result<Key> {
+    let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
+    let next = move || Ok(((rng.next_u32() as u64) << 32) | rng.next_u32() as u64);
+    generate_with(kind, m, next)
 }
 
 /// What every experiment shares.
@@ -127,7 +109,7 @@ pub struct ExpConfig {
     pub eval_views: usize,
     pub occupancy_fraction: f32,
     pub grid: GridConfig,
-    pub scheme: KeySchemeArg,
+    pub scheme: SchemeKind,
     pub schedule: Schedule,
     /// Stealth training: hidden scenes confined to the cover's reachable entries.
     pub stealth: bool,
@@ -404,7 +386,7 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
 
 fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
-    let key = ctx.cfg.scheme.generate(1, ctx.cfg.seed, 0)?;
+    let key = experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, 0)?;
     let h = ctx.hidden(0);
     ctx.log("fidelity: plain cover, plain hidden, stego (cover + hidden)");
     let plain_c = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi)], "plain cover")?;
@@ -453,15 +435,15 @@ fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
 fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
-    for scheme in [KeySchemeArg::Primes, KeySchemeArg::Prf] {
-        let key = scheme.generate(1, ctx.cfg.seed, 0)?;
+    for scheme in [SchemeKind::Primes, SchemeKind::Prf] {
+        let key = experiment_key(scheme, 1, ctx.cfg.seed, 0)?;
         ctx.log(&format!("key-sensitivity ({}): stego model", scheme.name()));
         let stego = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi), (h, &key)], scheme.name())?;
         let variants = [
             ("default Π", pi.clone()),
             ("secret key", key.clone()),
             (
-                if scheme == KeySchemeArg::Primes {
+                if scheme == SchemeKind::Primes {
                     "{π1,k2,k3}"
                 } else {
                     "1/3 of secret zeroed"
@@ -469,7 +451,7 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
                 key.mixed(Mixed::Pi1K2K3),
             ),
             (
-                if scheme == KeySchemeArg::Primes {
+                if scheme == SchemeKind::Primes {
                     "{π1,π2,k3}"
                 } else {
                     "2/3 of secret zeroed"
@@ -517,12 +499,12 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
         "Partial key disclosure: hidden-scene PSNR when the first p % of the m keys are given (the rest replaced by Π)",
     );
     let (w, hgt) = ctx.size();
-    for scheme in [KeySchemeArg::Primes, KeySchemeArg::Prf] {
+    for scheme in [SchemeKind::Primes, SchemeKind::Prf] {
         for m in [4usize, 8, 16] {
             if m > ctx.cfg.grid.n_levels as usize {
                 continue;
             }
-            let key = scheme.generate(m, ctx.cfg.seed, 0)?;
+            let key = experiment_key(scheme, m, ctx.cfg.seed, 0)?;
             ctx.log(&format!("partial-keys: {} m = {m}", scheme.name()));
             let stego = ctx.train(
                 ctx.cfg.grid,
@@ -533,8 +515,8 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
             // prf: partial key material (all-or-nothing), then leaked level subkeys (the
             // paper's per-level substitution); primes: the two are the same.
             let variants: Vec<(&str, Disclose)> = match scheme {
-                KeySchemeArg::Primes => vec![("keys", Key::partial)],
-                KeySchemeArg::Prf => vec![
+                SchemeKind::Primes => vec![("keys", Key::partial)],
+                SchemeKind::Prf => vec![
                     ("secret shares", Key::partial),
                     ("level subkeys", Key::disclose_levels),
                 ],
@@ -585,7 +567,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let mut tiles = vec![];
     for phi in 1..=4usize {
         let keys: Vec<Key> = (0..phi)
-            .map(|i| ctx.cfg.scheme.generate(1, ctx.cfg.seed, i as u64))
+            .map(|i| experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, i as u64))
             .collect::<Result<_>>()?;
         let mut scenes: Vec<(&Scene, &Key)> = vec![(&ctx.cover, &pi)];
         for (i, k) in keys.iter().enumerate() {
@@ -631,7 +613,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
 fn table_size(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
-    let key = ctx.cfg.scheme.generate(1, ctx.cfg.seed, 0)?;
+    let key = experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, 0)?;
     let mut t = Table::new("Hash table size T");
     for log2_t in 18..=21u32 {
         let grid = GridConfig {
@@ -692,8 +674,7 @@ fn key_strength_report(cfg: &ExpConfig, report: &mut Report) -> Result<()> {
         ("prf m=16", generate_prf(16.min(levels))?),
     ] {
         let s = key_strength(&key, &layout.grid);
-        let prf = key.scheme().is_prf();
-        let c = key_trial_cost(prf, s.m, &layout.grid, PROBE_POINTS, 7, 2)?;
+        let c = key_trial_cost(key.scheme().kind(), s.m, &layout.grid, PROBE_POINTS, 7, 2)?;
         let years = |bits: f64, secs: f64| brute_force_years_log10(bits, secs).map(format_pow10);
         t.push(
             json!({"key": label, "scheme": s.scheme, "m": s.m, "total_bits": s.total_bits,
@@ -786,7 +767,7 @@ pub(super) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Resu
     let ctx = Ctx { cfg, cover, hidden };
     let pi = Key::reference();
     let key = key
-        .map(|which| cfg.scheme.generate(1, cfg.seed, which))
+        .map(|which| experiment_key(cfg.scheme, 1, cfg.seed, which))
         .transpose()?;
     let mut scenes = vec![(&ctx.cover, &pi)];
     if let Some(k) = &key {

@@ -93,8 +93,9 @@ fn bench_key_trial() {
         "{:8} {:>3} {:>10} {:>10} {:>10}",
         "scheme", "m", "trial ms", "derive ms", "index ms"
     );
-    for (prf, m) in [(false, 1), (false, 16), (true, 1), (true, 16)] {
-        let c = key_trial_cost(prf, m, &g, PROBE_POINTS, 9, 3).unwrap();
+    use super::SchemeKind::{Prf, Primes};
+    for (kind, m) in [(Primes, 1), (Primes, 16), (Prf, 1), (Prf, 16)] {
+        let c = key_trial_cost(kind, m, &g, PROBE_POINTS, 9, 3).unwrap();
         println!(
             "{:8} {:>3} {:>10.3} {:>10.3} {:>10.3}",
             c.scheme,

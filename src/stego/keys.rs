@@ -52,6 +52,26 @@ impl DenseMode {
     }
 }
 
+/// Which kind of key to make: what `keygen --scheme` and the experiments choose; the key
+/// material itself is a [`KeyScheme`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum SchemeKind {
+    /// The paper's: m triples of random primes in [1e7, 1e10].
+    Primes,
+    /// A 256-bit secret and SipHash-2-4 per level (stronger; default).
+    Prf,
+}
+
+impl SchemeKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            SchemeKind::Prf => "prf",
+            SchemeKind::Primes => "primes",
+        }
+    }
+}
+
 /// The secret part of a key. `Debug` never prints key material.
 #[derive(Clone, PartialEq, Eq)]
 pub enum KeyScheme {
@@ -108,6 +128,13 @@ impl KeyScheme {
     /// Either `prf` layout.
     pub fn is_prf(&self) -> bool {
         !matches!(self, KeyScheme::Primes { .. })
+    }
+    pub fn kind(&self) -> SchemeKind {
+        if self.is_prf() {
+            SchemeKind::Prf
+        } else {
+            SchemeKind::Primes
+        }
     }
 }
 
@@ -452,23 +479,23 @@ impl Key {
 
 /// `m` random triples of distinct primes in [1e7, 1e10] from the OS CSPRNG.
 pub fn generate_primes(m: usize) -> Result<Key> {
-    generate_with(false, m, primes::os_u64)
+    generate_with(SchemeKind::Primes, m, primes::os_u64)
 }
 
 /// `m` independent random 256-bit secrets from the OS CSPRNG (key file version 2).
 pub fn generate_prf(m: usize) -> Result<Key> {
-    generate_with(true, m, primes::os_u64)
+    generate_with(SchemeKind::Prf, m, primes::os_u64)
 }
 
-/// A `prf` (`prf = true`) or `primes` key drawn from `next_u64`. The OS CSPRNG for real
-/// keys; a seeded generator only for experiments whose reports must be reproducible.
+/// A key of `kind` drawn from `next_u64`. The OS CSPRNG for real keys; a seeded generator
+/// only for experiments whose reports must be reproducible.
 pub fn generate_with(
-    prf: bool,
+    kind: SchemeKind,
     m: usize,
     mut next_u64: impl FnMut() -> Result<u64>,
 ) -> Result<Key> {
     check_m(m)?;
-    let scheme = if prf {
+    let scheme = if kind == SchemeKind::Prf {
         KeyScheme::Prf {
             secrets: (0..m)
                 .map(|_| random_secret(&mut next_u64))

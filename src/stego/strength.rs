@@ -34,7 +34,7 @@
 //! [`brute_force_years_log10`] turns bits and that cost into the expected search time —
 //! the paper's brute-force column, from a measurement instead of an assumed frame rate.
 
-use super::keys::{GroupKey, Key, KeyScheme, PI, generate_with, share_range};
+use super::keys::{GroupKey, Key, KeyScheme, PI, SchemeKind, generate_with, share_range};
 use super::primes::PRIMES_IN_RANGE;
 use crate::error::Result;
 use crate::ngp::encoding::GridLayout;
@@ -252,13 +252,13 @@ pub struct KeyTrialCost {
     pub trials_per_run: usize,
 }
 
-/// Measures [`KeyTrialCost`] for a `prf` (`prf = true`) or `primes` key of `m` groups on
+/// Measures [`KeyTrialCost`] for a key of `kind` with `m` groups on
 /// `layout`: `probes` points uniform in the unit cube (fixed, seeded), one true key and
 /// `trials_per_run` candidate keys drawn from a seeded generator (drawn before timing: an
 /// attacker enumerates candidates, e.g. from a prime sieve, for next to nothing), `runs`
 /// timed runs after a warm-up, the median per trial reported.
 pub fn key_trial_cost(
-    prf: bool,
+    kind: SchemeKind,
     m: usize,
     layout: &GridLayout,
     probes: usize,
@@ -279,7 +279,7 @@ pub fn key_trial_cost(
         .collect();
     let mut draw = |stream: u64| {
         let mut r = Pcg32::new(0x6b65_7973, stream);
-        generate_with(prf, m, move || {
+        generate_with(kind, m, move || {
             Ok((r.next_u32() as u64) << 32 | r.next_u32() as u64)
         })
     };
@@ -401,9 +401,9 @@ mod trial_tests {
     #[test]
     fn a_trial_is_measured_for_both_schemes() {
         let g = GridLayout::new(GridConfig::default(), 1).unwrap();
-        for prf in [true, false] {
-            let c = key_trial_cost(prf, 2, &g, 64, 3, 1).unwrap();
-            assert_eq!(c.scheme, if prf { "prf" } else { "primes" });
+        for kind in [SchemeKind::Prf, SchemeKind::Primes] {
+            let c = key_trial_cost(kind, 2, &g, 64, 3, 1).unwrap();
+            assert_eq!(c.scheme, kind.name());
             assert_eq!(c.lookups, 64 * 16 * 8);
             assert!(c.trial_seconds > 0.0 && c.derive_seconds > 0.0 && c.index_seconds > 0.0);
             assert!(c.index_seconds < c.trial_seconds, "{c:?}");
