@@ -81,13 +81,6 @@ impl Arm {
     }
 }
 
-fn schedule_name(s: Schedule) -> &'static str {
-    match s {
-        Schedule::Mixed => "mixed",
-        Schedule::RandomScene => "random-scene",
-    }
-}
-
 /// Pair `i`'s key scheme and schedule: consecutive pairs cover all four combinations, so
 /// both halves of the population (fit and scored) hold every one.
 fn combination(i: usize) -> (SchemeKind, Schedule) {
@@ -331,7 +324,7 @@ fn model_config(
         "format": MODEL_FORMAT, "arm": arm.name(), "cover": rel(scenes.0),
         "hidden": if arm == Arm::Plain { Value::Null } else { json!(rel(scenes.1)) },
         "seed": seed, "scheme": if arm == Arm::Plain { Value::Null } else { json!(combo.0.name()) },
-        "schedule": if arm == Arm::Plain { Value::Null } else { json!(schedule_name(combo.1)) },
+        "schedule": if arm == Arm::Plain { Value::Null } else { json!(combo.1.name()) },
         // A string: serde_json's float parsing does not round-trip every f64 exactly, and a
         // sidecar must compare equal to what wrote it.
         "steps": cfg.steps, "batch": cfg.batch, "occupancy_fraction": cfg.occupancy_fraction.to_string(),
@@ -660,7 +653,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
                 i + 1,
                 opts.models,
                 s.name(),
-                schedule_name(sc)
+                sc.name()
             );
         }
         for &arm in &arms {
@@ -844,7 +837,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     for m in &models {
         per_model.push(json!({
             "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(SchemeKind::name).unwrap_or("-"),
-            "schedule": if m.arm == Arm::Plain { "-" } else { schedule_name(m.schedule) },
+            "schedule": if m.arm == Arm::Plain { "-" } else { m.schedule.name() },
             "hidden": if m.arm == Arm::Plain { "-" } else { m.hidden_kind.as_str() },
             "cover_psnr": num(m.cover_psnr), "hidden_psnr": m.hidden_psnr.map(num).unwrap_or(json!("-")),
             "half": if m.index < n_fit { "fit" } else { "scored" },

@@ -113,10 +113,7 @@ impl std::fmt::Debug for KeyScheme {
 
 impl KeyScheme {
     pub fn name(&self) -> &'static str {
-        match self {
-            KeyScheme::Primes { .. } => "primes",
-            KeyScheme::Prf { .. } | KeyScheme::PrfShares { .. } => "prf",
-        }
+        self.kind().name()
     }
     pub fn m(&self) -> usize {
         match self {

@@ -54,8 +54,9 @@ pub use keyfile::{
     LoadedKey, key_file_warnings, load_key, load_key_with_warnings, parse_key, save_key,
 };
 pub use keys::{
-    Argon2Cost, DenseMode, GroupKey, Key, KeyScheme, Mixed, PI, SchemeKind, derive_prf_from_passphrase,
-    derive_prf_from_passphrase_with, generate_prf, generate_primes, generate_with, random_salt,
+    Argon2Cost, DenseMode, GroupKey, Key, KeyScheme, Mixed, PI, SchemeKind,
+    derive_prf_from_passphrase, derive_prf_from_passphrase_with, generate_prf, generate_primes,
+    generate_with, random_salt,
 };
 pub use strength::{Disclosure, KeyStrength, key_strength};
 pub use variant::KeyVariant;

@@ -37,6 +37,16 @@ pub enum Schedule {
     RandomScene,
 }
 
+impl Schedule {
+    /// The name `train --schedule` takes and reports print.
+    pub fn name(self) -> &'static str {
+        match self {
+            Schedule::Mixed => "mixed",
+            Schedule::RandomScene => "random-scene",
+        }
+    }
+}
+
 #[derive(Clone, Debug)]
 pub struct TrainConfig {
     pub seed: u64,
