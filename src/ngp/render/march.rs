@@ -40,6 +40,16 @@ impl Marcher {
         w
     }
 
+    /// Whether a warped position (the network's input) lies in occupancy cascade 0, the
+    /// unit cube of ngp space: the region over which the grid's mean density is measured.
+    #[inline]
+    pub fn in_cascade0(&self, w: [f32; 3]) -> bool {
+        (0..3).all(|d| {
+            let p = self.aabb_min[d] + w[d] * (self.aabb_max[d] - self.aabb_min[d]);
+            (0.0..=1.0).contains(&p)
+        })
+    }
+
     #[inline]
     fn contains(&self, p: [f32; 3]) -> bool {
         (0..3).all(|d| p[d] >= self.aabb_min[d] && p[d] <= self.aabb_max[d])
@@ -299,6 +309,25 @@ mod tests {
         assert!(!p.is_empty() && p.len() < 100, "{} samples", p.len());
         assert!(ts.windows(2).all(|w| w[1] > w[0]));
         assert!(dt.iter().all(|&x| x >= 0.0));
+    }
+
+    #[test]
+    fn cascade0_is_the_unit_cube_after_warping() {
+        // aabb 4: the box is [-1.5, 2.5]^3, so ngp 0 and 1 warp to 0.375 and 0.625.
+        let m = Marcher::new(4);
+        assert!(m.in_cascade0(m.warp([0.5, 0.5, 0.5])));
+        assert!(m.in_cascade0([0.375, 0.625, 0.5]));
+        assert!(!m.in_cascade0([0.37, 0.5, 0.5]));
+        assert!(!m.in_cascade0([0.5, 0.5, 0.63]));
+        assert!(!m.in_cascade0(m.warp([1.1, 0.5, 0.5])));
+        assert!(!m.in_cascade0(m.warp([0.5, -0.1, 0.5])));
+        // aabb 1: the box is cascade 0, so every sample is in it.
+        let m = Marcher::new(1);
+        assert!(
+            [[0.0; 3], [1.0; 3], [0.3, 0.9, 0.01]]
+                .iter()
+                .all(|&w| m.in_cascade0(w))
+        );
     }
 
     #[test]
