@@ -16,7 +16,7 @@ pub struct SlotOccupancy {
     pub max_cells_per_slot: u32,
 }
 
-pub fn slot_occupancy(index: &dyn LevelIndex, level: &LevelInfo) -> SlotOccupancy {
+pub fn slot_occupancy(index: &LevelIndex, level: &LevelInfo) -> SlotOccupancy {
     let r = level.resolution;
     let mut load = vec![0u32; level.size as usize];
     for z in 0..r {

@@ -10,56 +10,16 @@
 //! - `dense = "permute"` (both schemes): `P_l(d)` with `d` the reference dense index and
 //!   `P_l` a keyed Feistel permutation of `[0, s)` ([`super::permute`]).
 //! - A key group equal to Π (or masked to the reference by a partial key) uses
-//!   [`ReferenceIndex`] on all its levels, so `Key::reference()` *is* the reference.
+//!   [`IndexFn::Reference`] on all its levels, so `Key::reference()` *is* the reference.
+//!
+//! The result is plain data ([`LevelIndex`]: the arithmetic with its prime triple or
+//! subkey, and a permutation table): keys, the KDF and the tables' making stay in this
+//! layer; the engine only evaluates what it is handed.
 
 use super::keys::{DenseMode, GroupKey, Key};
-use super::permute::PermutedDenseIndex;
-use super::prf::{self, PrfIndex};
-use crate::ngp::encoding::{GridLayout, LevelIndex, LevelIndices, LevelInfo, ReferenceIndex};
-use std::sync::Arc;
-
-/// `(x·k1 ⊕ y·k2 ⊕ z·k3) mod size` in wrapping u64.
-#[derive(Clone, Copy, Debug)]
-pub struct PrimeIndex {
-    k: [u64; 3],
-    size: u32,
-}
-
-impl PrimeIndex {
-    pub fn new(k: [u64; 3], size: u32) -> Self {
-        PrimeIndex { k, size }
-    }
-
-    #[inline(always)]
-    fn reduce(&self, h: u64) -> u32 {
-        if self.size.is_power_of_two() {
-            (h & (self.size as u64 - 1)) as u32
-        } else {
-            (h % self.size as u64) as u32
-        }
-    }
-}
-
-impl LevelIndex for PrimeIndex {
-    #[inline]
-    fn index(&self, x: u32, y: u32, z: u32) -> u32 {
-        let h = (x as u64).wrapping_mul(self.k[0])
-            ^ (y as u64).wrapping_mul(self.k[1])
-            ^ (z as u64).wrapping_mul(self.k[2]);
-        self.reduce(h)
-    }
-
-    fn corners(&self, cell: [u32; 3], out: &mut [u32; 8]) {
-        let axis = |i: usize| {
-            let c = cell[i] as u64;
-            [c.wrapping_mul(self.k[i]), (c + 1).wrapping_mul(self.k[i])]
-        };
-        let (hx, hy, hz) = (axis(0), axis(1), axis(2));
-        for (c, o) in out.iter_mut().enumerate() {
-            *o = self.reduce(hx[c & 1] ^ hy[(c >> 1) & 1] ^ hz[(c >> 2) & 1]);
-        }
-    }
-}
+use super::permute::permuted_dense;
+use super::prf;
+use crate::ngp::encoding::{GridLayout, IndexFn, LevelIndex, LevelIndices, LevelInfo};
 
 /// Permutation key for a prime triple on a dense level: the documented KDF applied to the
 /// triple (24 bytes LE, zero-padded to 32) so that all bits of all three primes count.
@@ -77,32 +37,20 @@ fn primes_permute_key(k: [u64; 3], level: &LevelInfo) -> prf::SipKey {
 }
 
 /// The index function of one level under one key group.
-pub fn level_index(
-    group: &GroupKey,
-    dense_mode: DenseMode,
-    level: &LevelInfo,
-) -> Arc<dyn LevelIndex> {
+pub fn level_index(group: &GroupKey, dense_mode: DenseMode, level: &LevelInfo) -> LevelIndex {
+    let hashed = !level.dense || dense_mode == DenseMode::Hash;
     match group {
-        GroupKey::Reference => Arc::new(ReferenceIndex::new(level)),
-        GroupKey::Primes(k) => {
-            if !level.dense || dense_mode == DenseMode::Hash {
-                Arc::new(PrimeIndex::new(*k, level.size))
-            } else {
-                Arc::new(PermutedDenseIndex::new(
-                    level,
-                    primes_permute_key(*k, level),
-                ))
-            }
+        GroupKey::Reference => LevelIndex::reference(level),
+        GroupKey::Primes(k) if hashed => LevelIndex::new(level, IndexFn::Primes(*k)),
+        GroupKey::Primes(k) => permuted_dense(level, primes_permute_key(*k, level)),
+        GroupKey::Prf(secret) if hashed => {
+            let sk = prf::derive_subkey(secret, prf::PURPOSE_INDEX, level.level, level.size);
+            LevelIndex::new(level, IndexFn::Sip(sk))
         }
         GroupKey::Prf(secret) => {
-            if !level.dense || dense_mode == DenseMode::Hash {
-                let sk = prf::derive_subkey(secret, prf::PURPOSE_INDEX, level.level, level.size);
-                Arc::new(PrfIndex::new(sk, level.size))
-            } else {
-                let sk =
-                    prf::derive_subkey(secret, prf::PURPOSE_DENSE_PERMUTE, level.level, level.size);
-                Arc::new(PermutedDenseIndex::new(level, sk))
-            }
+            let sk =
+                prf::derive_subkey(secret, prf::PURPOSE_DENSE_PERMUTE, level.level, level.size);
+            permuted_dense(level, sk)
         }
     }
 }

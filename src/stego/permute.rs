@@ -9,7 +9,7 @@
 //! per-sample cost is one table lookup per corner.
 
 use super::prf::{SipKey, siphash24};
-use crate::ngp::encoding::{LevelIndex, LevelInfo, ReferenceIndex};
+use crate::ngp::encoding::{LevelIndex, LevelInfo};
 
 const ROUNDS: u32 = 8;
 
@@ -75,35 +75,10 @@ pub fn permutation_table(key: SipKey, size: u32) -> Vec<u32> {
     (0..size).map(|d| f.permute_below(d, size)).collect()
 }
 
-/// Dense level indexed `table[reference dense index]`.
-pub struct PermutedDenseIndex {
-    reference: ReferenceIndex,
-    table: Vec<u32>,
-}
-
-impl PermutedDenseIndex {
-    pub fn new(level: &LevelInfo, key: SipKey) -> Self {
-        PermutedDenseIndex {
-            reference: ReferenceIndex::new(level),
-            table: permutation_table(key, level.size),
-        }
-    }
-}
-
-impl LevelIndex for PermutedDenseIndex {
-    #[inline]
-    fn index(&self, x: u32, y: u32, z: u32) -> u32 {
-        let d = self.reference.index(x, y, z);
-        self.table.get(d as usize).copied().unwrap_or(d)
-    }
-
-    fn corners(&self, cell: [u32; 3], out: &mut [u32; 8]) {
-        self.reference.corners(cell, out);
-        for o in out.iter_mut() {
-            // Reference indices are < size = table length.
-            *o = self.table.get(*o as usize).copied().unwrap_or(*o);
-        }
-    }
+/// Dense level indexed `table[reference dense index]`, the table a keyed permutation of
+/// its slots.
+pub fn permuted_dense(level: &LevelInfo, key: SipKey) -> LevelIndex {
+    LevelIndex::reference(level).with_table(permutation_table(key, level.size))
 }
 
 #[cfg(test)]

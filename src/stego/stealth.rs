@@ -32,24 +32,20 @@ use crate::ngp::train::IndexRefresh;
 use crate::steganalysis::INIT_BOUND;
 use std::sync::Arc;
 
-/// A level's keyed index followed by the public map into the cover's reachable entries.
-pub struct ConfinedIndex {
-    inner: Arc<dyn LevelIndex>,
-    map: Arc<[u32]>,
-}
-
-impl LevelIndex for ConfinedIndex {
-    #[inline]
-    fn index(&self, x: u32, y: u32, z: u32) -> u32 {
-        self.map[self.inner.index(x, y, z) as usize]
-    }
-
-    fn corners(&self, cell: [u32; 3], out: &mut [u32; 8]) {
-        self.inner.corners(cell, out);
-        for o in out.iter_mut() {
-            *o = self.map[*o as usize];
-        }
-    }
+/// A level's keyed index followed by the public map into the cover's reachable entries. A
+/// table the index already has (a dense level's permutation) is composed with the map here,
+/// so that a corner still costs one lookup.
+pub fn confined(inner: LevelIndex, map: &Arc<[u32]>) -> LevelIndex {
+    let table: Arc<[u32]> = match &inner.table {
+        None => map.clone(),
+        // An entry outside the map (maps are made per level of the same layout, so none)
+        // would give an index that the trainer's check refuses.
+        Some(t) => t
+            .iter()
+            .map(|&e| map.get(e as usize).copied().unwrap_or(u32::MAX))
+            .collect(),
+    };
+    inner.with_table(table)
 }
 
 /// An odd-ish stride coprime to `size` near `size / φ`: visits every slot once.
@@ -151,12 +147,7 @@ pub fn confine(key: &Key, layout: &GridLayout, maps: &[Arc<[u32]>]) -> LevelIndi
     key.level_indices(layout)
         .into_iter()
         .zip(maps)
-        .map(|(inner, map)| {
-            Arc::new(ConfinedIndex {
-                inner,
-                map: map.clone(),
-            }) as Arc<dyn LevelIndex>
-        })
+        .map(|(inner, map)| confined(inner, map))
         .collect()
 }
 

@@ -1,11 +1,10 @@
 //! Tests of the key layer as a whole: index functions, key files, key variants, strength.
 
-use super::index::PrimeIndex;
 use super::keys::{Argon2Cost, DenseMode, Key, KeyScheme, Mixed, PI};
 use super::permute::{Feistel, domain_bits};
 use super::prf;
 use super::*;
-use crate::ngp::encoding::{GridConfig, GridLayout, LevelIndex, ReferenceIndex};
+use crate::ngp::encoding::{GridConfig, GridLayout, IndexFn, LevelIndex};
 use std::hash::Hasher;
 
 fn layout() -> GridLayout {
@@ -70,7 +69,7 @@ fn corner(cell: [u32; 3], c: usize) -> (u32, u32, u32) {
     )
 }
 
-fn same_on_level(a: &dyn LevelIndex, b: &dyn LevelIndex, res: u32) -> bool {
+fn same_on_level(a: &LevelIndex, b: &LevelIndex, res: u32) -> bool {
     let step = (res / 37).max(1);
     let mut p = 0u32;
     while p <= res {
@@ -115,7 +114,7 @@ fn primes_index_by_hand() {
     // counts; (3·K1 ⊕ 4·K2 ⊕ 5·K3) mod 2^19 = 362430.
     let idx = primes_key(vec![PAPER_K1], DenseMode::Hash).level_indices(&g);
     assert_eq!(idx[9].index(3, 4, 5), 362430);
-    let reduced = PrimeIndex::new([152579, 180565, 425927], 1 << 19);
+    let reduced = LevelIndex::new(&g.levels[9], IndexFn::Primes([152579, 180565, 425927]));
     assert_eq!(reduced.index(3, 4, 5), 362430);
 }
 
@@ -182,8 +181,8 @@ fn permute_mode_dense_index_by_construction() {
         assert_eq!(idx[3].index(43, 43, 43), f.permute_below(d, lv.size));
         // Hashed levels are unaffected by the dense mode.
         let h = key.clone().with_dense(DenseMode::Hash).level_indices(&g);
-        assert!(same_on_level(&*idx[8], &*h[8], g.levels[8].resolution));
-        assert!(!same_on_level(&*idx[3], &*h[3], g.levels[3].resolution));
+        assert!(same_on_level(&idx[8], &h[8], g.levels[8].resolution));
+        assert!(!same_on_level(&idx[3], &h[3], g.levels[3].resolution));
     }
 }
 
@@ -230,8 +229,8 @@ fn reference_key_is_the_reference_index_on_every_level() {
             let idx = key.level_indices(&g);
             assert_eq!(idx.len(), g.levels.len());
             for (l, lv) in g.levels.iter().enumerate() {
-                let r = ReferenceIndex::new(lv);
-                assert!(same_on_level(&*idx[l], &r, lv.resolution), "level {l}");
+                let r = LevelIndex::reference(lv);
+                assert!(same_on_level(&idx[l], &r, lv.resolution), "level {l}");
                 let mut a = [0u32; 8];
                 let mut b = [0u32; 8];
                 let cell = [lv.resolution - 1, 2, lv.resolution / 2];
@@ -287,7 +286,7 @@ fn dense_hash_vs_permute_occupancy() {
             prf_key(1, DenseMode::Permute),
             primes_key(vec![K], DenseMode::Hash),
         ] {
-            let o = diagnostics::slot_occupancy(&*key.level_indices(&g)[l], &lv);
+            let o = diagnostics::slot_occupancy(&key.level_indices(&g)[l], &lv);
             println!(
                 "level {l} {:?}/{:?}: {o:?}",
                 key.scheme().name(),
@@ -305,7 +304,7 @@ fn dense_hash_vs_permute_occupancy() {
                 }
             }
         }
-        let r = diagnostics::slot_occupancy(&ReferenceIndex::new(&lv), &lv);
+        let r = diagnostics::slot_occupancy(&LevelIndex::reference(&lv), &lv);
         assert_eq!(r.colliding_cell_fraction, 0.0);
     }
 }
@@ -321,15 +320,15 @@ fn prime_key_only_matters_mod_2_pow_19_on_hashed_levels() {
     ];
     for l in 5..16 {
         let lv = g.levels[l];
-        let a = PrimeIndex::new(K, lv.size);
-        let b = PrimeIndex::new(k2, lv.size);
+        let a = LevelIndex::new(&lv, IndexFn::Primes(K));
+        let b = LevelIndex::new(&lv, IndexFn::Primes(k2));
         assert!(same_on_level(&a, &b, lv.resolution), "level {l}");
     }
     // On a dense level (hash mode) the full key counts.
     let lv = g.levels[4];
     assert!(!same_on_level(
-        &PrimeIndex::new(K, lv.size),
-        &PrimeIndex::new(k2, lv.size),
+        &LevelIndex::new(&lv, IndexFn::Primes(K)),
+        &LevelIndex::new(&lv, IndexFn::Primes(k2)),
         lv.resolution
     ));
 }
@@ -566,7 +565,7 @@ fn prf_secrets(k: &Key) -> Vec<[u8; 32]> {
 fn same_key_on_level(a: &Key, b: &Key, l: usize) -> bool {
     let g = layout();
     let (ia, ib) = (a.level_indices(&g), b.level_indices(&g));
-    same_on_level(&*ia[l], &*ib[l], g.levels[l].resolution)
+    same_on_level(&ia[l], &ib[l], g.levels[l].resolution)
 }
 
 #[test]
@@ -1180,5 +1179,127 @@ fn readable_key_files_are_reported() {
                 && w[0].contains("k.json"),
             "{w:?}"
         );
+    }
+}
+
+/// FNV-1a of every corner of random cells (and of the cell's own vertex) on every level:
+/// a fingerprint of an index function over in-range cells and, one cell in eight, cells up
+/// to 2^21 where the u32 arithmetic wraps.
+fn index_digest(idx: &crate::ngp::encoding::LevelIndices, g: &GridLayout, seed: u64) -> u64 {
+    let mut rng = crate::rng::Pcg32::new(seed, 3);
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    let mut eat = |v: u32| {
+        for b in v.to_le_bytes() {
+            h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for (l, lv) in g.levels.iter().enumerate() {
+        let r = lv.resolution;
+        for i in 0..512 {
+            let cell = if i % 8 == 7 {
+                [0; 3].map(|_: u32| rng.next_u32() >> 11)
+            } else {
+                [0; 3].map(|_: u32| rng.below(r + 1))
+            };
+            let mut out = [0u32; 8];
+            idx[l].corners(cell, &mut out);
+            out.into_iter().for_each(&mut eat);
+            eat(idx[l].index(cell[0], cell[1], cell[2]));
+        }
+    }
+    h
+}
+
+/// Deterministic confinement maps: about 30 % of each level's slots reachable.
+fn test_maps(g: &GridLayout) -> Vec<std::sync::Arc<[u32]>> {
+    let mut rng = crate::rng::Pcg32::new(77, 5);
+    g.levels
+        .iter()
+        .map(|lv| {
+            let mut set = crate::ngp::encoding::reach::EntrySet::new(lv.size);
+            for s in 0..lv.size {
+                if rng.below(10) < 3 {
+                    set.insert(s);
+                }
+            }
+            std::sync::Arc::from(stealth::confinement_map(&set))
+        })
+        .collect()
+}
+
+fn digest_cases() -> Vec<(String, u64)> {
+    let mut v = Vec::new();
+    for (gi, g) in [
+        layout(),
+        GridLayout::new(GridConfig::base_json_2023(), 1).unwrap(),
+    ]
+    .iter()
+    .enumerate()
+    {
+        let maps = test_maps(g);
+        let mut keys = all_keys();
+        keys.push(legacy_prf_key(3, DenseMode::Permute));
+        keys.push(prf_key(16, DenseMode::Hash));
+        for (ki, key) in keys.iter().enumerate() {
+            let name = format!(
+                "layout {gi} key {ki} {}/{:?}",
+                key.scheme().name(),
+                key.dense()
+            );
+            v.push((
+                name.clone(),
+                index_digest(&key.level_indices(g), g, ki as u64),
+            ));
+            let confined = stealth::confine(key, g, &maps);
+            v.push((
+                format!("{name} confined"),
+                index_digest(&confined, g, ki as u64),
+            ));
+        }
+    }
+    v
+}
+
+/// Digests of [`digest_cases`] computed by the previous implementation (one trait object per
+/// level, `corners` through `dyn`, commit 82cada1): the data-driven indices are bit for bit
+/// the same for every scheme, dense mode, confinement and layout.
+const DIGESTS_BEFORE_DATA: [(&str, u64); 28] = [
+    ("layout 0 key 0 primes/Permute", 0xe4688ee26b60d57c),
+    ("layout 0 key 0 primes/Permute confined", 0xa71479f35c1df34f),
+    ("layout 0 key 1 primes/Permute", 0xc0381ee1141e7b81),
+    ("layout 0 key 1 primes/Permute confined", 0x1db8a468db8705f7),
+    ("layout 0 key 2 prf/Permute", 0x166a7448e1a6d7d8),
+    ("layout 0 key 2 prf/Permute confined", 0x86a8c408127fe9b1),
+    ("layout 0 key 3 primes/Hash", 0x99620bbc6c951037),
+    ("layout 0 key 3 primes/Hash confined", 0xedfb874182e6398a),
+    ("layout 0 key 4 prf/Hash", 0xf952e2c7c2b3e36d),
+    ("layout 0 key 4 prf/Hash confined", 0xc095184ce62a0f7e),
+    ("layout 0 key 5 prf/Permute", 0x932eabf8fea49165),
+    ("layout 0 key 5 prf/Permute confined", 0xf2dbb95d6f867bc5),
+    ("layout 0 key 6 prf/Hash", 0x07f33389ee9a1483),
+    ("layout 0 key 6 prf/Hash confined", 0x5b3f37390b94a746),
+    ("layout 1 key 0 primes/Permute", 0x0c0c50a0a63b6457),
+    ("layout 1 key 0 primes/Permute confined", 0xc45530d22191d592),
+    ("layout 1 key 1 primes/Permute", 0xad6db1e70f6eb0db),
+    ("layout 1 key 1 primes/Permute confined", 0xf0db5a0bd8d7c318),
+    ("layout 1 key 2 prf/Permute", 0xa55fa7de012733a7),
+    ("layout 1 key 2 prf/Permute confined", 0xef848da01923578f),
+    ("layout 1 key 3 primes/Hash", 0x5503caad3f6e6c8b),
+    ("layout 1 key 3 primes/Hash confined", 0x4e478d9e323b349c),
+    ("layout 1 key 4 prf/Hash", 0x5b85bfc61bcab0a9),
+    ("layout 1 key 4 prf/Hash confined", 0x952bfef6df7831e1),
+    ("layout 1 key 5 prf/Permute", 0x42fc449f25b0d241),
+    ("layout 1 key 5 prf/Permute confined", 0x3dbe64349fb3c400),
+    ("layout 1 key 6 prf/Hash", 0xa461e557246fd6f5),
+    ("layout 1 key 6 prf/Hash confined", 0xc0e8d9129905be44),
+];
+
+#[test]
+fn indices_are_bit_identical_to_the_trait_object_version() {
+    let got = digest_cases();
+    assert_eq!(got.len(), DIGESTS_BEFORE_DATA.len());
+    for ((name, d), (want_name, want)) in got.iter().zip(DIGESTS_BEFORE_DATA) {
+        assert_eq!(name, want_name);
+        assert_eq!(*d, want, "{name}: {d:#018x}");
     }
 }

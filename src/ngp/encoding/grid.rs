@@ -1,6 +1,6 @@
 //! Multi-resolution hash-grid encoding (spec §1): per level, trilinear interpolation of the
 //! `F` features stored at the 8 corners of the cell containing the sample; the corners'
-//! table entries come from the level's [`LevelIndex`].
+//! table entries come from the level's [`LevelIndex`](super::index::LevelIndex).
 //!
 //! Work is done level by level over a whole chunk: a first pass computes every sample's
 //! corner offsets and weights (kept in a [`GridCache`] for the backward pass) and prefetches
@@ -10,7 +10,7 @@
 //! gradient lines while it writes the current one.
 //! Encodings are feature-major: feature `l·F + f` of sample `s` lives at `enc[(l·F+f)·ld + s]`.
 
-use super::index::{LevelIndex, LevelIndices};
+use super::index::{Kernel, LevelIndices, WithKernel};
 use super::layout::{GridLayout, LevelInfo};
 
 const CORNERS: usize = 8;
@@ -86,45 +86,59 @@ pub fn cell_of(level: &LevelInfo, x: [f32; 3]) -> ([u32; 3], [f32; 3]) {
 }
 
 /// Fills corner offsets and weights of one level for all samples.
-fn level_corners(
+struct LevelCorners<'a> {
     table: *const f32,
-    level: &LevelInfo,
-    index: &dyn LevelIndex,
+    level: &'a LevelInfo,
     n_features: u32,
-    pos: &[[f32; 3]],
-    offs: &mut [u32],
-    weights: &mut [f32],
-) {
-    let mut bad = false;
-    for (s, p) in pos.iter().enumerate() {
-        let (cell, frac) = cell_of(level, *p);
-        let mut e = [0u32; CORNERS];
-        index.corners(cell, &mut e);
-        let o = &mut offs[s * CORNERS..(s + 1) * CORNERS];
-        for c in 0..CORNERS {
-            bad |= e[c] >= level.size;
-            o[c] = level.offset.wrapping_add(e[c]).wrapping_mul(n_features);
-        }
-        if PREFETCH_IN_CORNERS {
-            for &oc in o.iter() {
-                prefetch(table.wrapping_add(oc as usize));
+    pos: &'a [[f32; 3]],
+    offs: &'a mut [u32],
+    weights: &'a mut [f32],
+}
+
+impl WithKernel for LevelCorners<'_> {
+    type Output = ();
+
+    /// Compiled once per kind of index, so the sample loop makes no dispatch at all.
+    fn run<K: Kernel>(self, index: K) {
+        let LevelCorners {
+            table,
+            level,
+            n_features,
+            pos,
+            offs,
+            weights,
+        } = self;
+        let mut bad = false;
+        for (s, p) in pos.iter().enumerate() {
+            let (cell, frac) = cell_of(level, *p);
+            let mut e = [0u32; CORNERS];
+            index.corners(cell, &mut e);
+            let o = &mut offs[s * CORNERS..(s + 1) * CORNERS];
+            for c in 0..CORNERS {
+                bad |= e[c] >= level.size;
+                o[c] = level.offset.wrapping_add(e[c]).wrapping_mul(n_features);
+            }
+            if PREFETCH_IN_CORNERS {
+                for &oc in o.iter() {
+                    prefetch(table.wrapping_add(oc as usize));
+                }
+            }
+            let wx = [1.0 - frac[0], frac[0]];
+            let wy = [1.0 - frac[1], frac[1]];
+            let wz = [1.0 - frac[2], frac[2]];
+            let w = &mut weights[s * CORNERS..(s + 1) * CORNERS];
+            for c in 0..CORNERS {
+                w[c] = wx[c & 1] * wy[(c >> 1) & 1] * wz[c >> 2];
             }
         }
-        let wx = [1.0 - frac[0], frac[0]];
-        let wy = [1.0 - frac[1], frac[1]];
-        let wz = [1.0 - frac[2], frac[2]];
-        let w = &mut weights[s * CORNERS..(s + 1) * CORNERS];
-        for c in 0..CORNERS {
-            w[c] = wx[c & 1] * wy[(c >> 1) & 1] * wz[c >> 2];
-        }
+        // An index outside its level would read another level's (or no) entry: refuse,
+        // since the gather below relies on the offsets being in range.
+        assert!(
+            !bad,
+            "LevelIndex of level {} returned an entry >= level size {}",
+            level.level, level.size
+        );
     }
-    // A LevelIndex outside its level would read another level's (or no) entry: refuse,
-    // since the gather below relies on the offsets being in range.
-    assert!(
-        !bad,
-        "LevelIndex of level {} returned an entry >= level size {}",
-        level.level, level.size
-    );
 }
 
 fn gather<const F: usize>(
@@ -149,7 +163,7 @@ fn gather<const F: usize>(
         for c in 0..CORNERS {
             let base = o[c] as usize;
             debug_assert!(base + F <= table.len());
-            // SAFETY: level_corners checked entry < level size, so base + F <= table.len()
+            // SAFETY: LevelCorners checked entry < level size, so base + F <= table.len()
             // (the table holds n_entries·F floats; checked in `forward`).
             let v = unsafe { table.get_unchecked(base..base + F) };
             for f in 0..F {
@@ -226,15 +240,14 @@ pub fn forward(
     for (l, level) in layout.levels.iter().enumerate() {
         let offs = &mut cache.offs[l * cap * CORNERS..(l * cap + n) * CORNERS];
         let weights = &mut cache.weights[l * cap * CORNERS..(l * cap + n) * CORNERS];
-        level_corners(
-            table.as_ptr(),
+        indices[l].with_kernel(LevelCorners {
+            table: table.as_ptr(),
             level,
-            &*indices[l],
-            nf as u32,
+            n_features: nf as u32,
             pos,
             offs,
             weights,
-        );
+        });
         let out = &mut enc[l * nf * ld..(l + 1) * nf * ld];
         match nf {
             1 => gather::<1>(table, offs, weights, n, out, ld),
@@ -277,7 +290,7 @@ pub fn backward(
     }
 }
 
-/// Straightforward per-sample encoding through `LevelIndex::index` (not `corners`), the
+/// Straightforward per-sample encoding through `LevelIndex::index` (not a kernel), the
 /// reference the fast path is tested against.
 #[cfg(test)]
 pub(crate) fn naive_encode(
@@ -462,20 +475,18 @@ mod tests {
         assert!(checked[0] > 50 && checked[1] > 50, "checked {checked:?}");
     }
 
-    struct OutOfRange;
-    impl LevelIndex for OutOfRange {
-        fn index(&self, _: u32, _: u32, _: u32) -> u32 {
-            u32::MAX
-        }
-    }
-
     #[test]
     #[should_panic(expected = "returned an entry >= level size")]
     fn rejects_an_index_outside_its_level() {
         let g = small();
         let table = random_table(&g, 1);
-        let idx: LevelIndices = (0..4)
-            .map(|_| std::sync::Arc::new(OutOfRange) as std::sync::Arc<dyn LevelIndex>)
+        // Every vertex to u32::MAX, through a table.
+        let idx: LevelIndices = reference_indices(&g)
+            .into_iter()
+            .map(|ix| {
+                let n = ix.size as usize;
+                ix.with_table(vec![u32::MAX; n])
+            })
             .collect();
         let mut cache = GridCache::new(&g, 4);
         let mut enc = vec![0f32; 8 * 4];

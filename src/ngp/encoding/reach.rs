@@ -153,7 +153,7 @@ pub fn reachable_entries(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ngp::encoding::{GridConfig, ReferenceIndex, reference_indices};
+    use crate::ngp::encoding::{GridConfig, LevelIndex, reference_indices};
     use crate::ngp::occupancy::N_CELLS;
 
     fn grid_with(cells: &[[u32; 3]], n_cascades: usize) -> OccupancyGrid {
@@ -186,11 +186,11 @@ mod tests {
         assert_eq!(l0.scale, 15.0);
         assert!(l0.dense);
         let mut want = EntrySet::new(l0.size);
-        let r = ReferenceIndex::new(&l0);
+        let r = LevelIndex::reference(&l0);
         for z in 8..=9 {
             for y in 8..=9 {
                 for x in 8..=9 {
-                    want.insert(crate::ngp::encoding::LevelIndex::index(&r, x, y, z));
+                    want.insert(r.index(x, y, z));
                 }
             }
         }

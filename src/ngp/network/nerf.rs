@@ -318,9 +318,8 @@ pub(crate) fn naive_forward(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ngp::encoding::index::{LevelIndex, reference_indices};
+    use crate::ngp::encoding::index::reference_indices;
     use crate::ngp::encoding::layout::GridConfig;
-    use std::sync::Arc;
 
     fn small_net() -> NerfNetwork {
         NerfNetwork::new(ModelConfig {
@@ -423,21 +422,15 @@ mod tests {
         }
     }
 
-    /// Maps every vertex to entry 0.
-    struct ZeroIndex;
-    impl LevelIndex for ZeroIndex {
-        fn index(&self, _: u32, _: u32, _: u32) -> u32 {
-            0
-        }
-    }
-
     #[test]
     fn uses_the_passed_index() {
         let net = small_net();
         let params = test_params(&net, 5);
         let reference = reference_indices(&net.layout.grid);
-        let zero: LevelIndices = (0..4)
-            .map(|_| Arc::new(ZeroIndex) as Arc<dyn LevelIndex>)
+        // Every vertex to entry 0, through a table.
+        let zero: LevelIndices = reference
+            .iter()
+            .map(|ix| ix.clone().with_table(vec![0u32; ix.size as usize]))
             .collect();
         let (pos, dir) = samples(40, 6);
         let mut ws = net.workspace();

@@ -11,7 +11,7 @@
 use super::optimizer::{Optimizer, OptimizerConfig, Touched};
 use crate::error::{Error, Result};
 use crate::ngp::data::Dataset;
-use crate::ngp::encoding::LevelIndices;
+use crate::ngp::encoding::{LevelIndices, check_indices};
 use crate::ngp::network::ModelConfig;
 use crate::ngp::network::nerf::{CHUNK, NerfNetwork, Workspace};
 use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
@@ -238,6 +238,7 @@ impl Trainer {
                     n_levels
                 )));
             }
+            check_indices(&s.indices, &net.layout.grid)?;
             if s.dataset.frames.is_empty() {
                 return Err(Error::format(&s.dataset.root, "no training images"));
             }
@@ -354,6 +355,7 @@ impl Trainer {
                     self.scenes.len()
                 )));
             }
+            check_indices(&indices, &self.net.layout.grid)?;
             self.scenes[i].indices = indices;
         }
         Ok(())
