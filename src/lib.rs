@@ -2,10 +2,13 @@
 //!
 //! `ngp` is a CPU Instant-NGP engine that knows nothing of keys: the hash-grid encoding takes
 //! one index function per level. `stego` supplies keyed index functions, key files and
-//! multi-scene training. `synth` ray-traces generated scenes for tests and the demo.
+//! multi-scene training. `synth` ray-traces generated scenes for tests and the demo. `gpu`
+//! (feature `gpu`) is the wgpu backend, tested against the CPU engine.
 
 pub mod error;
 pub mod experiments;
+#[cfg(feature = "gpu")]
+pub mod gpu;
 pub mod ngp;
 pub mod rng;
 pub mod steganalysis;
