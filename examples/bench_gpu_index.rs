@@ -85,7 +85,7 @@ fn main() {
     for (name, indices) in kinds {
         let index = GpuIndex::upload(&ctx, &indices).unwrap();
         let batch = kernel.prepare(&ctx, &index, &cells).unwrap();
-        let gpu = best_of(5, || kernel.dispatch(&ctx, &batch).unwrap());
+        let gpu = best_of(5, || batch.dispatch(&ctx).unwrap());
         let got = batch.read(&ctx).unwrap();
         let mut want = vec![[0u32; 8]; cells.len()];
         let cpu = best_of(5, || {

@@ -6,6 +6,7 @@
 
 use super::{GpuContext, GpuError, GpuResult};
 use crate::ngp::encoding::{IndexFn, LevelIndex};
+use std::sync::Mutex;
 use wgpu::util::DeviceExt;
 
 /// The index functions, to be concatenated into any kernel that indexes the grid.
@@ -96,6 +97,7 @@ pub struct GpuIndex {
     pub levels: wgpu::Buffer,
     pub tables: wgpu::Buffer,
     n_levels: u32,
+    kinds: u32,
 }
 
 fn check_binding(ctx: &GpuContext, what: &str, bytes: u64) -> GpuResult<()> {
@@ -132,6 +134,7 @@ impl GpuIndex {
                 levels: init("index levels", bytemuck::cast_slice(&levels)),
                 tables: init("index tables", bytemuck::cast_slice(tables)),
                 n_levels: levels.len() as u32,
+                kinds: levels.iter().fold(0, |m, l| m | 1 << l.kind),
             }
         })
     }
@@ -139,11 +142,24 @@ impl GpuIndex {
     pub fn n_levels(&self) -> u32 {
         self.n_levels
     }
+
+    /// The kinds of index present, bit k for kind k (`INDEX_KINDS` in `index.wgsl`).
+    pub fn kinds(&self) -> u32 {
+        self.kinds
+    }
+
+    /// The pipeline constants of a kernel that evaluates this index: only the kinds it has
+    /// are compiled in.
+    pub fn constants(&self) -> [(&'static str, f64); 1] {
+        [("INDEX_KINDS", self.kinds as f64)]
+    }
 }
 
-/// The compute pipeline of `corners.wgsl`: 8 corner indices per (cell, level).
+/// The compute pipelines of `corners.wgsl`: 8 corner indices per (cell, level), one
+/// pipeline per set of index kinds, made when first needed.
 pub struct CornerKernel {
-    pipeline: wgpu::ComputePipeline,
+    module: wgpu::ShaderModule,
+    pipelines: Mutex<[Option<wgpu::ComputePipeline>; 8]>,
 }
 
 const WORKGROUP: u32 = 64;
@@ -160,6 +176,7 @@ struct CornerParams {
 /// Cells and results of one corner evaluation, resident on the device, so that the
 /// benchmark can time dispatches alone.
 pub struct CornerBatch {
+    pipeline: wgpu::ComputePipeline,
     bind_group: wgpu::BindGroup,
     out: wgpu::Buffer,
     n_pairs: u32,
@@ -169,24 +186,43 @@ pub struct CornerBatch {
 impl CornerKernel {
     pub fn new(ctx: &GpuContext) -> GpuResult<CornerKernel> {
         let source = format!("{INDEX_WGSL}\n{CORNERS_WGSL}");
-        let pipeline = ctx.scoped("corner kernel", || {
-            let module = ctx
-                .device
+        let module = ctx.scoped("corner kernel", || {
+            ctx.device
                 .create_shader_module(wgpu::ShaderModuleDescriptor {
                     label: Some("corners.wgsl"),
                     source: wgpu::ShaderSource::Wgsl(source.into()),
-                });
+                })
+        })?;
+        Ok(CornerKernel {
+            module,
+            pipelines: Mutex::new(Default::default()),
+        })
+    }
+
+    fn pipeline(&self, ctx: &GpuContext, index: &GpuIndex) -> GpuResult<wgpu::ComputePipeline> {
+        let mut cache = self
+            .pipelines
+            .lock()
+            .unwrap_or_else(|poisoned| poisoned.into_inner());
+        let slot = &mut cache[index.kinds as usize & 7];
+        if let Some(p) = slot {
+            return Ok(p.clone());
+        }
+        let p = ctx.scoped("corner pipeline", || {
             ctx.device
                 .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                     label: Some("corners"),
                     layout: None,
-                    module: &module,
+                    module: &self.module,
                     entry_point: Some("corners_main"),
-                    compilation_options: Default::default(),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants: &index.constants(),
+                        ..Default::default()
+                    },
                     cache: None,
                 })
         })?;
-        Ok(CornerKernel { pipeline })
+        Ok(slot.insert(p).clone())
     }
 
     /// Uploads `cells` (cell `i·L + l` is item i's cell on level l, L = `index.n_levels()`)
@@ -224,6 +260,7 @@ impl CornerKernel {
             row_width: gx * WORKGROUP,
             _pad: 0,
         };
+        let pipeline = self.pipeline(ctx, index)?;
         ctx.scoped("corner buffers", || {
             let d = &ctx.device;
             let cells = d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -244,7 +281,7 @@ impl CornerKernel {
             });
             let bind_group = d.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("corners"),
-                layout: &self.pipeline.get_bind_group_layout(0),
+                layout: &pipeline.get_bind_group_layout(0),
                 entries: &[
                     entry(0, &index.levels),
                     entry(1, &index.tables),
@@ -254,28 +291,13 @@ impl CornerKernel {
                 ],
             });
             CornerBatch {
+                pipeline,
                 bind_group,
                 out,
                 n_pairs,
                 groups: [gx, gy, index.n_levels],
             }
         })
-    }
-
-    /// Runs the kernel over the batch and waits for it.
-    pub fn dispatch(&self, ctx: &GpuContext, batch: &CornerBatch) -> GpuResult<()> {
-        ctx.scoped("corner dispatch", || {
-            let mut enc = ctx.device.create_command_encoder(&Default::default());
-            {
-                let mut pass = enc.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&self.pipeline);
-                pass.set_bind_group(0, &batch.bind_group, &[]);
-                let [x, y, z] = batch.groups;
-                pass.dispatch_workgroups(x, y, z);
-            }
-            ctx.queue.submit([enc.finish()]);
-        })?;
-        ctx.wait()
     }
 
     /// The corners of every cell, in the order of `cells` (upload, run, read back).
@@ -286,12 +308,28 @@ impl CornerKernel {
         cells: &[[u32; 3]],
     ) -> GpuResult<Vec<[u32; 8]>> {
         let batch = self.prepare(ctx, index, cells)?;
-        self.dispatch(ctx, &batch)?;
+        batch.dispatch(ctx)?;
         batch.read(ctx)
     }
 }
 
 impl CornerBatch {
+    /// Runs the kernel over the batch and waits for it.
+    pub fn dispatch(&self, ctx: &GpuContext) -> GpuResult<()> {
+        ctx.scoped("corner dispatch", || {
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            {
+                let mut pass = enc.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&self.pipeline);
+                pass.set_bind_group(0, &self.bind_group, &[]);
+                let [x, y, z] = self.groups;
+                pass.dispatch_workgroups(x, y, z);
+            }
+            ctx.queue.submit([enc.finish()]);
+        })?;
+        ctx.wait()
+    }
+
     pub fn read(&self, ctx: &GpuContext) -> GpuResult<Vec<[u32; 8]>> {
         ctx.read_buffer(&self.out, 32 * self.n_pairs as u64)
     }
@@ -438,6 +476,7 @@ mod tests {
         let empty = level(4, 0, true, IndexFn::Reference);
         assert!(GpuIndex::upload(ctx, &[dense.clone(), empty]).is_err());
         let index = GpuIndex::upload(ctx, &[dense.clone(), dense]).unwrap();
+        assert_eq!(index.kinds(), 1);
         let k = CornerKernel::new(ctx).unwrap();
         assert!(k.prepare(ctx, &index, &[[0, 0, 0]; 3]).is_err());
         assert!(k.prepare(ctx, &index, &[]).is_err());

@@ -14,6 +14,17 @@ const INDEX_REFERENCE: u32 = 0u;
 const INDEX_PRIMES: u32 = 1u;
 const INDEX_SIP: u32 = 2u;
 
+// Bit k set: some level has kind k. A pipeline made with the uploaded index's kinds
+// (GpuIndex::kinds, index_constants) compiles only their code: a level's branch is uniform
+// on a GPU, but the unused kinds' code still costs registers there, and llvmpipe runs
+// 2–5× slower with SipHash compiled in beside the reference. A level whose kind is not in
+// the set would be indexed as the reference: pipelines must take the index's own set.
+override INDEX_KINDS: u32 = 7u;
+
+fn has_kind(kind: u32) -> bool {
+    return (INDEX_KINDS & (1u << kind)) != 0u;
+}
+
 // tcnn's CoherentPrime constants (REFERENCE_PRIMES).
 const REF_PI2: u32 = 2654435761u;
 const REF_PI3: u32 = 805459861u;
@@ -182,18 +193,14 @@ fn apply_table(lv: LevelIndex, i: u32) -> u32 {
 
 // Base function of vertex p, before the table.
 fn base_index(lv: LevelIndex, p: vec3<u32>) -> u32 {
-    switch lv.kind {
-        case INDEX_PRIMES: {
-            let h = mul_u32_u64(p.x, lv.k0) ^ mul_u32_u64(p.y, lv.k1) ^ mul_u32_u64(p.z, lv.k2);
-            return reduce64(h, lv);
-        }
-        case INDEX_SIP: {
-            return reduce64(siphash24_xyz(lv.sip_k0, lv.sip_k1, p), lv);
-        }
-        default: {
-            return reference_index(lv, p);
-        }
+    if (has_kind(INDEX_PRIMES) && lv.kind == INDEX_PRIMES) {
+        let h = mul_u32_u64(p.x, lv.k0) ^ mul_u32_u64(p.y, lv.k1) ^ mul_u32_u64(p.z, lv.k2);
+        return reduce64(h, lv);
     }
+    if (has_kind(INDEX_SIP) && lv.kind == INDEX_SIP) {
+        return reduce64(siphash24_xyz(lv.sip_k0, lv.sip_k1, p), lv);
+    }
+    return reference_index(lv, p);
 }
 
 // Table entry of vertex p (the CPU's `LevelIndex::index`).
@@ -205,7 +212,7 @@ fn level_index(lv: LevelIndex, p: vec3<u32>) -> u32 {
 // `LevelIndex::corners`.
 fn level_corners(lv: LevelIndex, cell: vec3<u32>) -> array<u32, 8> {
     var out: array<u32, 8>;
-    if (lv.kind == INDEX_PRIMES) {
+    if (has_kind(INDEX_PRIMES) && lv.kind == INDEX_PRIMES) {
         // The CPU forms (c + 1)·k in u64, where c + 1 does not wrap at 2^32: c·k + k.
         let x0 = mul_u32_u64(cell.x, lv.k0);
         let y0 = mul_u32_u64(cell.y, lv.k1);
