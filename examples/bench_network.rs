@@ -3,7 +3,9 @@
 //!
 //! `cargo run --release --example bench_network` — prints samples/s for forward only,
 //! forward + backward and density only, on 1 and 2 threads (per-thread Workspace and
-//! gradient buffer, as the trainer uses them).
+//! gradient buffer, as the trainer uses them). `BENCH_INDEX=prf` or `primes` runs it under a
+//! fixed key of that scheme (every level keyed, dense levels permuted) instead of the
+//! reference index; `BENCH_THREADS=1` and `BENCH_FB_ONLY=1` narrow it down.
 
 use rayon::prelude::*;
 use std::time::Instant;
@@ -11,6 +13,7 @@ use stegongp::ngp::encoding::index::reference_indices;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::network::nerf::{CHUNK, NerfNetwork};
 use stegongp::rng::Pcg32;
+use stegongp::stego::{DenseMode, Key, KeyScheme};
 
 const SAMPLES: usize = 1 << 17;
 const RUN: usize = 30;
@@ -56,11 +59,27 @@ enum Mode {
 fn main() {
     let net = NerfNetwork::new(ModelConfig::default()).expect("default config");
     let params = net.init_params(1337);
-    let indices = reference_indices(&net.layout.grid);
+    let scheme = match std::env::var("BENCH_INDEX").as_deref() {
+        Ok("prf") => Some(KeyScheme::Prf {
+            secrets: vec![[7; 32]],
+        }),
+        Ok("primes") => Some(KeyScheme::Primes {
+            keys: vec![[10_000_019, 10_000_079, 10_000_103]],
+        }),
+        _ => None,
+    };
+    let indices = match &scheme {
+        Some(s) => Key::new(s.clone(), DenseMode::Permute)
+            .expect("a valid fixed key")
+            .level_indices(&net.layout.grid),
+        None => reference_indices(&net.layout.grid),
+    };
     let (pos, dir) = make_samples(SAMPLES);
     println!(
-        "NeRF network 16x2, T=2^19, {} params; {} samples per rep in runs of {RUN}, chunk {CHUNK}",
-        net.layout.n_params, SAMPLES
+        "NeRF network 16x2, T=2^19, {} params; {} samples per rep in runs of {RUN}, chunk {CHUNK}; index: {}",
+        net.layout.n_params,
+        SAMPLES,
+        scheme.as_ref().map_or("reference", |s| s.name())
     );
     let only: Option<usize> = std::env::var("BENCH_THREADS")
         .ok()
