@@ -97,7 +97,7 @@ pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
 }
 
 /// The occupancy grid of one scene.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct OccupancyGrid {
     pub n_cascades: usize,
     /// Optical thickness per cell, `N_CELLS` per cascade, Morton order; −1 = never seen.
@@ -197,6 +197,55 @@ impl OccupancyGrid {
                 }
             });
         self.update_bitfield();
+    }
+
+    /// One of training's updates at `step` (the reference's `update_density_grid_nerf`):
+    /// draws the step's cells and positions, asks `log_density` for the field's raw
+    /// log-density at each position (ngp space, in order) and folds them in. The grid does not
+    /// know what answers: the CPU network, another backend, or a test's analytic field.
+    pub fn update(
+        &mut self,
+        step: u32,
+        fraction: f32,
+        seed: u64,
+        log_density: impl FnOnce(&[[f32; 3]]) -> Vec<f32>,
+    ) {
+        let (nu, nn) = self.update_sample_counts(step, fraction);
+        let (pos, cells) = self.sample_positions(nu, nn, seed);
+        let dens = log_density(&pos);
+        assert_eq!(dens.len(), pos.len(), "one log-density per position");
+        self.splat(&cells, &dens);
+    }
+
+    /// A grid rebuilt from a field alone (how a key holder recovers a hidden scene's grid,
+    /// which is never stored): `samples_per_cell` stratified random points in every cell of
+    /// every cascade, max-splatted, then thresholded as usual. `log_density` answers as for
+    /// [`Self::update`].
+    pub fn rebuild(
+        aabb_scale: u32,
+        samples_per_cell: usize,
+        seed: u64,
+        mut log_density: impl FnMut(&[[f32; 3]]) -> Vec<f32>,
+    ) -> OccupancyGrid {
+        let mut grid = OccupancyGrid::new(aabb_scale);
+        grid.density.iter_mut().for_each(|d| *d = 0.0);
+        let cells: Vec<u32> = (0..(N_CELLS * grid.n_cascades) as u32).collect();
+        for round in 0..samples_per_cell {
+            // Every cell once per round, at a random point of one of its octants; opposite
+            // octants come first so that any number of rounds spreads over the cell.
+            const OCTANTS: [u32; 8] = [0, 7, 3, 4, 5, 2, 6, 1];
+            let pos = grid.points_in_cell_octant(
+                &cells,
+                OCTANTS[round % 8],
+                seed.wrapping_add(round as u64),
+            );
+            let dens = log_density(&pos);
+            assert_eq!(dens.len(), pos.len(), "one log-density per position");
+            // No decay between rounds: each round only raises a cell's maximum.
+            grid.splat_max(&cells, &dens);
+        }
+        grid.update_bitfield();
+        grid
     }
 
     /// Cells to sample in one update at `step` (the reference's counts, times `fraction`).
@@ -544,5 +593,61 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A ball of radius 0.15 at (0.3, 0.5, 0.5), dense inside and empty outside: after a
+    /// rebuild, every cell wholly inside is occupied on cascade 0 and every cell wholly outside
+    /// is not; training updates with the same field reach the same verdict on those cells.
+    #[test]
+    fn rebuild_and_update_from_an_analytic_field() {
+        let centre = [0.3f32, 0.5, 0.5];
+        let dist = |p: [f32; 3]| {
+            (0..3)
+                .map(|d| (p[d] - centre[d]).powi(2))
+                .sum::<f32>()
+                .sqrt()
+        };
+        let field = |pos: &[[f32; 3]]| -> Vec<f32> {
+            pos.iter()
+                .map(|&p| if dist(p) < 0.15 { 5.0 } else { -20.0 })
+                .collect()
+        };
+        let half_diag = 3f32.sqrt() / 2.0 / GRID_SIZE as f32;
+        let check = |g: &OccupancyGrid, what: &str| {
+            let (mut inside, mut outside) = (0, 0);
+            for idx in (0..N_CELLS as u32).step_by(61) {
+                let (o, vs) = OccupancyGrid::cell_origin(idx, 0);
+                let c = [o[0] + vs / 2.0, o[1] + vs / 2.0, o[2] + vs / 2.0];
+                let r = dist(c);
+                if r < 0.15 - half_diag {
+                    assert!(
+                        g.is_occupied(c, 0),
+                        "{what}: cell at r = {r} inside the ball"
+                    );
+                    inside += 1;
+                } else if r > 0.15 + half_diag {
+                    assert!(!g.is_occupied(c, 0), "{what}: cell at r = {r} outside");
+                    outside += 1;
+                }
+            }
+            assert!(
+                inside > 100 && outside > 10_000,
+                "{what}: {inside} / {outside}"
+            );
+        };
+        let rebuilt = OccupancyGrid::rebuild(1, 2, 5, field);
+        check(&rebuilt, "rebuild");
+        assert_eq!(rebuilt, OccupancyGrid::rebuild(1, 2, 5, field));
+
+        let mut trained = OccupancyGrid::new(1);
+        let mut calls = 0;
+        for step in 0..4 {
+            trained.update(step, 1.0, 9, |pos| {
+                calls += 1;
+                field(pos)
+            });
+        }
+        assert_eq!((calls, trained.ema_step), (4, 4));
+        check(&trained, "updates");
     }
 }

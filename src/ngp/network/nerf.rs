@@ -14,6 +14,7 @@ use crate::ngp::encoding::sh::{self, SH4_DIMS};
 use crate::ngp::network::layout::{DENSITY_OUT, ModelConfig, NerfLayout};
 use crate::ngp::network::mlp;
 use crate::rng::Pcg32;
+use rayon::prelude::*;
 
 /// Maximum samples per forward/backward call (512 beat 256/1024/2048 in the notes).
 pub const CHUNK: usize = 512;
@@ -291,6 +292,29 @@ impl NerfNetwork {
                 *o = wj.mul_add(h, *o);
             }
         }
+    }
+
+    /// Log-densities at any number of positions, in parallel chunks of [`CHUNK`] with one
+    /// workspace per thread: what occupancy updates and a key holder's grid rebuild ask of
+    /// the field.
+    pub fn density_batch(
+        &self,
+        params: &[f32],
+        indices: &LevelIndices,
+        pos: &[[f32; 3]],
+    ) -> Vec<f32> {
+        let mut out = vec![0.0f32; pos.len()];
+        out.par_chunks_mut(CHUNK * 8)
+            .zip(pos.par_chunks(CHUNK * 8))
+            .for_each_init(
+                || self.workspace(),
+                |ws, (o, p)| {
+                    for (oc, pc) in o.chunks_mut(CHUNK).zip(p.chunks(CHUNK)) {
+                        self.density(params, indices, pc, ws, oc);
+                    }
+                },
+            );
+        out
     }
 }
 

@@ -228,9 +228,8 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
 /// between samples and get culled), 4 stratified points 32.92 dB, 8 points 32.97 dB.
 pub const KEY_HOLDER_SAMPLES_PER_CELL: usize = 4;
 
-/// Rebuilds an occupancy grid from the network alone (how a key holder recovers a hidden
-/// scene's grid, which is never stored): `samples_per_cell` stratified random points in
-/// every cell of every cascade, max-splatted, then thresholded as usual.
+/// [`OccupancyGrid::rebuild`] from the CPU network under `indices` (how a key holder
+/// recovers a hidden scene's grid, which is never stored).
 pub fn rebuild_occupancy(
     net: &NerfNetwork,
     params: &[f32],
@@ -239,23 +238,9 @@ pub fn rebuild_occupancy(
     samples_per_cell: usize,
     seed: u64,
 ) -> OccupancyGrid {
-    use crate::ngp::occupancy::N_CELLS;
     let marcher = Marcher::new(aabb_scale);
-    let mut grid = OccupancyGrid::new(aabb_scale);
-    grid.density.iter_mut().for_each(|d| *d = 0.0);
-    let n = N_CELLS * grid.n_cascades;
-    let cells: Vec<u32> = (0..n as u32).collect();
-    for round in 0..samples_per_cell {
-        // Every cell once per round, at a random point of one of its octants; opposite
-        // octants come first so that any number of rounds spreads over the cell.
-        const OCTANTS: [u32; 8] = [0, 7, 3, 4, 5, 2, 6, 1];
-        let pos =
-            grid.points_in_cell_octant(&cells, OCTANTS[round % 8], seed.wrapping_add(round as u64));
+    OccupancyGrid::rebuild(aabb_scale, samples_per_cell, seed, |pos| {
         let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
-        let dens = crate::ngp::train::trainer::density_batch(net, params, indices, &warped);
-        // No decay between rounds: each round only raises a cell's maximum.
-        grid.splat_max(&cells, &dens);
-    }
-    grid.update_bitfield();
-    grid
+        net.density_batch(params, indices, &warped)
+    })
 }

@@ -1,6 +1,7 @@
 //! Training: the Adam + EMA optimizer and the trainer that ties rays, marching, the network
 //! and compositing together for one or more scenes sharing one set of weights.
 
+pub mod loss;
 pub mod optimizer;
 pub mod trainer;
 

@@ -40,6 +40,26 @@ impl Default for OptimizerConfig {
     }
 }
 
+impl OptimizerConfig {
+    /// Learning rate of the update after `step` updates (ExponentialDecay).
+    pub fn learning_rate(&self, step: u32) -> f32 {
+        let mut lr = self.lr;
+        if step >= self.decay_start {
+            let k = (step - self.decay_start) / self.decay_interval + 1;
+            lr *= self.decay_base.powi(k as i32);
+        }
+        lr
+    }
+
+    /// Adam's bias correction `sqrt(1 − β2^t) / (1 − β1^t)` of a parameter's t-th update,
+    /// in f64 then rounded once, so that every backend applies the same f32.
+    pub fn adam_correction(&self, t: u32) -> f32 {
+        let b1 = 1.0 - (self.beta1 as f64).powi(t as i32);
+        let b2 = 1.0 - (self.beta2 as f64).powi(t as i32);
+        (b2.sqrt() / b1) as f32
+    }
+}
+
 pub struct Optimizer {
     pub config: OptimizerConfig,
     /// Parameters below this index are MLP weights (L2, never skipped).
@@ -108,13 +128,7 @@ impl Optimizer {
 
     /// Learning rate in force for the next step (ExponentialDecay).
     pub fn learning_rate(&self) -> f32 {
-        let c = &self.config;
-        let mut lr = c.lr;
-        if self.step >= c.decay_start {
-            let k = (self.step - c.decay_start) / c.decay_interval + 1;
-            lr *= c.decay_base.powi(k as i32);
-        }
-        lr
+        self.config.learning_rate(self.step)
     }
 
     /// One update. `grads` are per-worker gradient buffers (summed in order, then zeroed);
@@ -131,11 +145,10 @@ impl Optimizer {
         self.step += 1;
         let t = self.step as usize;
         while self.correction.len() <= t {
-            let k = self.correction.len() as i32;
-            let b1 = 1.0 - (c.beta1 as f64).powi(k);
-            let b2 = 1.0 - (c.beta2 as f64).powi(k);
-            self.correction.push((b2.sqrt() / b1) as f32);
-            self.decay_pow.push((c.ema_decay as f64).powi(k) as f32);
+            let k = self.correction.len() as u32;
+            self.correction.push(c.adam_correction(k));
+            self.decay_pow
+                .push((c.ema_decay as f64).powi(k as i32) as f32);
         }
         let step = self.step;
         let correction = &self.correction;
@@ -204,6 +217,12 @@ impl Optimizer {
                     }
                 }
             });
+    }
+
+    /// (first moments, second moments, per-parameter update counts): for comparing
+    /// backends.
+    pub fn moments(&self) -> (&[f32], &[f32], &[u32]) {
+        (&self.m, &self.v, &self.steps)
     }
 
     /// The debiased EMA of the weights: what renders and what a snapshot stores.

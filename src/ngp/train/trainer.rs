@@ -8,6 +8,7 @@
 //! split into one fixed range per worker, each with its own gradient buffer, summed in a
 //! fixed order: the result is deterministic for a seed and worker count.
 
+use super::loss::{DENSITY_PULL_UP, ray_loss};
 use super::optimizer::{Optimizer, OptimizerConfig, Touched};
 use crate::error::{Error, Result};
 use crate::ngp::data::Dataset;
@@ -15,9 +16,7 @@ use crate::ngp::encoding::{LevelIndices, check_indices};
 use crate::ngp::network::ModelConfig;
 use crate::ngp::network::nerf::{CHUNK, NerfNetwork, Workspace};
 use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
-use crate::ngp::render::composite::{
-    TRAIN_MIN_TRANSMITTANCE, composite, composite_backward, huber_loss,
-};
+use crate::ngp::render::composite::TRAIN_MIN_TRANSMITTANCE;
 use crate::ngp::render::march::{MAX_SAMPLES_PER_RAY, Marcher, advance_n_steps};
 use crate::rng::Pcg32;
 use rayon::prelude::*;
@@ -161,26 +160,6 @@ const GROUP_SAMPLES: usize = 4 * CHUNK;
 const RAY_GRANULARITY: u32 = 256;
 /// Most rays per batch (the reference's cap).
 const MAX_RAYS_PER_BATCH: u32 = 1 << 18;
-/// The reference's loss scale: its gradients reach the optimizer multiplied by 128, which
-/// the optimizer divides out. The regularisers below are added *after* that scaling, so
-/// their effective size is their constant divided by 128.
-const REFERENCE_LOSS_SCALE: f32 = 128.0;
-/// Pull-up on negative raw density while the grid's mean density is below 0.01
-/// (`output_l1_reg_density`): keeps an empty-looking grid from collapsing early.
-///
-/// Applied only to samples inside occupancy cascade 0 (the unit cube, over which that mean
-/// is measured; at aabb 1 the whole box, i.e. exactly the reference). The reference pushes
-/// every sample: a scene that never reaches the mean (sparse text, a logo) then keeps the
-/// push all run, and in a large box it fills every cascade with fog. Measured on fox ×4 +
-/// hidden text (BENCHMARKS.md, "the reference's density guard"): the confined guard keeps
-/// the hidden text's thin strokes alive as the reference's does and narrows the cover gap.
-const DENSITY_PULL_UP: f32 = 1e-4 / REFERENCE_LOSS_SCALE;
-/// Push-down on density of samples closer than `NEAR_DISTANCE` to their camera (raw > −10):
-/// keeps camera-specific floaters from forming right in front of the lens.
-const NEAR_PUSH_DOWN: f32 = 1e-4 / REFERENCE_LOSS_SCALE;
-/// `near_distance` (ngp units) of the reference's training.
-const NEAR_DISTANCE: f32 = 0.1;
-
 /// Rays of the first step: the reference starts at 4096 rays for its 2^18-sample target, i.e.
 /// 64 samples a ray; a smaller target starts at the same ratio.
 fn initial_rays_per_batch(batch_samples: u32) -> u32 {
@@ -375,14 +354,17 @@ impl Trainer {
         let fraction = self.config.occupancy_fraction;
         let seed = self.config.seed;
         for si in 0..self.scenes.len() {
-            let s = &mut self.scenes[si];
-            let (nu, nn) = s.grid.update_sample_counts(step, fraction);
-            let (pos, cells) = s
-                .grid
-                .sample_positions(nu, nn, mix(seed, 0x6772_6964 + si as u64));
-            let warped: Vec<[f32; 3]> = pos.iter().map(|&p| s.marcher.warp(p)).collect();
-            let dens = density_batch(&self.net, &self.params, &s.indices, &warped);
-            s.grid.splat(&cells, &dens);
+            let SceneState {
+                grid,
+                marcher,
+                indices,
+                ..
+            } = &mut self.scenes[si];
+            let (net, params) = (&self.net, &self.params);
+            grid.update(step, fraction, mix(seed, 0x6772_6964 + si as u64), |pos| {
+                let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
+                net.density_batch(params, indices, &warped)
+            });
             if si == 0 {
                 // Refreshed indices take effect before the other scenes' grids are updated.
                 self.apply_refresh()
@@ -476,27 +458,6 @@ impl Trainer {
         stats.optimizer_seconds = stats.seconds - t_rays;
         stats
     }
-}
-
-/// Log-densities at many network-space positions, in parallel chunks.
-pub fn density_batch(
-    net: &NerfNetwork,
-    params: &[f32],
-    indices: &LevelIndices,
-    pos: &[[f32; 3]],
-) -> Vec<f32> {
-    let mut out = vec![0.0f32; pos.len()];
-    out.par_chunks_mut(CHUNK * 8)
-        .zip(pos.par_chunks(CHUNK * 8))
-        .for_each_init(
-            || net.workspace(),
-            |ws, (o, p)| {
-                for (oc, pc) in o.chunks_mut(CHUNK).zip(p.chunks(CHUNK)) {
-                    net.density(params, indices, pc, ws, oc);
-                }
-            },
-        );
-    out
 }
 
 /// Samples evaluated per live ray per density wave.
@@ -682,38 +643,19 @@ fn train_rays(
         }
         for ray in &w.rays {
             let r = ray.start..ray.start + ray.n;
-            let c = composite(
+            let pos = &w.pos[r.clone()];
+            let c = ray_loss(
                 &w.raw[r.clone()],
                 &w.dt[r.clone()],
                 &w.dist[r.clone()],
-                1.0,
-                TRAIN_MIN_TRANSMITTANCE,
-            );
-            let pred = [
-                c.rgb[0] + c.transmittance * ray.bg[0],
-                c.rgb[1] + c.transmittance * ray.bg[1],
-                c.rgb[2] + c.transmittance * ray.bg[2],
-            ];
-            let (loss, g) = huber_loss(pred, ray.target);
-            w.loss += (loss / 3.0) as f64;
-            let dl = [g[0] * loss_norm, g[1] * loss_norm, g[2] * loss_norm];
-            composite_backward(
-                &w.raw[r.clone()],
-                &w.dt[r.clone()],
+                |j| scene.marcher.in_cascade0(pos[j]),
                 ray.bg,
-                TRAIN_MIN_TRANSMITTANCE,
-                dl,
-                &mut w.d_raw[r.clone()],
+                ray.target,
+                loss_norm,
+                pull_up,
+                &mut w.d_raw[r],
             );
-            for j in r.clone().take(c.n_used) {
-                let raw_density = w.raw[j][3];
-                if raw_density < 0.0 && scene.marcher.in_cascade0(w.pos[j]) {
-                    w.d_raw[j][3] -= pull_up;
-                }
-                if raw_density > -10.0 && w.dist[j] < NEAR_DISTANCE {
-                    w.d_raw[j][3] += NEAR_PUSH_DOWN;
-                }
-            }
+            w.loss += c.loss as f64;
             w.n_samples += c.n_used as u64;
             w.n_rays += 1;
         }
