@@ -7,8 +7,12 @@
 //! GPU the CPU engine is faster than emulating one. CI has no GPU and tests on lavapipe.
 
 pub mod index;
+pub mod loss;
+pub mod optimizer;
 
 pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL};
+pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
+pub use optimizer::GpuOptimizer;
 
 use std::sync::OnceLock;
 use std::sync::mpsc;
