@@ -4,13 +4,16 @@
 //! permutation tables, stealth confinement maps). The engine's kernels include
 //! [`INDEX_WGSL`]; [`CornerKernel`] runs it alone, for the tests and the benchmark.
 
-use super::{GpuContext, GpuError, GpuResult};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry};
 use crate::ngp::encoding::{IndexFn, LevelIndex};
 use std::sync::Mutex;
 use wgpu::util::DeviceExt;
 
-/// The index functions, to be concatenated into any kernel that indexes the grid.
-pub const INDEX_WGSL: &str = include_str!("index.wgsl");
+/// u64 arithmetic on pairs of u32 words, for kernels that need it without the index.
+pub const U64_WGSL: &str = include_str!("u64.wgsl");
+/// The index functions (with [`U64_WGSL`] first), to be concatenated into any kernel that
+/// indexes the grid.
+pub const INDEX_WGSL: &str = concat!(include_str!("u64.wgsl"), include_str!("index.wgsl"));
 const CORNERS_WGSL: &str = include_str!("corners.wgsl");
 
 /// One level's index function as the device reads it (`struct LevelIndex` in
@@ -341,13 +344,6 @@ impl CornerBatch {
 
     pub fn is_empty(&self) -> bool {
         self.n_pairs == 0
-    }
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
     }
 }
 

@@ -4,7 +4,7 @@
 //!
 //! [`ray_loss`]: crate::ngp::train::loss::ray_loss
 
-use super::{GpuContext, GpuError, GpuResult};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry};
 use crate::ngp::render::composite::TRAIN_MIN_TRANSMITTANCE;
 use crate::ngp::render::march::Marcher;
 use crate::ngp::train::loss::{NEAR_DISTANCE, NEAR_PUSH_DOWN};
@@ -272,13 +272,6 @@ impl LossKernel {
                 .map(|[l, n]| (f32::from_bits(l), n))
                 .collect(),
         ))
-    }
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
     }
 }
 

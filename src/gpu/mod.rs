@@ -8,10 +8,12 @@
 
 pub mod index;
 pub mod loss;
+pub mod occupancy;
 pub mod optimizer;
 
-pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL};
+pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL, U64_WGSL};
 pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
+pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
 
 use std::sync::OnceLock;
@@ -286,6 +288,14 @@ impl GpuContext {
         };
         staging.unmap();
         Ok(out)
+    }
+}
+
+/// A whole buffer bound at `binding`.
+pub(crate) fn buffer_entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
     }
 }
 

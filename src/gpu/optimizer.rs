@@ -5,7 +5,7 @@
 //!
 //! [`Optimizer`]: crate::ngp::train::optimizer::Optimizer
 
-use super::{GpuContext, GpuError, GpuResult};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry};
 use crate::ngp::train::optimizer::OptimizerConfig;
 use wgpu::util::DeviceExt;
 
@@ -254,13 +254,6 @@ fn correction_table(ctx: &GpuContext, config: &OptimizerConfig, cap: u32) -> wgp
             contents: bytemuck::cast_slice(&table),
             usage: wgpu::BufferUsages::STORAGE,
         })
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
 }
 
 #[cfg(test)]

@@ -141,6 +141,34 @@ impl OccupancyGrid {
         Some(g)
     }
 
+    /// A grid from all its parts (another backend's copy): `None` unless the sizes agree.
+    pub fn from_parts(
+        density: Vec<f32>,
+        bitfield: Vec<u8>,
+        mean: f32,
+        ema_step: u32,
+    ) -> Option<Self> {
+        if density.is_empty()
+            || !density.len().is_multiple_of(N_CELLS)
+            || bitfield.len() * 8 != density.len()
+        {
+            return None;
+        }
+        Some(OccupancyGrid {
+            n_cascades: density.len() / N_CELLS,
+            density,
+            bitfield,
+            mean,
+            ema_step,
+        })
+    }
+
+    /// One bit per cell (bit j of byte i: cell 8i + j), cascade after cascade, each coarser
+    /// one OR-pooling the finer.
+    pub fn bitfield(&self) -> &[u8] {
+        &self.bitfield
+    }
+
     pub fn max_cascade(&self) -> u32 {
         self.n_cascades as u32 - 1
     }

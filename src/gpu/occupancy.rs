@@ -1,0 +1,526 @@
+//! The occupancy grid's training update on the device (`occupancy.wgsl`): the draw of an
+//! update's cells and positions, bit-identical to [`OccupancyGrid::sample_positions`] (then
+//! warped as the trainer warps them), and, once the field's log-densities at those
+//! positions are in a buffer, [`OccupancyGrid::splat`]'s max-splat, decay, cascade-0 mean,
+//! bitfield and pooled cascades. The density itself is the network's business: any kernel
+//! that writes one log-density per sample.
+
+use super::index::U64_WGSL;
+use super::{GpuContext, GpuError, GpuResult, buffer_entry};
+use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
+use crate::ngp::render::march::Marcher;
+use wgpu::util::DeviceExt;
+
+const OCCUPANCY_WGSL: &str = include_str!("occupancy.wgsl");
+/// Uniform slots: one per pooled cascade (≤ 8) plus the update's own; a slot per dynamic
+/// offset, so that every pass of one submission reads its own `level`.
+const SLOTS: u64 = 9;
+const SLOT_BYTES: u64 = 256;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct OccParams {
+    seed: [u32; 2],
+    n_uniform: u32,
+    n_nonuniform: u32,
+    ema_step: u32,
+    n_cascades: u32,
+    row_width: u32,
+    level: u32,
+    aabb_min: [f32; 3],
+    inv_extent: f32,
+}
+
+struct Pipelines {
+    sample: wgpu::ComputePipeline,
+    splat: wgpu::ComputePipeline,
+    decay: wgpu::ComputePipeline,
+    sum: wgpu::ComputePipeline,
+    mean: wgpu::ComputePipeline,
+    bits: wgpu::ComputePipeline,
+    pool: wgpu::ComputePipeline,
+}
+
+/// One scene's occupancy grid resident on the device, with the buffers of one update's
+/// samples.
+pub struct GpuOccupancy {
+    pub n_cascades: u32,
+    /// Optical thickness per cell, `N_CELLS` per cascade, Morton order (f32).
+    pub density: wgpu::Buffer,
+    /// One bit per cell per cascade, 32 cells per word: the CPU's bitfield bytes.
+    pub bitfield: wgpu::Buffer,
+    fresh: wgpu::Buffer,
+    /// [0]: the cascade-0 mean after the last update; then partial sums.
+    sums: wgpu::Buffer,
+    /// The last draw's warped positions (3 floats a sample) and cells.
+    pub sample_pos: wgpu::Buffer,
+    pub sample_cell: wgpu::Buffer,
+    capacity: u32,
+    n_samples: u32,
+    n_uniform: u32,
+    dummy: wgpu::Buffer,
+    uniform: wgpu::Buffer,
+    layout: wgpu::BindGroupLayout,
+    pipelines: Pipelines,
+    aabb_min: [f32; 3],
+    inv_extent: f32,
+    /// Updates so far (seeds the cell hash, as the CPU's `ema_step`).
+    pub ema_step: u32,
+}
+
+fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Storage { read_only },
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
+fn storage(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
+    ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: bytes.max(16),
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+/// Workgroups for `n` invocations of `size`, folded into y past the dimension limit.
+fn groups(ctx: &GpuContext, n: u32, size: u32) -> [u32; 2] {
+    let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
+    let g = n.div_ceil(size).max(1);
+    let gx = g.min(max_dim);
+    [gx, g.div_ceil(gx)]
+}
+
+impl GpuOccupancy {
+    /// Uploads `grid` (the CPU marks untrained cells before training starts) for a scene
+    /// marched by `marcher`.
+    pub fn upload(
+        ctx: &GpuContext,
+        grid: &OccupancyGrid,
+        marcher: &Marcher,
+    ) -> GpuResult<GpuOccupancy> {
+        let extent = marcher.aabb_max[0] - marcher.aabb_min[0];
+        if extent.is_nan() || extent <= 0.0 || extent.log2().fract() != 0.0 {
+            return Err(GpuError::Input(format!(
+                "aabb side {extent}: the device warps by a power-of-two side only"
+            )));
+        }
+        let nc = grid.n_cascades as u32;
+        let bits = grid.bitfield();
+        ctx.scoped("occupancy upload", || {
+            let d = &ctx.device;
+            let init = |label, contents: &[u8]| {
+                d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage: wgpu::BufferUsages::STORAGE
+                        | wgpu::BufferUsages::COPY_SRC
+                        | wgpu::BufferUsages::COPY_DST,
+                })
+            };
+            let source = format!("{U64_WGSL}\n{OCCUPANCY_WGSL}");
+            let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("occupancy.wgsl"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+            let mut entries: Vec<_> = (0..7).map(|b| storage_entry(b, b == 5)).collect();
+            entries.push(wgpu::BindGroupLayoutEntry {
+                binding: 7,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: true,
+                    min_binding_size: wgpu::BufferSize::new(
+                        std::mem::size_of::<OccParams>() as u64
+                    ),
+                },
+                count: None,
+            });
+            let layout = d.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("occupancy"),
+                entries: &entries,
+            });
+            let pl = d.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("occupancy"),
+                bind_group_layouts: &[Some(&layout)],
+                immediate_size: 0,
+            });
+            let pipeline = |entry: &str| {
+                d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(&pl),
+                    module: &module,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            };
+            let pipelines = Pipelines {
+                sample: pipeline("sample_main"),
+                splat: pipeline("splat_main"),
+                decay: pipeline("decay_main"),
+                sum: pipeline("sum_main"),
+                mean: pipeline("mean_main"),
+                bits: pipeline("bits_main"),
+                pool: pipeline("pool_main"),
+            };
+            let mut sums = vec![0.0f32; 1 + N_CELLS / 256];
+            sums[0] = grid.mean;
+            GpuOccupancy {
+                n_cascades: nc,
+                density: init("occupancy density", bytemuck::cast_slice(&grid.density)),
+                bitfield: init("occupancy bitfield", bits),
+                fresh: storage(ctx, "occupancy fresh", 4 * grid.density.len() as u64),
+                sums: init("occupancy sums", bytemuck::cast_slice(&sums)),
+                sample_pos: storage(ctx, "occupancy sample positions", 0),
+                sample_cell: storage(ctx, "occupancy sample cells", 0),
+                capacity: 0,
+                n_samples: 0,
+                n_uniform: 0,
+                dummy: storage(ctx, "occupancy no density", 0),
+                uniform: d.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some("occupancy params"),
+                    size: SLOTS * SLOT_BYTES,
+                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                }),
+                layout,
+                pipelines,
+                aabb_min: marcher.aabb_min,
+                inv_extent: 1.0 / extent,
+                ema_step: grid.ema_step,
+            }
+        })
+    }
+
+    /// Samples of the last draw (`n_uniform + n_nonuniform`).
+    pub fn n_samples(&self) -> u32 {
+        self.n_samples
+    }
+
+    fn params(&self, seed: u64, row_width: u32, level: u32) -> OccParams {
+        let seed = seed ^ ((self.ema_step as u64) << 32);
+        OccParams {
+            seed: [seed as u32, (seed >> 32) as u32],
+            n_uniform: self.n_uniform,
+            n_nonuniform: self.n_samples - self.n_uniform,
+            ema_step: self.ema_step,
+            n_cascades: self.n_cascades,
+            row_width,
+            level,
+            aabb_min: self.aabb_min,
+            inv_extent: self.inv_extent,
+        }
+    }
+
+    fn bind_group(&self, ctx: &GpuContext, log_density: &wgpu::Buffer) -> wgpu::BindGroup {
+        let e = buffer_entry;
+        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("occupancy"),
+            layout: &self.layout,
+            entries: &[
+                e(0, &self.density),
+                e(1, &self.fresh),
+                e(2, &self.bitfield),
+                e(3, &self.sample_pos),
+                e(4, &self.sample_cell),
+                e(5, log_density),
+                e(6, &self.sums),
+                wgpu::BindGroupEntry {
+                    binding: 7,
+                    resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                        buffer: &self.uniform,
+                        offset: 0,
+                        size: wgpu::BufferSize::new(std::mem::size_of::<OccParams>() as u64),
+                    }),
+                },
+            ],
+        })
+    }
+
+    /// Records the draw of one update's samples, `n_uniform` among seen cells and
+    /// `n_nonuniform` among occupied ones (counts as `OccupancyGrid::update_sample_counts`
+    /// gives them), into [`Self::sample_pos`] and [`Self::sample_cell`], warped for the
+    /// network. `seed` is the scene's update seed, as the CPU trainer passes it.
+    pub fn encode_samples(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        n_uniform: u32,
+        n_nonuniform: u32,
+        seed: u64,
+    ) -> GpuResult<()> {
+        let n = n_uniform
+            .checked_add(n_nonuniform)
+            .ok_or_else(|| GpuError::Input("occupancy: more than 2^32 samples".into()))?;
+        if n > self.capacity {
+            let limits = ctx.device.limits();
+            let max = limits
+                .max_storage_buffer_binding_size
+                .min(limits.max_buffer_size);
+            if 12 * n as u64 > max {
+                return Err(GpuError::Input(format!(
+                    "occupancy: {n} samples past the device's {max}-byte binding"
+                )));
+            }
+            (self.sample_pos, self.sample_cell) = ctx.scoped("occupancy samples", || {
+                (
+                    storage(ctx, "occupancy sample positions", 12 * n as u64),
+                    storage(ctx, "occupancy sample cells", 4 * n as u64),
+                )
+            })?;
+            self.capacity = n;
+        }
+        self.n_samples = n;
+        self.n_uniform = n_uniform;
+        let [gx, gy] = groups(ctx, n, 64);
+        let params = self.params(seed, gx * 64, 0);
+        ctx.scoped("occupancy draw", || {
+            ctx.queue
+                .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
+            let bg = self.bind_group(ctx, &self.dummy);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.pipelines.sample);
+            pass.set_bind_group(0, &bg, &[0]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        })
+    }
+
+    /// Records the rest of the update: every sample of the last draw splats
+    /// `log_density[k]` (one f32 per sample, from the field) into its cell, then decay, the
+    /// cascade-0 mean and the bitfield, as [`OccupancyGrid::splat`]. Counts one update.
+    pub fn encode_splat(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        log_density: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        if log_density.size() < 4 * self.n_samples as u64 {
+            return Err(GpuError::Input(format!(
+                "occupancy: {} bytes of log-density for {} samples",
+                log_density.size(),
+                self.n_samples
+            )));
+        }
+        let nc = self.n_cascades;
+        let n_cells = N_CELLS as u32 * nc;
+        let g_samples = groups(ctx, self.n_samples, 64);
+        let g_cells = groups(ctx, n_cells, 256);
+        let g_words = groups(ctx, n_cells / 32, 256);
+        let g_pool = groups(ctx, N_CELLS as u32 / 64, 256);
+        // Slot 0: the update's own values; slot l: pooling into cascade l. Each pass reads
+        // row_width for its own dispatch shape.
+        let mut slots = vec![0u8; (SLOTS * SLOT_BYTES) as usize];
+        let put = |slots: &mut Vec<u8>, slot: usize, p: OccParams| {
+            let at = slot * SLOT_BYTES as usize;
+            slots[at..at + std::mem::size_of::<OccParams>()]
+                .copy_from_slice(bytemuck::bytes_of(&p));
+        };
+        // Samples and cells fold differently: the splat reads slot 0, the cell passes
+        // slot SLOTS − 1.
+        put(&mut slots, 0, self.params(0, g_samples[0] * 64, 0));
+        for l in 1..nc {
+            put(&mut slots, l as usize, self.params(0, g_pool[0] * 256, l));
+        }
+        let cells_slot = (SLOTS - 1) as u32;
+        put(
+            &mut slots,
+            cells_slot as usize,
+            self.params(0, g_cells[0] * 256, 0),
+        );
+        // The bitfield pass (≤ 2048 workgroups) and the sums never fold into y, so they
+        // need no row width of their own.
+        ctx.scoped("occupancy splat", || {
+            ctx.queue.write_buffer(&self.uniform, 0, &slots);
+            let bg = self.bind_group(ctx, log_density);
+            let off = |slot: u32| [slot * SLOT_BYTES as u32];
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_bind_group(0, &bg, &off(0));
+            pass.set_pipeline(&self.pipelines.splat);
+            pass.dispatch_workgroups(g_samples[0], g_samples[1], 1);
+            pass.set_bind_group(0, &bg, &off(cells_slot));
+            pass.set_pipeline(&self.pipelines.decay);
+            pass.dispatch_workgroups(g_cells[0], g_cells[1], 1);
+            pass.set_pipeline(&self.pipelines.sum);
+            pass.dispatch_workgroups(N_CELLS as u32 / 256, 1, 1);
+            pass.set_pipeline(&self.pipelines.mean);
+            pass.dispatch_workgroups(1, 1, 1);
+            pass.set_pipeline(&self.pipelines.bits);
+            pass.dispatch_workgroups(g_words[0], g_words[1], 1);
+            for l in 1..nc {
+                pass.set_bind_group(0, &bg, &off(l));
+                pass.set_pipeline(&self.pipelines.pool);
+                pass.dispatch_workgroups(g_pool[0], g_pool[1], 1);
+            }
+        })?;
+        self.ema_step += 1;
+        Ok(())
+    }
+
+    /// The grid as the CPU holds it (density, bitfield, mean, update count), read back.
+    pub fn download(&self, ctx: &GpuContext) -> GpuResult<OccupancyGrid> {
+        let n = N_CELLS as u64 * self.n_cascades as u64;
+        let density: Vec<f32> = ctx.read_buffer(&self.density, 4 * n)?;
+        let bitfield: Vec<u8> = ctx.read_buffer(&self.bitfield, n / 8)?;
+        let mean: Vec<f32> = ctx.read_buffer(&self.sums, 4)?;
+        OccupancyGrid::from_parts(density, bitfield, mean[0], self.ema_step)
+            .ok_or_else(|| GpuError::Input("occupancy: inconsistent grid read back".into()))
+    }
+
+    /// The last draw's (warped positions, cells), read back.
+    #[allow(clippy::type_complexity)]
+    pub fn download_samples(&self, ctx: &GpuContext) -> GpuResult<(Vec<[f32; 3]>, Vec<u32>)> {
+        let n = self.n_samples as u64;
+        Ok((
+            ctx.read_buffer(&self.sample_pos, 12 * n)?,
+            ctx.read_buffer(&self.sample_cell, 4 * n)?,
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::test_context;
+    use crate::ngp::occupancy::MIN_CONE_STEPSIZE;
+    use crate::rng::Pcg32;
+    use wgpu::util::DeviceExt;
+
+    /// An aabb-4 grid (3 cascades) mid-training: densities around the threshold, a tenth of
+    /// the cells culled, an update count that is not 0.
+    fn grid() -> OccupancyGrid {
+        let mut r = Pcg32::new(9, 2);
+        let density = (0..3 * N_CELLS)
+            .map(|_| {
+                if r.next_f32() < 0.1 {
+                    -1.0
+                } else {
+                    r.next_f32() * 0.02
+                }
+            })
+            .collect();
+        let mut g = OccupancyGrid::from_density(density).unwrap();
+        g.ema_step = 37;
+        g
+    }
+
+    fn run(ctx: &GpuContext, f: impl FnOnce(&mut wgpu::CommandEncoder)) {
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        f(&mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        ctx.wait().unwrap();
+    }
+
+    /// Cells and warped positions of two updates' draws, bit for bit the CPU trainer's
+    /// (`sample_positions`, then `Marcher::warp`), and the splat that follows: densities
+    /// within 1e-6 relative (the device's exp is not correctly rounded), the mean within
+    /// 1e-5, the bitfield exactly except for cells within 1e-5 of the threshold.
+    #[test]
+    fn updates_match_the_cpu_grid() {
+        let Some(ctx) = test_context() else { return };
+        let marcher = Marcher::new(4);
+        let mut cpu = grid();
+        let mut gpu = GpuOccupancy::upload(ctx, &cpu, &marcher).unwrap();
+        let mut r = Pcg32::new(4, 4);
+        for (update, (nu, nn)) in [(20_000u32, 7_000u32), (3_000, 9_000)]
+            .into_iter()
+            .enumerate()
+        {
+            let seed = 0x1234_5678_9abc_def0 + update as u64;
+            run(ctx, |e| gpu.encode_samples(ctx, e, nu, nn, seed).unwrap());
+            let (pos, cells) = gpu.download_samples(ctx).unwrap();
+            let (want_pos, want_cells) = cpu.sample_positions(nu as usize, nn as usize, seed);
+            assert_eq!(cells, want_cells, "update {update}: cells");
+            for (k, (got, want)) in pos.iter().zip(&want_pos).enumerate() {
+                assert_eq!(*got, marcher.warp(*want), "update {update}: sample {k}");
+            }
+            let ld: Vec<f32> = (0..nu + nn)
+                .map(|_| (r.next_f32() * 0.03 / MIN_CONE_STEPSIZE).ln())
+                .collect();
+            let buf = ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("log density"),
+                    contents: bytemuck::cast_slice(&ld),
+                    usage: wgpu::BufferUsages::STORAGE,
+                });
+            run(ctx, |e| gpu.encode_splat(ctx, e, &buf).unwrap());
+            cpu.splat(&want_cells, &ld);
+            let got = gpu.download(ctx).unwrap();
+            assert_eq!(got.ema_step, cpu.ema_step);
+            assert!(
+                (got.mean - cpu.mean).abs() <= 1e-5 * cpu.mean,
+                "mean {} vs {}",
+                got.mean,
+                cpu.mean
+            );
+            for (i, (&g, &c)) in got.density.iter().zip(&cpu.density).enumerate() {
+                assert!((g - c).abs() <= 1e-6 * c.abs(), "cell {i}: {g} vs {c}");
+            }
+            let thresh = cpu.mean.min(0.01);
+            let near = |i: usize| (cpu.density[i] - thresh).abs() <= 1e-5 * thresh;
+            let (gb, cb) = (got.bitfield(), cpu.bitfield());
+            let mut differ = 0;
+            for (byte, (&g, &c)) in gb.iter().zip(cb).enumerate() {
+                if g != c {
+                    // A differing bit of cascade 0's own cells must sit at the threshold;
+                    // coarser bytes then differ through pooling, which must be rare.
+                    if byte < N_CELLS / 8 {
+                        for j in 0..8 {
+                            if (g ^ c) >> j & 1 == 1 {
+                                assert!(
+                                    near(byte * 8 + j),
+                                    "update {update}: cell {}",
+                                    byte * 8 + j
+                                );
+                            }
+                        }
+                    }
+                    differ += 1;
+                }
+            }
+            assert!(
+                differ <= 8,
+                "update {update}: {differ} bitfield bytes differ"
+            );
+            let occupied = cb.iter().map(|b| b.count_ones()).sum::<u32>();
+            assert!(
+                occupied > 100_000,
+                "the test grid has a real bitfield: {occupied}"
+            );
+        }
+    }
+
+    #[test]
+    fn bad_inputs_are_errors() {
+        let Some(ctx) = test_context() else { return };
+        let g = OccupancyGrid::new(1);
+        let mut odd = Marcher::new(1);
+        odd.aabb_max = [1.5; 3];
+        assert!(GpuOccupancy::upload(ctx, &g, &odd).is_err());
+        let mut gpu = GpuOccupancy::upload(ctx, &g, &Marcher::new(1)).unwrap();
+        let short = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: None,
+            size: 16,
+            usage: wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        gpu.encode_samples(ctx, &mut encoder, 1000, 0, 1).unwrap();
+        assert!(gpu.encode_splat(ctx, &mut encoder, &short).is_err());
+        assert_eq!(gpu.ema_step, 0, "a refused splat does not count");
+        assert!(
+            gpu.encode_samples(ctx, &mut encoder, u32::MAX, 1, 1)
+                .is_err()
+        );
+    }
+}
