@@ -6,11 +6,13 @@
 //! ([`AdapterRequest::Software`], [`AdapterRequest::Any`]), because on a machine without a
 //! GPU the CPU engine is faster than emulating one. CI has no GPU and tests on lavapipe.
 
+pub mod grid;
 pub mod index;
 pub mod loss;
 pub mod occupancy;
 pub mod optimizer;
 
+pub use grid::{GradAtomics, GridDispatch, GridEncoding, GridShape};
 pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL, U64_WGSL};
 pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
 pub use occupancy::GpuOccupancy;
