@@ -9,12 +9,14 @@
 pub mod grid;
 pub mod index;
 pub mod loss;
+pub mod mlp;
 pub mod occupancy;
 pub mod optimizer;
 
 pub use grid::{GradAtomics, GridDispatch, GridEncoding, GridShape};
 pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL, U64_WGSL};
 pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
+pub use mlp::{EncodedBatch, MLP_WGSL, MlpKernels, MlpWorkspace};
 pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
 
