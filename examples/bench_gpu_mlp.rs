@@ -127,19 +127,19 @@ mod bench {
         let rate = |s: usize, t: f64| s as f64 / t / 1e6;
         println!("{:<18} {:>10} {:>12}", "", "GPU", "CPU 1 core");
         println!(
-            "{:<18} {:>10.2} {:>12.2}",
+            "{:<18} {:>10.4} {:>12.3}",
             "forward",
             rate(n, gpu_fwd),
             rate(cpu_n, cpu_fwd)
         );
         println!(
-            "{:<18} {:>10.2} {:>12}",
+            "{:<18} {:>10.4} {:>12}",
             "density only",
             rate(n, gpu_dens),
             "-"
         );
         println!(
-            "{:<18} {:>10.2} {:>12.2}",
+            "{:<18} {:>10.4} {:>12.3}",
             "forward+backward",
             rate(n, gpu_fb),
             rate(cpu_n, cpu_fb)

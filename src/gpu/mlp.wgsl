@@ -85,36 +85,51 @@ fn load_w_backward(off: u32, rows: u32, cols: u32, lid: u32) {
     }
 }
 
-// dst[r][s] = act(Σ_{k < n_k} M[k·64 + r] · src[k][s]) for r < n_out, all T samples of the
-// tile. Invocation lid owns rows rb + 16·g (g < n_groups, the row groups the layer needs)
-// and samples sb + 8·j (j < SB): per input k, SB tile reads and n_groups weight reads feed
-// n_groups·SB multiply-adds. Rows past n_out are computed from stale weights and dropped.
-fn layer(src: u32, dst: u32, n_k: u32, n_out: u32, n_groups: u32, relu: bool, lid: u32) {
+// dst[r][s] = act(Σ_{k < n_k} M[k·64 + r] · src[k][s]) for r < n_out (≤ 64), all T samples
+// of the tile. Invocation lid owns rows rb + 16·g (g < 4) and samples sb + 8·j (j < SB):
+// per input k, SB tile reads and 4 weight reads feed 4·SB multiply-adds, the four rows as
+// one vec4 so that every index into the accumulators is a constant (dynamically indexed
+// private arrays become memory, or gathers on a SIMD software adapter). Rows past n_out
+// are computed from stale weights and dropped.
+fn layer(src: u32, dst: u32, n_k: u32, n_out: u32, relu: bool, lid: u32) {
     let rb = lid % 16u;
     let sb = lid / 16u;
-    var acc: array<f32, 4u * SB>;
+    var acc: array<vec4<f32>, SB>;
     for (var k = 0u; k < n_k; k++) {
-        var xs: array<f32, SB>;
+        let m = k * WIDTH + rb;
+        let w = vec4<f32>(wsh[m], wsh[m + 16u], wsh[m + 32u], wsh[m + 48u]);
         for (var j = 0u; j < SB; j++) {
-            xs[j] = act[src + k * T + sb + 8u * j];
+            acc[j] = fma(w, vec4<f32>(act[src + k * T + sb + 8u * j]), acc[j]);
         }
-        for (var g = 0u; g < n_groups; g++) {
-            let w = wsh[k * WIDTH + rb + 16u * g];
-            for (var j = 0u; j < SB; j++) {
-                acc[g * SB + j] = fma(w, xs[j], acc[g * SB + j]);
+    }
+    for (var j = 0u; j < SB; j++) {
+        var v = acc[j];
+        if (relu) {
+            v = max(v, vec4<f32>(0.0));
+        }
+        let o = dst + sb + 8u * j;
+        for (var g = 0u; g < 4u; g++) {
+            if (rb + 16u * g < n_out) {
+                act[o + (rb + 16u * g) * T] = v[g];
             }
         }
     }
-    for (var g = 0u; g < n_groups; g++) {
-        let r = rb + 16u * g;
-        if (r < n_out) {
-            for (var j = 0u; j < SB; j++) {
-                var v = acc[g * SB + j];
-                if (relu) {
-                    v = max(v, 0.0);
-                }
-                act[dst + r * T + sb + 8u * j] = v;
-            }
+}
+
+// The same for n_out ≤ 16 (the MLPs' output layers): one row per invocation.
+fn layer16(src: u32, dst: u32, n_k: u32, n_out: u32, lid: u32) {
+    let rb = lid % 16u;
+    let sb = lid / 16u;
+    var acc: array<f32, SB>;
+    for (var k = 0u; k < n_k; k++) {
+        let w = wsh[k * WIDTH + rb];
+        for (var j = 0u; j < SB; j++) {
+            acc[j] = fma(w, act[src + k * T + sb + 8u * j], acc[j]);
+        }
+    }
+    if (rb < n_out) {
+        for (var j = 0u; j < SB; j++) {
+            act[dst + rb * T + sb + 8u * j] = acc[j];
         }
     }
 }
@@ -193,7 +208,7 @@ fn density_hidden(s0: u32, lid: u32) {
     load_enc(s0, lid);
     load_w_forward(OFF_D0, WIDTH, DIN, lid);
     workgroupBarrier();
-    layer(X, Y, DIN, WIDTH, 4u, true, lid);
+    layer(X, Y, DIN, WIDTH, true, lid);
     workgroupBarrier();
 }
 
@@ -216,7 +231,7 @@ fn forward_main(
     load_w_forward(OFF_D1, DOUT, WIDTH, lid);
     workgroupBarrier();
     // Density outputs into X rows 0..16 (linear), SH into rows 16..32: the colour input.
-    layer(Y, X, WIDTH, DOUT, 1u, false, lid);
+    layer16(Y, X, WIDTH, DOUT, lid);
     if (lid < T) {
         var v = array<f32, 16>();
         let s = s0 + lid;
@@ -239,14 +254,14 @@ fn forward_main(
     }
     load_w_forward(OFF_C0, WIDTH, DOUT + 16u, lid);
     workgroupBarrier();
-    layer(X, Y, DOUT + 16u, WIDTH, 4u, true, lid);
+    layer(X, Y, DOUT + 16u, WIDTH, true, lid);
     workgroupBarrier();
     if (store) {
         store_acts(Y, WIDTH, A_H1, s0, lid);
     }
     load_w_forward(OFF_C1, WIDTH, WIDTH, lid);
     workgroupBarrier();
-    layer(Y, X, WIDTH, WIDTH, 4u, true, lid);
+    layer(Y, X, WIDTH, WIDTH, true, lid);
     workgroupBarrier();
     if (store) {
         store_acts(X, WIDTH, A_H2, s0, lid);
@@ -254,7 +269,7 @@ fn forward_main(
     // Only the 3 used rows of the padded 16 × 64 output matrix.
     load_w_forward(OFF_C2, 3u, WIDTH, lid);
     workgroupBarrier();
-    layer(X, Y, WIDTH, 3u, 1u, false, lid);
+    layer16(X, Y, WIDTH, 3u, lid);
     workgroupBarrier();
     let s = s0 + lid;
     if (lid < T && s < p.n) {
@@ -275,7 +290,7 @@ fn density_main(
     density_hidden(s0, lid);
     load_w_forward(OFF_D1, 1u, WIDTH, lid);
     workgroupBarrier();
-    layer(Y, X, WIDTH, 1u, 1u, false, lid);
+    layer16(Y, X, WIDTH, 1u, lid);
     workgroupBarrier();
     let s = s0 + lid;
     if (lid < T && s < p.n) {
@@ -327,18 +342,18 @@ fn backward_main(
     }
     load_w_backward(OFF_C2, 3u, WIDTH, lid);
     workgroupBarrier();
-    layer(X, Y, 3u, WIDTH, 4u, false, lid);
+    layer(X, Y, 3u, WIDTH, false, lid);
     workgroupBarrier();
     mask_and_store(Y, WIDTH, A_H2, G_H2, s0, lid);
     load_w_backward(OFF_C1, WIDTH, WIDTH, lid);
     workgroupBarrier();
-    layer(Y, X, WIDTH, WIDTH, 4u, false, lid);
+    layer(Y, X, WIDTH, WIDTH, false, lid);
     workgroupBarrier();
     mask_and_store(X, WIDTH, A_H1, G_H1, s0, lid);
     // Only the density-output half of the colour input needs a gradient (SH is fixed).
     load_w_backward(OFF_C0, WIDTH, DOUT + 16u, lid);
     workgroupBarrier();
-    layer(X, Y, WIDTH, DOUT, 1u, false, lid);
+    layer16(X, Y, WIDTH, DOUT, lid);
     workgroupBarrier();
     // The log-density reaches density output 0 directly as well as through the colour MLP.
     // The density outputs are linear: no mask.
@@ -355,12 +370,12 @@ fn backward_main(
     }
     load_w_backward(OFF_D1, DOUT, WIDTH, lid);
     workgroupBarrier();
-    layer(Y, X, DOUT, WIDTH, 4u, false, lid);
+    layer(Y, X, DOUT, WIDTH, false, lid);
     workgroupBarrier();
     mask_and_store(X, WIDTH, A_DH, G_DH, s0, lid);
     load_w_backward(OFF_D0, WIDTH, DIN, lid);
     workgroupBarrier();
-    layer(X, Y, WIDTH, N_ENC, (N_ENC + 15u) / 16u, false, lid);
+    layer(X, Y, WIDTH, N_ENC, false, lid);
     workgroupBarrier();
     for (var e = lid; e < N_ENC * T; e += WG) {
         let s = s0 + e % T;
@@ -414,10 +429,10 @@ fn wgrad_main(
         }
         default: {}
     }
-    // Invocation lid owns rows rb + 16·g (g < 4) and columns cb + 8·c (c < 8).
+    // Invocation lid owns rows rb + 16·g (g < 4, one vec4) and columns cb + 8·c (c < 8).
     let rb = lid % 16u;
     let cb = lid / 16u;
-    var acc: array<f32, 32>;
+    var acc: array<vec4<f32>, 8>;
     let begin = chunk * CH;
     let end = min(begin + CH, p.n);
     for (var b = begin; b < end; b += ST) {
@@ -444,26 +459,21 @@ fn wgrad_main(
         }
         workgroupBarrier();
         for (var s = 0u; s < ST; s++) {
-            var xs: array<f32, 8>;
+            let m = s * WIDTH + rb;
+            let dy = vec4<f32>(wsh[m], wsh[m + 16u], wsh[m + 32u], wsh[m + 48u]);
             for (var c = 0u; c < 8u; c++) {
-                xs[c] = wsh[WG_X + s * WIDTH + cb + 8u * c];
-            }
-            for (var g = 0u; g < 4u; g++) {
-                let dy = wsh[s * WIDTH + rb + 16u * g];
-                for (var c = 0u; c < 8u; c++) {
-                    acc[g * 8u + c] = fma(dy, xs[c], acc[g * 8u + c]);
-                }
+                acc[c] = fma(dy, vec4<f32>(wsh[WG_X + s * WIDTH + cb + 8u * c]), acc[c]);
             }
         }
         workgroupBarrier();
     }
     let base = chunk * NW + off - OFF_D0;
-    for (var g = 0u; g < 4u; g++) {
-        let r = rb + 16u * g;
-        for (var c = 0u; c < 8u; c++) {
-            let i = cb + 8u * c;
+    for (var c = 0u; c < 8u; c++) {
+        let i = cb + 8u * c;
+        for (var g = 0u; g < 4u; g++) {
+            let r = rb + 16u * g;
             if (r < rows && i < cols) {
-                partials[base + r * cols + i] = acc[g * 8u + c];
+                partials[base + r * cols + i] = acc[c][g];
             }
         }
     }
