@@ -6,6 +6,7 @@
 //! ([`AdapterRequest::Software`], [`AdapterRequest::Any`]), because on a machine without a
 //! GPU the CPU engine is faster than emulating one. CI has no GPU and tests on lavapipe.
 
+pub mod field;
 pub mod grid;
 pub mod index;
 pub mod loss;
@@ -13,6 +14,7 @@ pub mod mlp;
 pub mod occupancy;
 pub mod optimizer;
 
+pub use field::{DensityScratch, GpuField};
 pub use grid::{GradAtomics, GridDispatch, GridEncoding, GridShape};
 pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL, U64_WGSL};
 pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
@@ -293,6 +295,19 @@ impl GpuContext {
         staging.unmap();
         Ok(out)
     }
+}
+
+/// A storage buffer of `bytes` (at least 16: a binding cannot be empty) that can also be
+/// copied to and from; wgpu zero-initialises it.
+pub(crate) fn device_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
+    ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: bytes.max(16),
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
 }
 
 /// A whole buffer bound at `binding`.

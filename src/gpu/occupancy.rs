@@ -5,16 +5,21 @@
 //! bitfield and pooled cascades. The density itself is the network's business: any kernel
 //! that writes one log-density per sample.
 
+use super::field::{DensityScratch, GpuField};
 use super::index::U64_WGSL;
-use super::{GpuContext, GpuError, GpuResult, buffer_entry};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry, device_buffer as storage};
 use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
 use wgpu::util::DeviceExt;
 
 const OCCUPANCY_WGSL: &str = include_str!("occupancy.wgsl");
-/// Uniform slots: one per pooled cascade (≤ 8) plus the update's own; a slot per dynamic
-/// offset, so that every pass of one submission reads its own `level`.
-const SLOTS: u64 = 9;
+/// Uniform slots, one per pass shape, chosen by dynamic offset: every pass of one submission
+/// reads its own values (queue writes all land before the submission runs). Slot 0: the
+/// draw; 1..=7: pooling into cascade 1..=7; 8: the cell passes; 9: the splat.
+const SLOTS: u64 = 10;
+const DRAW_SLOT: u32 = 0;
+const CELLS_SLOT: u32 = 8;
+const SPLAT_SLOT: u32 = 9;
 const SLOT_BYTES: u64 = 256;
 
 #[repr(C)]
@@ -79,17 +84,6 @@ fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
         },
         count: None,
     }
-}
-
-fn storage(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
-    ctx.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(label),
-        size: bytes.max(16),
-        usage: wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::COPY_SRC
-            | wgpu::BufferUsages::COPY_DST,
-        mapped_at_creation: false,
-    })
 }
 
 /// Workgroups for `n` invocations of `size`, folded into y past the dimension limit.
@@ -285,12 +279,15 @@ impl GpuOccupancy {
         let [gx, gy] = groups(ctx, n, 64);
         let params = self.params(seed, gx * 64, 0);
         ctx.scoped("occupancy draw", || {
-            ctx.queue
-                .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
+            ctx.queue.write_buffer(
+                &self.uniform,
+                DRAW_SLOT as u64 * SLOT_BYTES,
+                bytemuck::bytes_of(&params),
+            );
             let bg = self.bind_group(ctx, &self.dummy);
             let mut pass = encoder.begin_compute_pass(&Default::default());
             pass.set_pipeline(&self.pipelines.sample);
-            pass.set_bind_group(0, &bg, &[0]);
+            pass.set_bind_group(0, &bg, &[DRAW_SLOT * SLOT_BYTES as u32]);
             pass.dispatch_workgroups(gx, gy, 1);
         })
     }
@@ -325,29 +322,34 @@ impl GpuOccupancy {
             slots[at..at + std::mem::size_of::<OccParams>()]
                 .copy_from_slice(bytemuck::bytes_of(&p));
         };
-        // Samples and cells fold differently: the splat reads slot 0, the cell passes
-        // slot SLOTS − 1.
-        put(&mut slots, 0, self.params(0, g_samples[0] * 64, 0));
+        put(
+            &mut slots,
+            SPLAT_SLOT as usize,
+            self.params(0, g_samples[0] * 64, 0),
+        );
         for l in 1..nc {
             put(&mut slots, l as usize, self.params(0, g_pool[0] * 256, l));
         }
-        let cells_slot = (SLOTS - 1) as u32;
         put(
             &mut slots,
-            cells_slot as usize,
+            CELLS_SLOT as usize,
             self.params(0, g_cells[0] * 256, 0),
         );
         // The bitfield pass (≤ 2048 workgroups) and the sums never fold into y, so they
         // need no row width of their own.
         ctx.scoped("occupancy splat", || {
-            ctx.queue.write_buffer(&self.uniform, 0, &slots);
+            // Every slot but the draw's, which an update recorded into the same submission
+            // has written.
+            let first = SLOT_BYTES as usize;
+            ctx.queue
+                .write_buffer(&self.uniform, first as u64, &slots[first..]);
             let bg = self.bind_group(ctx, log_density);
             let off = |slot: u32| [slot * SLOT_BYTES as u32];
             let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_bind_group(0, &bg, &off(0));
+            pass.set_bind_group(0, &bg, &off(SPLAT_SLOT));
             pass.set_pipeline(&self.pipelines.splat);
             pass.dispatch_workgroups(g_samples[0], g_samples[1], 1);
-            pass.set_bind_group(0, &bg, &off(cells_slot));
+            pass.set_bind_group(0, &bg, &off(CELLS_SLOT));
             pass.set_pipeline(&self.pipelines.decay);
             pass.dispatch_workgroups(g_cells[0], g_cells[1], 1);
             pass.set_pipeline(&self.pipelines.sum);
@@ -364,6 +366,28 @@ impl GpuOccupancy {
         })?;
         self.ema_step += 1;
         Ok(())
+    }
+
+    /// Records one whole training update with the field on the device: the draw, the
+    /// field's log-densities there, the splat (what `OccupancyGrid::update` does with the
+    /// CPU network). One update of this grid per submission.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_update(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        field: &GpuField,
+        scratch: &mut DensityScratch,
+        n_uniform: u32,
+        n_nonuniform: u32,
+        seed: u64,
+    ) -> GpuResult<()> {
+        self.encode_samples(ctx, encoder, n_uniform, n_nonuniform, seed)?;
+        field.encode_density(ctx, encoder, &self.sample_pos, self.n_samples, scratch)?;
+        match &scratch.out {
+            Some(out) => self.encode_splat(ctx, encoder, out),
+            None => Err(GpuError::Input("occupancy: an update of 0 samples".into())),
+        }
     }
 
     /// The grid as the CPU holds it (density, bitfield, mean, update count), read back.
@@ -497,6 +521,93 @@ mod tests {
                 occupied > 100_000,
                 "the test grid has a real bitfield: {occupied}"
             );
+        }
+    }
+
+    /// A whole update on the device (draw, the field's densities through the GPU grid and
+    /// network, splat) against `OccupancyGrid::update` with the CPU network, on an aabb-4
+    /// model with random weights, under the reference index and a `prf` key: the same cells,
+    /// densities within 1e-4 relative (the two networks' log-densities agree to ~1e-5 after
+    /// exp), the bitfield equal but for cells at the threshold. Each update starts both
+    /// sides from the CPU's grid, so that a near-threshold cell cannot steer the next draw.
+    #[test]
+    fn updates_with_the_gpu_field_match_the_cpu_network() {
+        use crate::ngp::encoding::reference_indices;
+        use crate::ngp::network::ModelConfig;
+        use crate::ngp::network::nerf::NerfNetwork;
+        use crate::stego::{DenseMode, Key, KeyScheme};
+        let Some(ctx) = test_context() else { return };
+        let net = NerfNetwork::new(ModelConfig {
+            aabb_scale: 4,
+            ..Default::default()
+        })
+        .unwrap();
+        let layout = &net.layout;
+        let mut params = net.init_params(3);
+        let mut r = Pcg32::new(8, 8);
+        for (i, p) in params.iter_mut().enumerate() {
+            *p += (r.next_f32() - 0.5) * if i < layout.grid_offset { 0.2 } else { 2.0 };
+        }
+        let marcher = Marcher::new(4);
+        let key = Key::new(
+            KeyScheme::Prf {
+                secrets: vec![[5; 32]],
+            },
+            DenseMode::Permute,
+        )
+        .unwrap();
+        for indices in [
+            reference_indices(&layout.grid),
+            key.level_indices(&layout.grid),
+        ] {
+            let mut field = GpuField::new(ctx, layout, &params, &indices).unwrap();
+            field.set_index(ctx, &indices).unwrap();
+            let mut scratch = DensityScratch::default();
+            let mut cpu = OccupancyGrid::new(4);
+            for step in 0..2u32 {
+                let mut gpu = GpuOccupancy::upload(ctx, &cpu, &marcher).unwrap();
+                let (nu, nn) = (20_000, 4_000 * step);
+                let seed = 77 + step as u64;
+                run(ctx, |e| {
+                    gpu.encode_update(ctx, e, &field, &mut scratch, nu, nn, seed)
+                        .unwrap()
+                });
+                let (_, cells) = cpu.sample_positions(nu as usize, nn as usize, seed);
+                let (_, gpu_cells) = gpu.download_samples(ctx).unwrap();
+                assert_eq!(gpu_cells, cells, "step {step}: cells");
+                // What OccupancyGrid::update does with the CPU network (its counts aside).
+                let (pos, _) = cpu.sample_positions(nu as usize, nn as usize, seed);
+                let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
+                let ld = net.density_batch(&params, &indices, &warped);
+                cpu.splat(&cells, &ld);
+                let got = gpu.download(ctx).unwrap();
+                let mut touched = 0;
+                for (i, (&g, &c)) in got.density.iter().zip(&cpu.density).enumerate() {
+                    assert!(
+                        (g - c).abs() <= 1e-4 * c.abs(),
+                        "step {step} cell {i}: {g} vs {c}"
+                    );
+                    touched += (c > 0.0) as u32;
+                }
+                assert!(touched > 10_000, "the update reached {touched} cells");
+                assert!((got.mean - cpu.mean).abs() <= 1e-4 * cpu.mean);
+                let thresh = cpu.mean.min(0.01);
+                let differ = got
+                    .bitfield()
+                    .iter()
+                    .zip(cpu.bitfield())
+                    .filter(|(g, c)| g != c)
+                    .count();
+                let near = cpu
+                    .density
+                    .iter()
+                    .filter(|&&d| (d - thresh).abs() <= 1e-4 * thresh)
+                    .count();
+                assert!(
+                    differ <= 2 * near,
+                    "step {step}: {differ} bytes differ, {near} cells at the threshold"
+                );
+            }
         }
     }
 

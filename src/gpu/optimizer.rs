@@ -5,7 +5,7 @@
 //!
 //! [`Optimizer`]: crate::ngp::train::optimizer::Optimizer
 
-use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry, device_buffer as storage};
 use crate::ngp::train::optimizer::OptimizerConfig;
 use wgpu::util::DeviceExt;
 
@@ -48,18 +48,6 @@ pub struct GpuOptimizer {
     groups: [u32; 2],
     /// Updates so far.
     pub step: u32,
-}
-
-fn storage(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::Buffer {
-    ctx.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(label),
-        size: bytes,
-        usage: wgpu::BufferUsages::STORAGE
-            | wgpu::BufferUsages::COPY_SRC
-            | wgpu::BufferUsages::COPY_DST,
-        // wgpu zero-initialises buffers: moments, counts and the EMA start at 0 as on the CPU.
-        mapped_at_creation: false,
-    })
 }
 
 impl GpuOptimizer {
