@@ -13,6 +13,7 @@ pub mod loss;
 pub mod mlp;
 pub mod occupancy;
 pub mod optimizer;
+pub mod render;
 
 pub use field::{DensityScratch, GpuField};
 pub use grid::{GradAtomics, GridDispatch, GridEncoding, GridShape};
@@ -21,6 +22,7 @@ pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
 pub use mlp::{EncodedBatch, MLP_WGSL, MlpKernels, MlpWorkspace};
 pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
+pub use render::{CompositeKernel, RayState, WaveSamples};
 
 use std::sync::OnceLock;
 use std::sync::mpsc;
@@ -308,6 +310,72 @@ pub(crate) fn device_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::
             | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
+}
+
+/// Entry points of one WGSL module that share one explicit bind-group layout: storage
+/// buffers at bindings `0..n_storage` (read-only where `read_only(binding)`), then one
+/// uniform at binding `n_storage` (with a dynamic offset if asked). Returns the layout and
+/// the pipelines in the order of `entries`. Call inside [`GpuContext::scoped`].
+pub(crate) fn shared_layout_pipelines(
+    ctx: &GpuContext,
+    label: &str,
+    source: &str,
+    n_storage: u32,
+    read_only: impl Fn(u32) -> bool,
+    dynamic_uniform: bool,
+    entries: &[&str],
+) -> (wgpu::BindGroupLayout, Vec<wgpu::ComputePipeline>) {
+    let d = &ctx.device;
+    let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    });
+    let buffer = |binding, ty, has_dynamic_offset| wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::COMPUTE,
+        ty: wgpu::BindingType::Buffer {
+            ty,
+            has_dynamic_offset,
+            min_binding_size: None,
+        },
+        count: None,
+    };
+    let mut layout_entries: Vec<_> = (0..n_storage)
+        .map(|b| {
+            let ty = wgpu::BufferBindingType::Storage {
+                read_only: read_only(b),
+            };
+            buffer(b, ty, false)
+        })
+        .collect();
+    layout_entries.push(buffer(
+        n_storage,
+        wgpu::BufferBindingType::Uniform,
+        dynamic_uniform,
+    ));
+    let layout = d.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(label),
+        entries: &layout_entries,
+    });
+    let pl = d.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(label),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: 0,
+    });
+    let pipelines = entries
+        .iter()
+        .map(|entry| {
+            d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(entry),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some(entry),
+                compilation_options: Default::default(),
+                cache: None,
+            })
+        })
+        .collect();
+    (layout, pipelines)
 }
 
 /// A whole buffer bound at `binding`.

@@ -7,7 +7,10 @@
 
 use super::field::{DensityScratch, GpuField};
 use super::index::U64_WGSL;
-use super::{GpuContext, GpuError, GpuResult, buffer_entry, device_buffer as storage};
+use super::{
+    GpuContext, GpuError, GpuResult, buffer_entry, device_buffer as storage,
+    shared_layout_pipelines,
+};
 use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
 use wgpu::util::DeviceExt;
@@ -73,19 +76,6 @@ pub struct GpuOccupancy {
     pub ema_step: u32,
 }
 
-fn storage_entry(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding,
-        visibility: wgpu::ShaderStages::COMPUTE,
-        ty: wgpu::BindingType::Buffer {
-            ty: wgpu::BufferBindingType::Storage { read_only },
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
-    }
-}
-
 /// Workgroups for `n` invocations of `size`, folded into y past the dimension limit.
 fn groups(ctx: &GpuContext, n: u32, size: u32) -> [u32; 2] {
     let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
@@ -122,50 +112,33 @@ impl GpuOccupancy {
                 })
             };
             let source = format!("{U64_WGSL}\n{OCCUPANCY_WGSL}");
-            let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("occupancy.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            });
-            let mut entries: Vec<_> = (0..7).map(|b| storage_entry(b, b == 5)).collect();
-            entries.push(wgpu::BindGroupLayoutEntry {
-                binding: 7,
-                visibility: wgpu::ShaderStages::COMPUTE,
-                ty: wgpu::BindingType::Buffer {
-                    ty: wgpu::BufferBindingType::Uniform,
-                    has_dynamic_offset: true,
-                    min_binding_size: wgpu::BufferSize::new(
-                        std::mem::size_of::<OccParams>() as u64
-                    ),
-                },
-                count: None,
-            });
-            let layout = d.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("occupancy"),
-                entries: &entries,
-            });
-            let pl = d.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("occupancy"),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
-            });
-            let pipeline = |entry: &str| {
-                d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: Some(&pl),
-                    module: &module,
-                    entry_point: Some(entry),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-            };
+            let (layout, p) = shared_layout_pipelines(
+                ctx,
+                "occupancy.wgsl",
+                &source,
+                7,
+                |b| b == 5,
+                true,
+                &[
+                    "sample_main",
+                    "splat_main",
+                    "decay_main",
+                    "sum_main",
+                    "mean_main",
+                    "bits_main",
+                    "pool_main",
+                ],
+            );
+            let [sample, splat, decay, sum, mean, bits_p, pool] =
+                <[wgpu::ComputePipeline; 7]>::try_from(p).expect("seven entry points");
             let pipelines = Pipelines {
-                sample: pipeline("sample_main"),
-                splat: pipeline("splat_main"),
-                decay: pipeline("decay_main"),
-                sum: pipeline("sum_main"),
-                mean: pipeline("mean_main"),
-                bits: pipeline("bits_main"),
-                pool: pipeline("pool_main"),
+                sample,
+                splat,
+                decay,
+                sum,
+                mean,
+                bits: bits_p,
+                pool,
             };
             let mut sums = vec![0.0f32; 1 + N_CELLS / 256];
             sums[0] = grid.mean;
