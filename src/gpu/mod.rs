@@ -13,6 +13,7 @@ pub mod loss;
 pub mod mlp;
 pub mod occupancy;
 pub mod optimizer;
+pub mod rays;
 pub mod render;
 
 pub use field::{DensityScratch, GpuField};
@@ -22,6 +23,7 @@ pub use loss::{GpuRay, HostBatch, LossBuffers, LossConfig, LossKernel};
 pub use mlp::{EncodedBatch, MLP_WGSL, MlpKernels, MlpWorkspace};
 pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
+pub use rays::{GenRay, MarchedHost, RAYS_WGSL, RayBatch, RayKernels};
 pub use render::{CompositeKernel, RayState, WaveSamples};
 
 use std::sync::OnceLock;

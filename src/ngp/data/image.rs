@@ -66,6 +66,15 @@ impl Image {
         })
     }
 
+    /// The stored RGBA8 bytes (sRGB, straight alpha) when the image is kept that way (not
+    /// downscaled): what a GPU uploads as is.
+    pub fn srgb8(&self) -> Option<&[u8]> {
+        match &self.pixels {
+            Pixels::Srgb8(p) => Some(p),
+            Pixels::LinearF16(_) => None,
+        }
+    }
+
     /// Linear-light RGB premultiplied by alpha, and alpha. (x, y) must be inside the image.
     #[inline]
     pub fn linear_premul(&self, x: u32, y: u32) -> [f32; 4] {
