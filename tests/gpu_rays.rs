@@ -8,10 +8,11 @@
 //! Start t: ≤ 1e-5·(1 + t). Marching from the same (o, d, t): sample counts equal on at
 //! least 98 % of rays (GPU log/exp are not correctly rounded, so a step landing on a voxel
 //! boundary may go the other way and shift a ray's samples); where counts agree, positions,
-//! dt and distances within 1e-4 (absolute, warped units and ngp units).
+//! positions within 1e-4 (warped units), dt within 1e-5·(1 + t) and distances within
+//! 5e-5·(1 + t) (measured on llvmpipe: 7e-6, 7e-7·, 1.9e-5·).
 #![cfg(feature = "gpu")]
 
-use stegongp::gpu::{GenRay, RayKernels, test_context};
+use stegongp::gpu::{GenRay, GpuOccupancy, RayBatch, RayKernels, test_context};
 use stegongp::ngp::camera::{Camera, Distortion};
 use stegongp::ngp::data::{Frame, Image};
 use stegongp::ngp::occupancy::{GRID_SIZE, N_CELLS, OccupancyGrid, morton3d_invert, n_cascades};
@@ -271,7 +272,7 @@ fn marching_matches_the_cpu() {
             }
         }
         assert!(
-            err[0] <= 1e-4 && err[1] <= 1e-5 && err[2] <= 2e-5,
+            err[0] <= 1e-4 && err[1] <= 1e-5 && err[2] <= 5e-5,
             "aabb {aabb}: errors {err:?}"
         );
         eprintln!(
@@ -316,5 +317,74 @@ fn marching_matches_the_cpu() {
                 assert_eq!(r.target, r.bg, "an empty ray's loss must be 0");
             }
         }
+    }
+}
+
+/// The whole batch on the device: draw, march through a [`GpuOccupancy`]'s bitfield,
+/// compact; against the CPU trainer's draws marched by `Marcher::march`. The directions
+/// differ by a few ulp here, so a few more rays' counts may differ than from identical
+/// rays: at most 4 %.
+#[test]
+fn a_whole_batch_matches_the_cpu() {
+    let Some(ctx) = test_context() else { return };
+    for (aabb, inside) in [(1, false), (16, true)] {
+        let m = Marcher::new(aabb);
+        let fr = frames(21 + aabb as u64, inside);
+        let grid = blob_grid(aabb, 5 + aabb as u64);
+        let occ = GpuOccupancy::upload(ctx, &grid, &m).unwrap();
+        let k = RayKernels::new(ctx, &fr, &m).unwrap();
+        let (n, seed) = (1500usize, 99 + aabb as u64);
+        let batch = RayBatch::new(ctx, n as u32, (n * MAX_SAMPLES_PER_RAY) as u32).unwrap();
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        k.encode(ctx, &mut enc, &batch, &occ.bitfield, n as u32, seed)
+            .unwrap();
+        ctx.queue.submit([enc.finish()]);
+        let out = k.read_marched(ctx, &batch, n as u32).unwrap();
+        let (mut differ, mut with_samples) = (0, 0);
+        for i in 0..n {
+            let c = cpu_draw(&fr, &m, seed, i, n);
+            let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+            if c.hit == 1 {
+                m.march(
+                    &grid,
+                    c.o,
+                    c.d,
+                    c.t,
+                    MAX_SAMPLES_PER_RAY,
+                    &mut p,
+                    &mut dt,
+                    &mut ts,
+                );
+            }
+            let g = out.rays[i];
+            with_samples += !p.is_empty() as usize;
+            if g.n as usize != p.len() {
+                differ += 1;
+                continue;
+            }
+            assert_eq!(g.bg, c.bg);
+            if g.n > 0 {
+                for q in 0..3 {
+                    assert!((g.target[q] - c.target[q]).abs() <= 1e-4, "ray {i}");
+                }
+                let s = g.start as usize;
+                assert!(
+                    (out.dist[s] - ts[0]).abs() <= 5e-5 * (1.0 + ts[0]),
+                    "ray {i}"
+                );
+            } else {
+                assert_eq!(g.target, g.bg, "ray {i}: no samples, loss 0");
+            }
+        }
+        eprintln!("aabb {aabb}: {with_samples} of {n} rays with samples, {differ} counts differ");
+        assert!(with_samples > n / 10, "{with_samples} rays with samples");
+        assert!(
+            differ * 25 <= n,
+            "{differ} of {n} rays' sample counts differ"
+        );
+        assert_eq!(
+            out.rays_with_samples as usize,
+            out.rays.iter().filter(|r| r.n > 0).count()
+        );
     }
 }
