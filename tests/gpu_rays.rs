@@ -264,8 +264,8 @@ fn marching_matches_the_cpu() {
             }
             for j in 0..p.len() {
                 let s = g.start as usize + j;
-                for q in 0..3 {
-                    err[0] = err[0].max((out.pos[s][q] - p[j][q]).abs());
+                for (a, b) in out.pos[s].iter().zip(p[j]) {
+                    err[0] = err[0].max((a - b).abs());
                 }
                 err[1] = err[1].max((out.dt[s] - dt[j]).abs() / (1.0 + ts[j]));
                 err[2] = err[2].max((out.dist[s] - ts[j]).abs() / (1.0 + ts[j]));
