@@ -83,6 +83,21 @@ impl GpuField {
         &self.layout
     }
 
+    /// The grid kernels (a trainer records its forward and backward with them).
+    pub fn grid(&self) -> &GridEncoding {
+        &self.grid
+    }
+
+    /// The network kernels.
+    pub fn mlp(&self) -> &MlpKernels {
+        &self.mlp
+    }
+
+    /// The index the field is evaluated under.
+    pub fn index(&self) -> &GpuIndex {
+        &self.index
+    }
+
     /// Records the raw log-density at the first `n` positions of `positions` (warped into
     /// the network's unit cube, 3 f32 each) into `scratch.out`.
     pub fn encode_density(

@@ -37,7 +37,7 @@ const WORKGROUP: u32 = 128;
 /// Hidden width of both MLPs (`WIDTH`).
 const WIDTH: usize = 64;
 /// Rows of the saved activations: density hidden (64), colour input (32), colour hidden ×2.
-const ACT_ROWS: u64 = 224;
+pub(crate) const ACT_ROWS: u64 = 224;
 /// Rows of the saved output gradients: density hidden, density out, colour hidden ×2, rgb.
 const DY_ROWS: u64 = 211;
 /// Samples per weight-gradient chunk: each chunk adds one partial of every weight for the

@@ -15,6 +15,7 @@ pub mod occupancy;
 pub mod optimizer;
 pub mod rays;
 pub mod render;
+pub mod trainer;
 
 pub use field::{DensityScratch, GpuField};
 pub use grid::{GradAtomics, GridDispatch, GridEncoding, GridShape};
@@ -25,6 +26,7 @@ pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
 pub use rays::{GenRay, MarchedHost, RAYS_WGSL, RayBatch, RayKernels};
 pub use render::{CompositeKernel, RayState, WaveSamples};
+pub use trainer::GpuTrainer;
 
 use std::sync::OnceLock;
 use std::sync::mpsc;

@@ -363,6 +363,13 @@ impl GpuOccupancy {
         }
     }
 
+    /// The cascade-0 mean after the last update (what decides the loss's density pull-up),
+    /// read back: 4 bytes instead of the whole grid.
+    pub fn read_mean(&self, ctx: &GpuContext) -> GpuResult<f32> {
+        let mean: Vec<f32> = ctx.read_buffer(&self.sums, 4)?;
+        Ok(mean[0])
+    }
+
     /// The grid as the CPU holds it (density, bitfield, mean, update count), read back.
     pub fn download(&self, ctx: &GpuContext) -> GpuResult<OccupancyGrid> {
         let n = N_CELLS as u64 * self.n_cascades as u64;

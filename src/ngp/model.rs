@@ -43,6 +43,37 @@ impl Model {
         }
     }
 
+    /// A model from any backend's state: the inference (EMA) weights, the cover's grid and
+    /// its training images' metadata (what [`Self::from_trainer`] takes from a CPU trainer).
+    pub fn from_parts(
+        config: ModelConfig,
+        params: Vec<f32>,
+        grid: OccupancyGrid,
+        training_step: u32,
+        loss: f32,
+        dataset: &Dataset,
+        batch_counters: (u32, u32, u32),
+    ) -> Result<Self> {
+        let net = NerfNetwork::new(config)?;
+        if params.len() != net.layout.n_params {
+            return Err(Error::Config(format!(
+                "{} parameters for a {}-parameter network",
+                params.len(),
+                net.layout.n_params
+            )));
+        }
+        Ok(Model {
+            config,
+            net,
+            params,
+            grid,
+            training_step,
+            loss,
+            dataset: Some(snapshot_dataset(dataset)),
+            batch_counters,
+        })
+    }
+
     pub fn load(path: &Path) -> Result<Self> {
         let snap = snapshot::load(path)?;
         let net = NerfNetwork::new(snap.config)?;

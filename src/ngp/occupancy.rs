@@ -278,7 +278,12 @@ impl OccupancyGrid {
 
     /// Cells to sample in one update at `step` (the reference's counts, times `fraction`).
     pub fn update_sample_counts(&self, step: u32, fraction: f32) -> (usize, usize) {
-        let nc = self.n_cascades;
+        Self::sample_counts(self.n_cascades, step, fraction)
+    }
+
+    /// [`Self::update_sample_counts`] of a grid of `nc` cascades (for a grid that lives
+    /// elsewhere, e.g. on the GPU).
+    pub fn sample_counts(nc: usize, step: u32, fraction: f32) -> (usize, usize) {
         let scale = |n: usize| ((n as f32 * fraction).round() as usize).max(1024);
         if step < 256 {
             (scale(N_CELLS * nc), 0)

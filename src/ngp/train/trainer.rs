@@ -162,7 +162,7 @@ const RAY_GRANULARITY: u32 = 256;
 const MAX_RAYS_PER_BATCH: u32 = 1 << 18;
 /// Rays of the first step: the reference starts at 4096 rays for its 2^18-sample target, i.e.
 /// 64 samples a ray; a smaller target starts at the same ratio.
-fn initial_rays_per_batch(batch_samples: u32) -> u32 {
+pub(crate) fn initial_rays_per_batch(batch_samples: u32) -> u32 {
     let rays = (4096u64 * batch_samples as u64) >> 18;
     (rays as u32)
         .div_ceil(RAY_GRANULARITY)
@@ -173,7 +173,7 @@ fn initial_rays_per_batch(batch_samples: u32) -> u32 {
 
 /// The reference's `update_after_training`: scale the ray count by target / measured samples,
 /// round up to a multiple of 256, cap at 2^18.
-fn next_rays_per_batch(rays: u32, batch_samples: u32, measured: u64) -> u32 {
+pub(crate) fn next_rays_per_batch(rays: u32, batch_samples: u32, measured: u64) -> u32 {
     let r = (rays as f64 * batch_samples as f64 / measured.max(1) as f64) as u64;
     (r.div_ceil(RAY_GRANULARITY as u64).max(1) * RAY_GRANULARITY as u64)
         .min(MAX_RAYS_PER_BATCH as u64) as u32
@@ -190,7 +190,8 @@ pub struct Trainer {
     pub step: u32,
 }
 
-fn mix(a: u64, b: u64) -> u64 {
+/// Also the GPU trainer's seeds, so both backends draw the same rays for a seed.
+pub(crate) fn mix(a: u64, b: u64) -> u64 {
     // splitmix64 of a combination: decorrelates (seed, step, scene) streams.
     let mut z = a
         .wrapping_mul(0x9E37_79B9_7F4A_7C15)
