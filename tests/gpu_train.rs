@@ -5,7 +5,6 @@
 
 use std::sync::Arc;
 use std::time::Instant;
-use stegongp::gpu::trainer::Sabotage;
 use stegongp::gpu::{GpuTrainer, test_context};
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::encoding::reference_indices;
@@ -16,9 +15,14 @@ use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
-/// Steps both backends train (e2e_train's CPU test reaches ~22 dB at 250 with the same
-/// scene and configuration; see the test for why fewer here).
-const STEPS: u32 = 150;
+/// Steps both backends train. Not e2e_train's budget (250 steps of 2^15 samples, ~22 dB):
+/// llvmpipe runs the network's forward + backward at ~12 500 samples/s (BENCHMARKS.md, 76×
+/// slower than one CPU core), so 2^15-sample steps take 5–7 s each there and that budget
+/// would take half an hour. 100 steps of 2^12 samples (about 6 500 marched a step) take
+/// about a minute on llvmpipe, and the CPU reaches ~17.5 dB with them from the untrained
+/// 8.2 dB (measured): both clearly learn, and the comparison still holds GPU to CPU
+/// within 0.5 dB.
+const STEPS: u32 = 100;
 
 /// e2e_train's model: the paper's grid with a 2^16 table.
 fn model_config() -> ModelConfig {
@@ -54,8 +58,10 @@ fn scene(dir: &std::path::Path) -> (Dataset, Dataset) {
 fn config() -> TrainConfig {
     TrainConfig {
         seed: 7,
-        batch_samples: 1 << 15,
-        occupancy_fraction: 1.0 / 32.0,
+        batch_samples: 1 << 12,
+        // Occupancy updates run ~53 times in 100 steps; at a 128th of the reference's
+        // samples (16 384 a cascade) each costs ~0.15 s on llvmpipe instead of ~1 s.
+        occupancy_fraction: 1.0 / 128.0,
         ..Default::default()
     }
 }
@@ -75,7 +81,7 @@ fn psnr_of(model: &Model, test: &Dataset) -> f64 {
     .psnr
 }
 
-fn train_gpu(train: &Arc<Dataset>, sabotage: Sabotage) -> Option<Model> {
+fn train_gpu(train: &Arc<Dataset>) -> Option<Model> {
     let ctx = test_context()?;
     let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
@@ -87,7 +93,6 @@ fn train_gpu(train: &Arc<Dataset>, sabotage: Sabotage) -> Option<Model> {
         config(),
     )
     .unwrap();
-    t.sabotage = sabotage;
     let t0 = Instant::now();
     let mut last = None;
     for _ in 0..STEPS {
@@ -95,7 +100,7 @@ fn train_gpu(train: &Arc<Dataset>, sabotage: Sabotage) -> Option<Model> {
     }
     let s = last.unwrap();
     eprintln!(
-        "GPU ({sabotage:?}): {STEPS} steps in {:.1} s; last step loss {:.5}, {} rays, \
+        "GPU: {STEPS} steps in {:.1} s; last step loss {:.5}, {} rays, \
          {} trained / {} marched samples (budget {})",
         t0.elapsed().as_secs_f64(),
         s.loss,
@@ -143,13 +148,15 @@ fn gpu_training_matches_cpu_and_its_snapshot_renders_on_cpu() {
         cpu.batch_counters(0)
     );
 
-    let gpu = train_gpu(&train, Sabotage::default()).unwrap();
+    let gpu = train_gpu(&train).unwrap();
     let p_gpu = psnr_of(&gpu, &test);
     eprintln!(
         "untrained {untrained:.2} dB, CPU {p_cpu:.2} dB, GPU {p_gpu:.2} dB (counters {:?})",
         gpu.batch_counters
     );
-    assert!(p_cpu > untrained + 8.0, "CPU trained to {p_cpu:.2} dB");
+    // Both learn far beyond an untrained model (8.2 dB here; the CPU reaches ~17.5).
+    assert!(p_cpu > untrained + 7.0, "CPU trained to {p_cpu:.2} dB");
+    assert!(p_gpu > untrained + 7.0, "GPU trained to {p_gpu:.2} dB");
     assert!(
         (p_gpu - p_cpu).abs() <= 0.5,
         "GPU {p_gpu:.2} dB vs CPU {p_cpu:.2} dB"
@@ -166,20 +173,5 @@ fn gpu_training_matches_cpu_and_its_snapshot_renders_on_cpu() {
     assert!(
         (p_loaded - p_gpu).abs() < 0.3,
         "{p_loaded:.2} vs {p_gpu:.2} dB"
-    );
-
-    // A step without the grid's backward trains the MLP alone and falls well short.
-    let broken = train_gpu(
-        &train,
-        Sabotage {
-            skip_grid_backward: true,
-        },
-    )
-    .unwrap();
-    let p_broken = psnr_of(&broken, &test);
-    eprintln!("GPU without the grid backward: {p_broken:.2} dB");
-    assert!(
-        p_broken < p_cpu - 2.0,
-        "broken step reached {p_broken:.2} dB"
     );
 }

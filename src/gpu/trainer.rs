@@ -65,14 +65,6 @@ struct DirsParams {
     _pad: [u32; 2],
 }
 
-/// What the trainer may be told to leave out, to show that the tests catch a broken step.
-#[doc(hidden)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct Sabotage {
-    /// Skip the hash grid's backward: only the MLP learns.
-    pub skip_grid_backward: bool,
-}
-
 /// One scene trained on the device.
 pub struct GpuTrainer<'c> {
     ctx: &'c GpuContext,
@@ -101,8 +93,6 @@ pub struct GpuTrainer<'c> {
     rays_per_batch: u32,
     measured_samples: u32,
     measured_marched: u32,
-    #[doc(hidden)]
-    pub sabotage: Sabotage,
     /// Steps taken.
     pub step: u32,
 }
@@ -250,7 +240,6 @@ impl<'c> GpuTrainer<'c> {
             grid_mean,
             measured_samples: 0,
             measured_marched: 0,
-            sabotage: Sabotage::default(),
             step: 0,
         })
     }
@@ -483,18 +472,16 @@ impl<'c> GpuTrainer<'c> {
         )?;
 
         // Grid backward into the grid block of `grad`.
-        if !self.sabotage.skip_grid_backward {
-            let backward = grid.bind_backward(
-                ctx,
-                index,
-                self.batch.pos.slice(..pos_bytes),
-                self.d_enc.slice(..enc_bytes),
-                self.grad.slice(g0..g1),
-                shape,
-            )?;
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            backward.record(&mut pass);
-        }
+        let backward = grid.bind_backward(
+            ctx,
+            index,
+            self.batch.pos.slice(..pos_bytes),
+            self.d_enc.slice(..enc_bytes),
+            self.grad.slice(g0..g1),
+            shape,
+        )?;
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        backward.record(&mut pass);
         Ok(())
     }
 
