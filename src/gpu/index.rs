@@ -11,6 +11,8 @@ use wgpu::util::DeviceExt;
 
 /// u64 arithmetic on pairs of u32 words, for kernels that need it without the index.
 pub const U64_WGSL: &str = include_str!("u64.wgsl");
+/// The CPU's PCG32 in WGSL (after [`U64_WGSL`]), for kernels that draw as the CPU draws.
+pub const PCG_WGSL: &str = include_str!("pcg.wgsl");
 /// The index functions (with [`U64_WGSL`] first), to be concatenated into any kernel that
 /// indexes the grid.
 pub const INDEX_WGSL: &str = concat!(include_str!("u64.wgsl"), include_str!("index.wgsl"));

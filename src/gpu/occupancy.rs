@@ -6,7 +6,7 @@
 //! that writes one log-density per sample.
 
 use super::field::{DensityScratch, GpuField};
-use super::index::U64_WGSL;
+use super::index::{PCG_WGSL, U64_WGSL};
 use super::{
     GpuContext, GpuError, GpuResult, buffer_entry, device_buffer as storage,
     shared_layout_pipelines,
@@ -111,7 +111,7 @@ impl GpuOccupancy {
                         | wgpu::BufferUsages::COPY_DST,
                 })
             };
-            let source = format!("{U64_WGSL}\n{OCCUPANCY_WGSL}");
+            let source = format!("{U64_WGSL}\n{PCG_WGSL}\n{OCCUPANCY_WGSL}");
             let (layout, p) = shared_layout_pipelines(
                 ctx,
                 "occupancy.wgsl",

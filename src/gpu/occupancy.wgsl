@@ -2,7 +2,7 @@
 // it: draw the update's cells and positions (bit-identical to the CPU: the same PCG32 in
 // 64-bit words, the same cell hash), then, once a density kernel has evaluated the field
 // there, max-splat, decay, the cascade-0 mean, the bitfield and its OR-pooled cascades.
-// Concatenated after u64.wgsl.
+// Concatenated after u64.wgsl and pcg.wgsl.
 //
 // Layouts: density and `fresh` hold N_CELLS cells per cascade in Morton order; the bitfield
 // holds one bit per cell, 32 cells per word, so its bytes are the CPU's Vec<u8> exactly.
@@ -12,7 +12,6 @@ const N_CELLS: u32 = 2097152u; // 128³
 const MIN_OPTICAL_THICKNESS: f32 = 0.01;
 const DECAY: f32 = 0.95;
 const MIN_CONE_STEPSIZE: f32 = 0.0016914559; // sqrt(3) / 1024, as the CPU's f32
-const PCG_MULT: vec2<u32> = vec2<u32>(0x4c957f2du, 0x5851f42du); // 6364136223846793005
 
 struct OccParams {
     // PCG seed of this update: the CPU's `seed ^ (ema_step << 32)`.
@@ -42,37 +41,6 @@ struct OccParams {
 // [0]: the cascade-0 sum (then the mean), [1..]: per-workgroup partial sums.
 @group(0) @binding(6) var<storage, read_write> sums: array<f32>;
 @group(0) @binding(7) var<uniform> p: OccParams;
-
-struct Pcg {
-    state: vec2<u32>,
-    inc: vec2<u32>,
-}
-
-fn pcg_next(r: ptr<function, Pcg>) -> u32 {
-    let old = (*r).state;
-    (*r).state = add64(mul64(old, PCG_MULT), (*r).inc);
-    // ((old >> 18) ^ old) >> 27, low 32 bits.
-    let s18 = vec2<u32>((old.x >> 18u) | (old.y << 14u), old.y >> 18u);
-    let x = vec2<u32>(s18.x ^ old.x, s18.y ^ old.y);
-    let xorshifted = (x.x >> 27u) | (x.y << 5u);
-    let rot = old.y >> 27u;
-    return (xorshifted >> rot) | (xorshifted << ((32u - rot) & 31u));
-}
-
-// Pcg32::new(seed, stream) with stream = hi·2^32 + lo.
-fn pcg_new(seed: vec2<u32>, stream_lo: u32, stream_hi: u32) -> Pcg {
-    var r: Pcg;
-    r.state = vec2<u32>(0u, 0u);
-    r.inc = vec2<u32>((stream_lo << 1u) | 1u, (stream_hi << 1u) | (stream_lo >> 31u));
-    pcg_next(&r);
-    r.state = add64(r.state, seed);
-    pcg_next(&r);
-    return r;
-}
-
-fn pcg_f32(r: ptr<function, Pcg>) -> f32 {
-    return f32(pcg_next(r) >> 8u) * (1.0 / 16777216.0);
-}
 
 // Every third bit of x, compacted (the CPU's morton3d_invert).
 fn morton3d_invert(v: u32) -> u32 {

@@ -22,7 +22,7 @@
 //! [`Marcher::march`]: crate::ngp::render::march::Marcher::march
 //! [`GpuOccupancy`]: super::GpuOccupancy
 
-use super::index::U64_WGSL;
+use super::index::{PCG_WGSL, U64_WGSL};
 use super::loss::GpuRay;
 use super::{GpuContext, GpuError, GpuResult, buffer_entry, device_buffer};
 use crate::ngp::data::Frame;
@@ -259,7 +259,7 @@ impl RayKernels {
         }
         ctx.scoped("ray kernels", || {
             let d = &ctx.device;
-            let source = format!("{U64_WGSL}\n{RAYS_WGSL}");
+            let source = format!("{U64_WGSL}\n{PCG_WGSL}\n{RAYS_WGSL}");
             let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("rays.wgsl"),
                 source: wgpu::ShaderSource::Wgsl(source.into()),

@@ -3,7 +3,7 @@
 // the same draws in the same order as the CPU, bit-identical through u64.wgsl), the camera
 // ray through the pixel's centre, its target pixel on that background and where marching
 // starts; `march_main` marches it through the occupancy bitfield (Marcher::march) and writes
-// its samples compactly. Concatenated after u64.wgsl.
+// its samples compactly. Concatenated after u64.wgsl and pcg.wgsl.
 //
 // Compaction (instant-ngp's scheme): a ray marches twice in one invocation, first counting
 // its samples, then, after reserving that many slots with one atomicAdd on a batch counter,
@@ -16,7 +16,6 @@
 const GRID_SIZE: f32 = 128.0;
 const N_CELLS: u32 = 2097152u; // 128³
 const MIN_CONE_STEPSIZE: f32 = 0.0016914559; // sqrt(3) / 1024, as the CPU's f32
-const PCG_MULT: vec2<u32> = vec2<u32>(0x4c957f2du, 0x5851f42du); // 6364136223846793005
 // Iterations of one marching pass at most: a GPU invocation must end (a hung one loses
 // the device). The CPU's loop always ends because every iteration moves t forward through
 // a finite box; this bound is far above what a ray through a 128-wide box of cascades takes
@@ -105,43 +104,6 @@ struct OutRay {
 // [0]: slots asked for (past the budget too), [1]: samples written, [2]: rays with samples.
 @group(0) @binding(10) var<storage, read_write> counters: array<atomic<u32>, 4>;
 @group(0) @binding(11) var<uniform> p: RayParams;
-
-// ---- PCG32 (rng::Pcg32) in 64-bit words, as occupancy.wgsl ----
-
-struct Pcg {
-    state: vec2<u32>,
-    inc: vec2<u32>,
-}
-
-fn pcg_next(r: ptr<function, Pcg>) -> u32 {
-    let old = (*r).state;
-    (*r).state = add64(mul64(old, PCG_MULT), (*r).inc);
-    let s18 = vec2<u32>((old.x >> 18u) | (old.y << 14u), old.y >> 18u);
-    let x = vec2<u32>(s18.x ^ old.x, s18.y ^ old.y);
-    let xorshifted = (x.x >> 27u) | (x.y << 5u);
-    let rot = old.y >> 27u;
-    return (xorshifted >> rot) | (xorshifted << ((32u - rot) & 31u));
-}
-
-// Pcg32::new(seed, stream) for a stream below 2^32.
-fn pcg_new(seed: vec2<u32>, stream: u32) -> Pcg {
-    var r: Pcg;
-    r.state = vec2<u32>(0u, 0u);
-    r.inc = vec2<u32>((stream << 1u) | 1u, stream >> 31u);
-    pcg_next(&r);
-    r.state = add64(r.state, seed);
-    pcg_next(&r);
-    return r;
-}
-
-fn pcg_f32(r: ptr<function, Pcg>) -> f32 {
-    return f32(pcg_next(r) >> 8u) * (1.0 / 16777216.0);
-}
-
-// Pcg32::below: the high word of next_u32 · n.
-fn pcg_below(r: ptr<function, Pcg>, n: u32) -> u32 {
-    return mul_wide(pcg_next(r), n).y;
-}
 
 // floor(a·b / c) for a 64-bit a·b (the CPU's usize i·n_images / n_rays), by long division.
 fn mul_div(a: u32, b: u32, c: u32) -> u32 {
@@ -399,7 +361,7 @@ fn gen_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (i >= p.n_rays) {
         return;
     }
-    var r = pcg_new(p.seed, i);
+    var r = pcg_new(p.seed, i, 0u);
     let img = mul_div(i, p.n_images, p.n_rays);
     let c = cams[img];
     let x = pcg_below(&r, c.width);
