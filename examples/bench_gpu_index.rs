@@ -7,7 +7,7 @@
 
 use std::sync::Arc;
 use std::time::Instant;
-use stegongp::gpu::{AdapterRequest, CornerKernel, GpuContext, GpuIndex};
+use stegongp::gpu::{CornerKernel, GpuContext, GpuIndex};
 use stegongp::ngp::encoding::{GridConfig, GridLayout, LevelIndices, reference_indices};
 use stegongp::rng::Pcg32;
 use stegongp::stego::stealth::confine;
@@ -16,18 +16,10 @@ use stegongp::stego::{DenseMode, SchemeKind, generate_with};
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     let per_level: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(1 << 16);
-    let request = match args.get(2).map(String::as_str) {
-        Some("auto") => AdapterRequest::Auto,
-        Some("software") => AdapterRequest::Software,
-        _ => AdapterRequest::Any,
-    };
-    let ctx = match GpuContext::new(request) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("{e}");
-            std::process::exit(1);
-        }
-    };
+    let ctx = GpuContext::from_arg(args.get(2).map(String::as_str)).unwrap_or_else(|e| {
+        eprintln!("{e}");
+        std::process::exit(1);
+    });
     println!("adapter: {}", ctx.report());
     let layout = GridLayout::new(GridConfig::default(), 1).unwrap();
     let l = layout.levels.len();

@@ -23,7 +23,7 @@ fn main() {
 mod bench {
     use std::time::Instant;
     use stegongp::gpu::mlp::{upload, zeroed};
-    use stegongp::gpu::{AdapterRequest, EncodedBatch, GpuContext, MlpKernels};
+    use stegongp::gpu::{EncodedBatch, GpuContext, MlpKernels};
     use stegongp::ngp::encoding::sh;
     use stegongp::ngp::network::layout::DENSITY_OUT;
     use stegongp::ngp::network::mlp;
@@ -37,18 +37,10 @@ mod bench {
             .get(2)
             .cloned()
             .or_else(|| std::env::var("BENCH_GPU").ok());
-        let request = match choice.as_deref() {
-            Some("auto") => AdapterRequest::Auto,
-            Some("software") => AdapterRequest::Software,
-            _ => AdapterRequest::Any,
-        };
-        let ctx = match GpuContext::new(request) {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("{e}");
-                std::process::exit(1);
-            }
-        };
+        let ctx = GpuContext::from_arg(choice.as_deref()).unwrap_or_else(|e| {
+            eprintln!("{e}");
+            std::process::exit(1);
+        });
         // A training step's 2^18 samples on a GPU; 2^16 on a software adapter, whose
         // storage bindings (128 MiB on llvmpipe) and speed are far smaller.
         let default_n = if ctx.report().software {

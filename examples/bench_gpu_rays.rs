@@ -23,7 +23,7 @@ fn main() {
 #[cfg(feature = "gpu")]
 mod bench {
     use std::time::Instant;
-    use stegongp::gpu::{AdapterRequest, GpuContext, GpuOccupancy, RayBatch, RayKernels};
+    use stegongp::gpu::{GpuContext, GpuOccupancy, RayBatch, RayKernels};
     use stegongp::ngp::camera::Camera;
     use stegongp::ngp::data::{Frame, Image};
     use stegongp::ngp::occupancy::{
@@ -118,18 +118,10 @@ mod bench {
 
     pub fn main() {
         let args: Vec<String> = std::env::args().collect();
-        let request = match args.get(3).map(String::as_str) {
-            Some("auto") => AdapterRequest::Auto,
-            Some("software") => AdapterRequest::Software,
-            _ => AdapterRequest::Any,
-        };
-        let ctx = match GpuContext::new(request) {
-            Ok(c) => c,
-            Err(e) => {
-                eprintln!("{e}");
-                std::process::exit(1);
-            }
-        };
+        let ctx = GpuContext::from_arg(args.get(3).map(String::as_str)).unwrap_or_else(|e| {
+            eprintln!("{e}");
+            std::process::exit(1);
+        });
         let default_n = if ctx.report().software {
             1 << 14
         } else {

@@ -8,8 +8,8 @@
 
 use std::time::Instant;
 use stegongp::gpu::{
-    AdapterRequest, CompositeKernel, GpuContext, GpuOccupancy, GpuOptimizer, GpuRay, HostBatch,
-    LossConfig, LossKernel, WaveSamples,
+    CompositeKernel, GpuContext, GpuOccupancy, GpuOptimizer, GpuRay, HostBatch, LossConfig,
+    LossKernel, WaveSamples,
 };
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::network::nerf::NerfNetwork;
@@ -53,18 +53,10 @@ fn submit(ctx: &GpuContext, f: impl FnOnce(&mut wgpu::CommandEncoder)) {
 }
 
 fn main() {
-    let request = match std::env::args().nth(1).as_deref() {
-        Some("auto") => AdapterRequest::Auto,
-        Some("software") => AdapterRequest::Software,
-        _ => AdapterRequest::Any,
-    };
-    let ctx = match GpuContext::new(request) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("{e}");
-            std::process::exit(1);
-        }
-    };
+    let ctx = GpuContext::from_arg(std::env::args().nth(1).as_deref()).unwrap_or_else(|e| {
+        eprintln!("{e}");
+        std::process::exit(1);
+    });
     let ctx = &ctx;
     println!("adapter: {}", ctx.report());
     println!("{:<60} {:>14} {:>14}", "", "GPU", "CPU");

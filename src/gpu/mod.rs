@@ -71,6 +71,22 @@ pub enum AdapterRequest {
     Any,
 }
 
+impl std::str::FromStr for AdapterRequest {
+    type Err = GpuError;
+
+    /// `auto`, `software` or `any` (the benchmarks' adapter argument).
+    fn from_str(s: &str) -> GpuResult<AdapterRequest> {
+        match s {
+            "auto" => Ok(AdapterRequest::Auto),
+            "software" => Ok(AdapterRequest::Software),
+            "any" => Ok(AdapterRequest::Any),
+            _ => Err(GpuError::Input(format!(
+                "adapter `{s}`: auto, software or any"
+            ))),
+        }
+    }
+}
+
 /// What an adapter is and what the later kernels can count on.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct AdapterReport {
@@ -214,6 +230,12 @@ impl GpuContext {
             queue,
             report,
         })
+    }
+
+    /// Opens the adapter a command-line word names (`auto`, `software`, `any`; none:
+    /// `any`), as the benchmarks take it.
+    pub fn from_arg(arg: Option<&str>) -> GpuResult<GpuContext> {
+        GpuContext::new(arg.map_or(Ok(AdapterRequest::Any), str::parse)?)
     }
 
     pub fn report(&self) -> &AdapterReport {
@@ -432,6 +454,26 @@ mod tests {
                 Err(e) => assert!(matches!(e, GpuError::OnlySoftware(_)), "{e}"),
             }
         }
+    }
+
+    #[test]
+    fn adapter_words_parse_and_others_are_refused() {
+        assert_eq!(
+            "auto".parse::<AdapterRequest>().unwrap(),
+            AdapterRequest::Auto
+        );
+        assert_eq!(
+            "software".parse::<AdapterRequest>().unwrap(),
+            AdapterRequest::Software
+        );
+        assert_eq!(
+            "any".parse::<AdapterRequest>().unwrap(),
+            AdapterRequest::Any
+        );
+        assert!(matches!(
+            "gpu".parse::<AdapterRequest>(),
+            Err(GpuError::Input(_))
+        ));
     }
 
     #[test]
