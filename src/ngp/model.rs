@@ -30,17 +30,16 @@ pub struct Model {
 
 impl Model {
     pub fn from_trainer(t: &Trainer, loss: f32) -> Self {
-        let config = t.net.layout.config;
-        Model {
-            config,
-            net: NerfNetwork::new(config).expect("trainer config is valid"),
-            params: t.inference_params(),
-            grid: t.grid(0).clone(),
-            training_step: t.step,
+        Model::from_parts(
+            t.net.layout.config,
+            t.inference_params(),
+            t.grid(0).clone(),
+            t.step,
             loss,
-            dataset: Some(snapshot_dataset(t.dataset(0))),
-            batch_counters: t.batch_counters(0),
-        }
+            t.dataset(0),
+            t.batch_counters(0),
+        )
+        .expect("a trainer's config and parameters are consistent")
     }
 
     /// A model from any backend's state: the inference (EMA) weights, the cover's grid and
