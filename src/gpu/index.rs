@@ -4,7 +4,7 @@
 //! permutation tables, stealth confinement maps). The engine's kernels include
 //! [`INDEX_WGSL`]; [`CornerKernel`] runs it alone, for the tests and the benchmark.
 
-use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry, check_binding};
 use crate::ngp::encoding::{IndexFn, LevelIndex};
 use std::sync::Mutex;
 use wgpu::util::DeviceExt;
@@ -103,19 +103,6 @@ pub struct GpuIndex {
     pub tables: wgpu::Buffer,
     n_levels: u32,
     kinds: u32,
-}
-
-fn check_binding(ctx: &GpuContext, what: &str, bytes: u64) -> GpuResult<()> {
-    let limits = ctx.device.limits();
-    let max = limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size);
-    if bytes > max {
-        return Err(GpuError::Input(format!(
-            "{what}: {bytes} bytes, past the device's {max}-byte storage binding"
-        )));
-    }
-    Ok(())
 }
 
 impl GpuIndex {

@@ -23,7 +23,7 @@
 //!   the adapter has no float atomics) on the same addresses, while the second pass reads
 //!   each partial once.
 
-use super::{GpuContext, GpuError, GpuResult};
+use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry, check_binding};
 use crate::ngp::network::layout::{DENSITY_OUT, NerfLayout, SH_DIMS};
 use crate::ngp::network::mlp::matrix_offset;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -119,26 +119,6 @@ fn check_len(what: &str, buffer: &wgpu::Buffer, bytes: u64) -> GpuResult<()> {
         )));
     }
     Ok(())
-}
-
-fn check_binding(ctx: &GpuContext, what: &str, bytes: u64) -> GpuResult<()> {
-    let limits = ctx.device.limits();
-    let max = limits
-        .max_storage_buffer_binding_size
-        .min(limits.max_buffer_size);
-    if bytes > max {
-        return Err(GpuError::Input(format!(
-            "{what}: {bytes} bytes, past the device's {max}-byte storage binding"
-        )));
-    }
-    Ok(())
-}
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
 }
 
 /// A storage buffer the tests and benchmarks fill from the host (also `COPY_SRC`, so it can

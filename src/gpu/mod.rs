@@ -404,6 +404,20 @@ pub(crate) fn shared_layout_pipelines(
     (layout, pipelines)
 }
 
+/// That a storage binding of `bytes` fits the device (its binding and buffer limits).
+pub(crate) fn check_binding(ctx: &GpuContext, what: &str, bytes: u64) -> GpuResult<()> {
+    let limits = ctx.device.limits();
+    let max = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    if bytes > max {
+        return Err(GpuError::Input(format!(
+            "{what}: {bytes} bytes, past the device's {max}-byte storage binding"
+        )));
+    }
+    Ok(())
+}
+
 /// A whole buffer bound at `binding`.
 pub(crate) fn buffer_entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry {

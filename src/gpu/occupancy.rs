@@ -8,7 +8,7 @@
 use super::field::{DensityScratch, GpuField};
 use super::index::{PCG_WGSL, U64_WGSL};
 use super::{
-    GpuContext, GpuError, GpuResult, buffer_entry, device_buffer as storage,
+    GpuContext, GpuError, GpuResult, buffer_entry, check_binding, device_buffer as storage,
     shared_layout_pipelines,
 };
 use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
@@ -230,15 +230,7 @@ impl GpuOccupancy {
             .checked_add(n_nonuniform)
             .ok_or_else(|| GpuError::Input("occupancy: more than 2^32 samples".into()))?;
         if n > self.capacity {
-            let limits = ctx.device.limits();
-            let max = limits
-                .max_storage_buffer_binding_size
-                .min(limits.max_buffer_size);
-            if 12 * n as u64 > max {
-                return Err(GpuError::Input(format!(
-                    "occupancy: {n} samples past the device's {max}-byte binding"
-                )));
-            }
+            check_binding(ctx, &format!("occupancy: {n} samples"), 12 * n as u64)?;
             (self.sample_pos, self.sample_cell) = ctx.scoped("occupancy samples", || {
                 (
                     storage(ctx, "occupancy sample positions", 12 * n as u64),

@@ -5,7 +5,9 @@
 //!
 //! [`Optimizer`]: crate::ngp::train::optimizer::Optimizer
 
-use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry, device_buffer as storage};
+use super::{
+    GpuContext, GpuError, GpuResult, buffer_entry as entry, check_binding, device_buffer as storage,
+};
 use crate::ngp::train::optimizer::OptimizerConfig;
 use wgpu::util::DeviceExt;
 
@@ -68,15 +70,8 @@ impl GpuOptimizer {
             )));
         }
         let bytes = 4 * n as u64;
+        check_binding(ctx, &format!("{n} parameters"), bytes)?;
         let limits = ctx.device.limits();
-        let max = limits
-            .max_storage_buffer_binding_size
-            .min(limits.max_buffer_size);
-        if bytes > max {
-            return Err(GpuError::Input(format!(
-                "{n} parameters: {bytes} bytes, past the device's {max}-byte storage binding"
-            )));
-        }
         let n_groups = n.div_ceil(WORKGROUP);
         let gx = n_groups.min(limits.max_compute_workgroups_per_dimension);
         let groups = [gx, n_groups.div_ceil(gx)];
