@@ -25,6 +25,7 @@
 use super::index::{PCG_WGSL, U64_WGSL};
 use super::loss::GpuRay;
 use super::{GpuContext, GpuError, GpuResult, buffer_entry, device_buffer};
+use crate::ngp::camera::Camera;
 use crate::ngp::data::Frame;
 use crate::ngp::data::color::SRGB8_TO_LINEAR;
 use crate::ngp::occupancy::{MIN_CONE_STEPSIZE, N_CELLS, OccupancyGrid};
@@ -56,7 +57,7 @@ pub struct GenRay {
 /// A camera as the device reads it (`struct Cam`).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct GpuCam {
+pub(crate) struct GpuCam {
     c2w: [[f32; 4]; 3],
     intr: [f32; 4],
     dist: [f32; 4],
@@ -69,9 +70,10 @@ struct GpuCam {
 const F16_PIXELS: u32 = 1;
 const DISTORTED: u32 = 2;
 
+/// The marching kernels' uniform (`struct RayParams`).
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct RayParams {
+pub(crate) struct RayParams {
     seed: [u32; 2],
     n_rays: u32,
     n_images: u32,
@@ -216,34 +218,83 @@ fn pack_frames(frames: &[Frame]) -> GpuResult<(Vec<GpuCam>, Vec<u32>)> {
                 }
             }
         }
-        let mut dist = [0.0; 4];
-        if let Some(d) = c.distortion {
-            flags |= DISTORTED;
-            dist = [d.k1, d.k2, d.p1, d.p2];
-        }
-        cams.push(GpuCam {
-            c2w: c.c2w,
-            intr: [c.fx, c.fy, c.cx, c.cy],
-            dist,
-            width: c.width,
-            height: c.height,
-            offset,
-            flags,
-        });
+        let mut cam = gpu_cam(c);
+        cam.offset = offset;
+        cam.flags |= flags;
+        cams.push(cam);
     }
     Ok((cams, words))
+}
+
+/// `c` as the device reads it (no pixels: offset 0).
+pub(crate) fn gpu_cam(c: &Camera) -> GpuCam {
+    let mut dist = [0.0; 4];
+    let mut flags = 0;
+    if let Some(d) = c.distortion {
+        flags |= DISTORTED;
+        dist = [d.k1, d.k2, d.p1, d.p2];
+    }
+    GpuCam {
+        c2w: c.c2w,
+        intr: [c.fx, c.fy, c.cx, c.cy],
+        dist,
+        width: c.width,
+        height: c.height,
+        offset: 0,
+        flags,
+    }
+}
+
+/// The side of `marcher`'s box, refused unless a power of two (the device warps by
+/// multiplying with its inverse, which is then the CPU's division to the bit).
+pub(crate) fn box_extent(marcher: &Marcher) -> GpuResult<f32> {
+    let extent = marcher.aabb_max[0] - marcher.aabb_min[0];
+    if extent.is_nan() || extent <= 0.0 || extent.log2().fract() != 0.0 {
+        return Err(GpuError::Input(format!(
+            "rays: aabb side {extent}: the device warps by a power-of-two side only"
+        )));
+    }
+    Ok(extent)
+}
+
+/// The marching uniform for `marcher`: the box, the cone angle and the stepping-space
+/// constants computed with the CPU's own f32 operations (march.rs computes them on every
+/// call; here once, so only ln/exp of t itself run on the device).
+/// `inv_extent` is 1 / [`box_extent`].
+pub(crate) fn ray_params(
+    marcher: &Marcher,
+    inv_extent: f32,
+    n_images: u32,
+    [n_rays, row_width]: [u32; 2],
+    seed: u64,
+    budget: u32,
+) -> RayParams {
+    let m = marcher;
+    let l = (1.0f32 + m.cone_angle).ln();
+    let a = (MIN_CONE_STEPSIZE.ln() - l.ln()) / l;
+    let b = (MAX_CONE_STEPSIZE.ln() - l.ln()) / l;
+    RayParams {
+        seed: [seed as u32, (seed >> 32) as u32],
+        n_rays,
+        n_images,
+        aabb_min: m.aabb_min,
+        cone_angle: m.cone_angle,
+        aabb_max: m.aabb_max,
+        inv_extent,
+        row_width,
+        sample_budget: budget,
+        max_per_ray: MAX_SAMPLES_PER_RAY as u32,
+        max_cascade: m.max_cascade,
+        step: [l, a, b, (a * l).exp(), (b * l).exp(), MAX_CONE_STEPSIZE],
+        _pad: [0; 2],
+    }
 }
 
 impl RayKernels {
     /// The kernels for a scene marched by `marcher`, with `frames` (its training views)
     /// uploaded once. `frames` may be empty for marching host-made rays only.
     pub fn new(ctx: &GpuContext, frames: &[Frame], marcher: &Marcher) -> GpuResult<RayKernels> {
-        let extent = marcher.aabb_max[0] - marcher.aabb_min[0];
-        if extent.is_nan() || extent <= 0.0 || extent.log2().fract() != 0.0 {
-            return Err(GpuError::Input(format!(
-                "rays: aabb side {extent}: the device warps by a power-of-two side only"
-            )));
-        }
+        let extent = box_extent(marcher)?;
         let n_images = u32::try_from(frames.len())
             .map_err(|_| GpuError::Input("rays: more than 2^32 frames".into()))?;
         let (cams, words) = pack_frames(frames)?;
@@ -303,27 +354,14 @@ impl RayKernels {
     }
 
     fn params(&self, n_rays: u32, row_width: u32, seed: u64, budget: u32) -> RayParams {
-        let m = &self.marcher;
-        // The stepping-space constants with the CPU's f32 operations (march.rs computes
-        // them on every call; here once, so only ln/exp of t itself run on the device).
-        let l = (1.0f32 + m.cone_angle).ln();
-        let a = (MIN_CONE_STEPSIZE.ln() - l.ln()) / l;
-        let b = (MAX_CONE_STEPSIZE.ln() - l.ln()) / l;
-        RayParams {
-            seed: [seed as u32, (seed >> 32) as u32],
-            n_rays,
-            n_images: self.n_images,
-            aabb_min: m.aabb_min,
-            cone_angle: m.cone_angle,
-            aabb_max: m.aabb_max,
-            inv_extent: self.inv_extent,
-            row_width,
-            sample_budget: budget,
-            max_per_ray: MAX_SAMPLES_PER_RAY as u32,
-            max_cascade: m.max_cascade,
-            step: [l, a, b, (a * l).exp(), (b * l).exp(), MAX_CONE_STEPSIZE],
-            _pad: [0; 2],
-        }
+        ray_params(
+            &self.marcher,
+            self.inv_extent,
+            self.n_images,
+            [n_rays, row_width],
+            seed,
+            budget,
+        )
     }
 
     fn check(

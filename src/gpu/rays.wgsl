@@ -213,6 +213,32 @@ fn undistort(k: vec4<f32>, uv0: vec2<f32>) -> vec2<f32> {
     return x;
 }
 
+struct CamRay {
+    o: vec3<f32>,
+    // Unit length (unless zero).
+    d: vec3<f32>,
+}
+
+// Camera::ray through continuous pixel coordinates (px, py): pinhole, OpenCV distortion
+// inverted as the CPU inverts it, the direction rotated and normalised.
+fn camera_ray(c: Cam, px: f32, py: f32) -> CamRay {
+    var uv = vec2<f32>((px - c.intr.z) / c.intr.x, (py - c.intr.w) / c.intr.y);
+    if ((c.flags & 2u) != 0u) {
+        uv = undistort(c.dist, uv);
+    }
+    let m = c.c2w;
+    var d = vec3<f32>(
+        m[0].x * uv.x + m[0].y * uv.y + m[0].z,
+        m[1].x * uv.x + m[1].y * uv.y + m[1].z,
+        m[2].x * uv.x + m[2].y * uv.y + m[2].z,
+    );
+    let len = sqrt(dot(d, d));
+    if (len > 0.0) {
+        d = d / len;
+    }
+    return CamRay(vec3<f32>(m[0].w, m[1].w, m[2].w), d);
+}
+
 // ---- marching (ngp::render::march, ngp::occupancy) ----
 
 fn to_stepping_space(t: f32) -> f32 {
@@ -367,25 +393,10 @@ fn gen_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let x = pcg_below(&r, c.width);
     let y = pcg_below(&r, c.height);
     let bg = vec3<f32>(pcg_f32(&r), pcg_f32(&r), pcg_f32(&r));
-    // Camera::ray through the pixel's centre.
-    var uv = vec2<f32>(
-        (f32(x) + 0.5 - c.intr.z) / c.intr.x,
-        (f32(y) + 0.5 - c.intr.w) / c.intr.y,
-    );
-    if ((c.flags & 2u) != 0u) {
-        uv = undistort(c.dist, uv);
-    }
-    let m = c.c2w;
-    var d = vec3<f32>(
-        m[0].x * uv.x + m[0].y * uv.y + m[0].z,
-        m[1].x * uv.x + m[1].y * uv.y + m[1].z,
-        m[2].x * uv.x + m[2].y * uv.y + m[2].z,
-    );
-    let len = sqrt(dot(d, d));
-    if (len > 0.0) {
-        d = d / len;
-    }
-    let o = vec3<f32>(m[0].w, m[1].w, m[2].w);
+    // The ray through the pixel's centre.
+    let ray = camera_ray(c, f32(x) + 0.5, f32(y) + 0.5);
+    let o = ray.o;
+    let d = ray.d;
     var g: GenRay;
     g.o = o;
     g.d = d;
