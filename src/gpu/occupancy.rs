@@ -37,6 +37,9 @@ struct OccParams {
     level: u32,
     aabb_min: [f32; 3],
     inv_extent: f32,
+    first: u32,
+    octant: u32,
+    _pad: [u32; 2],
 }
 
 struct Pipelines {
@@ -47,6 +50,17 @@ struct Pipelines {
     mean: wgpu::ComputePipeline,
     bits: wgpu::ComputePipeline,
     pool: wgpu::ComputePipeline,
+    cell_points: wgpu::ComputePipeline,
+    splat_max: wgpu::ComputePipeline,
+}
+
+/// What the sample buffers hold: an update's draw (cells in `sample_cell`) or a rebuild's
+/// points in the cells `first..first + n` (cells implicit).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Drawn {
+    Nothing,
+    Update,
+    Cells { first: u32 },
 }
 
 /// One scene's occupancy grid resident on the device, with the buffers of one update's
@@ -66,6 +80,7 @@ pub struct GpuOccupancy {
     capacity: u32,
     n_samples: u32,
     n_uniform: u32,
+    drawn: Drawn,
     dummy: wgpu::Buffer,
     uniform: wgpu::Buffer,
     layout: wgpu::BindGroupLayout,
@@ -127,10 +142,21 @@ impl GpuOccupancy {
                     "mean_main",
                     "bits_main",
                     "pool_main",
+                    "cell_points_main",
+                    "splat_max_main",
                 ],
             );
-            let [sample, splat, decay, sum, mean, bits_p, pool] =
-                <[wgpu::ComputePipeline; 7]>::try_from(p).expect("seven entry points");
+            let [
+                sample,
+                splat,
+                decay,
+                sum,
+                mean,
+                bits_p,
+                pool,
+                cell_points,
+                splat_max,
+            ] = <[wgpu::ComputePipeline; 9]>::try_from(p).expect("nine entry points");
             let pipelines = Pipelines {
                 sample,
                 splat,
@@ -139,6 +165,8 @@ impl GpuOccupancy {
                 mean,
                 bits: bits_p,
                 pool,
+                cell_points,
+                splat_max,
             };
             let mut sums = vec![0.0f32; 1 + N_CELLS / 256];
             sums[0] = grid.mean;
@@ -153,6 +181,7 @@ impl GpuOccupancy {
                 capacity: 0,
                 n_samples: 0,
                 n_uniform: 0,
+                drawn: Drawn::Nothing,
                 dummy: storage(ctx, "occupancy no density", 0),
                 uniform: d.create_buffer(&wgpu::BufferDescriptor {
                     label: Some("occupancy params"),
@@ -186,6 +215,9 @@ impl GpuOccupancy {
             level,
             aabb_min: self.aabb_min,
             inv_extent: self.inv_extent,
+            first: 0,
+            octant: 0,
+            _pad: [0; 2],
         }
     }
 
@@ -214,6 +246,47 @@ impl GpuOccupancy {
         })
     }
 
+    /// Sample buffers for `n` samples.
+    fn reserve(&mut self, ctx: &GpuContext, n: u32) -> GpuResult<()> {
+        if n > self.capacity {
+            check_binding(ctx, &format!("occupancy: {n} samples"), 12 * n as u64)?;
+            (self.sample_pos, self.sample_cell) = ctx.scoped("occupancy samples", || {
+                (
+                    storage(ctx, "occupancy sample positions", 12 * n as u64),
+                    storage(ctx, "occupancy sample cells", 4 * n as u64),
+                )
+            })?;
+            self.capacity = n;
+        }
+        Ok(())
+    }
+
+    /// Records one pass over `n` samples with the uniform of `slot`.
+    fn record_samples_pass(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::ComputePipeline,
+        log_density: &wgpu::Buffer,
+        slot: u32,
+        mut params: OccParams,
+    ) -> GpuResult<()> {
+        let [gx, gy] = groups(ctx, params.n_uniform + params.n_nonuniform, 64);
+        params.row_width = gx * 64;
+        ctx.scoped("occupancy samples pass", || {
+            ctx.queue.write_buffer(
+                &self.uniform,
+                slot as u64 * SLOT_BYTES,
+                bytemuck::bytes_of(&params),
+            );
+            let bg = self.bind_group(ctx, log_density);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bg, &[slot * SLOT_BYTES as u32]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        })
+    }
+
     /// Records the draw of one update's samples, `n_uniform` among seen cells and
     /// `n_nonuniform` among occupied ones (counts as `OccupancyGrid::update_sample_counts`
     /// gives them), into [`Self::sample_pos`] and [`Self::sample_cell`], warped for the
@@ -229,32 +302,96 @@ impl GpuOccupancy {
         let n = n_uniform
             .checked_add(n_nonuniform)
             .ok_or_else(|| GpuError::Input("occupancy: more than 2^32 samples".into()))?;
-        if n > self.capacity {
-            check_binding(ctx, &format!("occupancy: {n} samples"), 12 * n as u64)?;
-            (self.sample_pos, self.sample_cell) = ctx.scoped("occupancy samples", || {
-                (
-                    storage(ctx, "occupancy sample positions", 12 * n as u64),
-                    storage(ctx, "occupancy sample cells", 4 * n as u64),
-                )
-            })?;
-            self.capacity = n;
-        }
+        self.reserve(ctx, n)?;
         self.n_samples = n;
         self.n_uniform = n_uniform;
-        let [gx, gy] = groups(ctx, n, 64);
-        let params = self.params(seed, gx * 64, 0);
-        ctx.scoped("occupancy draw", || {
-            ctx.queue.write_buffer(
-                &self.uniform,
-                DRAW_SLOT as u64 * SLOT_BYTES,
-                bytemuck::bytes_of(&params),
-            );
-            let bg = self.bind_group(ctx, &self.dummy);
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.pipelines.sample);
-            pass.set_bind_group(0, &bg, &[DRAW_SLOT * SLOT_BYTES as u32]);
-            pass.dispatch_workgroups(gx, gy, 1);
-        })
+        self.drawn = Drawn::Update;
+        let params = self.params(seed, 0, 0);
+        self.record_samples_pass(
+            ctx,
+            encoder,
+            &self.pipelines.sample,
+            &self.dummy,
+            DRAW_SLOT,
+            params,
+        )
+    }
+
+    /// Records the draw of one round of a rebuild ([`OccupancyGrid::rebuild`]) over the
+    /// cells `first..first + n` (indices over all cascades, as the CPU's `cells`): one
+    /// point per cell in its octant `octant`, as [`OccupancyGrid::points_in_cell_octant`]
+    /// draws it with `seed` (bit for bit), warped for the network into
+    /// [`Self::sample_pos`].
+    pub fn encode_cell_points(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        first: u32,
+        n: u32,
+        octant: u32,
+        seed: u64,
+    ) -> GpuResult<()> {
+        let cells = N_CELLS as u64 * self.n_cascades as u64;
+        if first as u64 + n as u64 > cells || octant > 7 {
+            return Err(GpuError::Input(format!(
+                "occupancy: cells {first}..{} of {cells}, octant {octant}",
+                first as u64 + n as u64
+            )));
+        }
+        self.reserve(ctx, n)?;
+        self.n_samples = n;
+        self.n_uniform = n;
+        self.drawn = Drawn::Cells { first };
+        let mut params = self.params(0, 0, 0);
+        params.seed = [seed as u32, (seed >> 32) as u32];
+        params.first = first;
+        params.octant = octant;
+        self.record_samples_pass(
+            ctx,
+            encoder,
+            &self.pipelines.cell_points,
+            &self.dummy,
+            DRAW_SLOT,
+            params,
+        )
+    }
+
+    fn check_log_density(&self, log_density: &wgpu::Buffer) -> GpuResult<()> {
+        if log_density.size() < 4 * self.n_samples as u64 {
+            return Err(GpuError::Input(format!(
+                "occupancy: {} bytes of log-density for {} samples",
+                log_density.size(),
+                self.n_samples
+            )));
+        }
+        Ok(())
+    }
+
+    /// Records [`OccupancyGrid::splat_max`] after [`Self::encode_cell_points`]: each cell
+    /// of the draw rises to the optical thickness of its point's `log_density` (no decay;
+    /// call [`Self::encode_bitfield`] when every round is in).
+    pub fn encode_splat_max(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        log_density: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        let Drawn::Cells { first } = self.drawn else {
+            return Err(GpuError::Input(
+                "occupancy: splat_max without a draw of cell points".into(),
+            ));
+        };
+        self.check_log_density(log_density)?;
+        let mut params = self.params(0, 0, 0);
+        params.first = first;
+        self.record_samples_pass(
+            ctx,
+            encoder,
+            &self.pipelines.splat_max,
+            log_density,
+            SPLAT_SLOT,
+            params,
+        )
     }
 
     /// Records the rest of the update: every sample of the last draw splats
@@ -266,57 +403,71 @@ impl GpuOccupancy {
         encoder: &mut wgpu::CommandEncoder,
         log_density: &wgpu::Buffer,
     ) -> GpuResult<()> {
-        if log_density.size() < 4 * self.n_samples as u64 {
-            return Err(GpuError::Input(format!(
-                "occupancy: {} bytes of log-density for {} samples",
-                log_density.size(),
-                self.n_samples
-            )));
+        if self.drawn != Drawn::Update {
+            return Err(GpuError::Input(
+                "occupancy: a splat without an update's draw".into(),
+            ));
         }
+        self.check_log_density(log_density)?;
+        let params = self.params(0, 0, 0);
+        self.record_samples_pass(
+            ctx,
+            encoder,
+            &self.pipelines.splat,
+            log_density,
+            SPLAT_SLOT,
+            params,
+        )?;
+        let n_cells = N_CELLS as u32 * self.n_cascades;
+        let g_cells = groups(ctx, n_cells, 256);
+        self.write_slot(ctx, CELLS_SLOT, self.params(0, g_cells[0] * 256, 0))?;
+        ctx.scoped("occupancy decay", || {
+            let bg = self.bind_group(ctx, log_density);
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_bind_group(0, &bg, &[CELLS_SLOT * SLOT_BYTES as u32]);
+            pass.set_pipeline(&self.pipelines.decay);
+            pass.dispatch_workgroups(g_cells[0], g_cells[1], 1);
+        })?;
+        self.encode_bitfield(ctx, encoder)?;
+        self.ema_step += 1;
+        Ok(())
+    }
+
+    fn write_slot(&self, ctx: &GpuContext, slot: u32, params: OccParams) -> GpuResult<()> {
+        ctx.scoped("occupancy params", || {
+            ctx.queue.write_buffer(
+                &self.uniform,
+                slot as u64 * SLOT_BYTES,
+                bytemuck::bytes_of(&params),
+            )
+        })
+    }
+
+    /// Records [`OccupancyGrid::update_bitfield`] from the densities on the device: the
+    /// cascade-0 mean, the thresholded bits of every cascade, then each cascade OR-pooling
+    /// the finer one.
+    pub fn encode_bitfield(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+    ) -> GpuResult<()> {
         let nc = self.n_cascades;
         let n_cells = N_CELLS as u32 * nc;
-        let g_samples = groups(ctx, self.n_samples, 64);
         let g_cells = groups(ctx, n_cells, 256);
         let g_words = groups(ctx, n_cells / 32, 256);
         let g_pool = groups(ctx, N_CELLS as u32 / 64, 256);
-        // Slot 0: the update's own values; slot l: pooling into cascade l. Each pass reads
-        // row_width for its own dispatch shape.
-        let mut slots = vec![0u8; (SLOTS * SLOT_BYTES) as usize];
-        let put = |slots: &mut Vec<u8>, slot: usize, p: OccParams| {
-            let at = slot * SLOT_BYTES as usize;
-            slots[at..at + std::mem::size_of::<OccParams>()]
-                .copy_from_slice(bytemuck::bytes_of(&p));
-        };
-        put(
-            &mut slots,
-            SPLAT_SLOT as usize,
-            self.params(0, g_samples[0] * 64, 0),
-        );
+        // Slot l: pooling into cascade l, with its own row width. The bitfield pass
+        // (≤ 2048 workgroups) and the sums never fold into y, so they need no row width of
+        // their own.
         for l in 1..nc {
-            put(&mut slots, l as usize, self.params(0, g_pool[0] * 256, l));
+            self.write_slot(ctx, l, self.params(0, g_pool[0] * 256, l))?;
         }
-        put(
-            &mut slots,
-            CELLS_SLOT as usize,
-            self.params(0, g_cells[0] * 256, 0),
-        );
-        // The bitfield pass (≤ 2048 workgroups) and the sums never fold into y, so they
-        // need no row width of their own.
-        ctx.scoped("occupancy splat", || {
-            // Every slot but the draw's, which an update recorded into the same submission
-            // has written.
-            let first = SLOT_BYTES as usize;
-            ctx.queue
-                .write_buffer(&self.uniform, first as u64, &slots[first..]);
-            let bg = self.bind_group(ctx, log_density);
+        self.write_slot(ctx, CELLS_SLOT, self.params(0, g_cells[0] * 256, 0))?;
+        ctx.scoped("occupancy bitfield", || {
+            let bg = self.bind_group(ctx, &self.dummy);
             let off = |slot: u32| [slot * SLOT_BYTES as u32];
             let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_bind_group(0, &bg, &off(SPLAT_SLOT));
-            pass.set_pipeline(&self.pipelines.splat);
-            pass.dispatch_workgroups(g_samples[0], g_samples[1], 1);
             pass.set_bind_group(0, &bg, &off(CELLS_SLOT));
-            pass.set_pipeline(&self.pipelines.decay);
-            pass.dispatch_workgroups(g_cells[0], g_cells[1], 1);
             pass.set_pipeline(&self.pipelines.sum);
             pass.dispatch_workgroups(N_CELLS as u32 / 256, 1, 1);
             pass.set_pipeline(&self.pipelines.mean);
@@ -328,9 +479,7 @@ impl GpuOccupancy {
                 pass.set_pipeline(&self.pipelines.pool);
                 pass.dispatch_workgroups(g_pool[0], g_pool[1], 1);
             }
-        })?;
-        self.ema_step += 1;
-        Ok(())
+        })
     }
 
     /// Records one whole training update with the field on the device: the draw, the
@@ -583,6 +732,73 @@ mod tests {
         }
     }
 
+    /// A rebuild's rounds on the device against the CPU's: the points of chunks of cells
+    /// (one straddling two cascades) bit for bit `points_in_cell_octant` warped, for two
+    /// octants and seeds; then `splat_max` of given log-densities (culled cells stay
+    /// culled) and the bitfield as `update_bitfield` makes it.
+    #[test]
+    fn rebuild_rounds_match_the_cpu() {
+        let Some(ctx) = test_context() else { return };
+        let marcher = Marcher::new(2);
+        let mut cpu = OccupancyGrid::new(2);
+        let mut r = Pcg32::new(6, 6);
+        for d in cpu.density.iter_mut() {
+            *d = if r.next_f32() < 0.05 { -1.0 } else { 0.0 };
+        }
+        let mut gpu = GpuOccupancy::upload(ctx, &cpu, &marcher).unwrap();
+        let all: Vec<u32> = (0..2 * N_CELLS as u32).collect();
+        let n0 = N_CELLS as u32;
+        for (round, (octant, seed)) in [(0u32, 99u64), (5, 100)].into_iter().enumerate() {
+            let want = cpu.points_in_cell_octant(&all, octant, seed);
+            for (first, n) in [(0u32, 5000u32), (n0 - 3000, 6000), (2 * n0 - 64, 64)] {
+                run(ctx, |e| {
+                    gpu.encode_cell_points(ctx, e, first, n, octant, seed)
+                        .unwrap()
+                });
+                let (pos, _) = gpu.download_samples(ctx).unwrap();
+                assert_eq!(pos.len(), n as usize);
+                for (k, p) in pos.iter().enumerate() {
+                    let c = first as usize + k;
+                    assert_eq!(*p, marcher.warp(want[c]), "round {round}: cell {c}");
+                }
+                let ld: Vec<f32> = (0..n)
+                    .map(|_| (r.next_f32() * 0.03 / MIN_CONE_STEPSIZE).ln())
+                    .collect();
+                let buf = ctx
+                    .device
+                    .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some("log density"),
+                        contents: bytemuck::cast_slice(&ld),
+                        usage: wgpu::BufferUsages::STORAGE,
+                    });
+                run(ctx, |e| gpu.encode_splat_max(ctx, e, &buf).unwrap());
+                cpu.splat_max(&all[first as usize..(first + n) as usize], &ld);
+            }
+        }
+        run(ctx, |e| gpu.encode_bitfield(ctx, e).unwrap());
+        cpu.update_bitfield();
+        let got = gpu.download(ctx).unwrap();
+        for (i, (&g, &c)) in got.density.iter().zip(&cpu.density).enumerate() {
+            assert!((g - c).abs() <= 1e-6 * c.abs(), "cell {i}: {g} vs {c}");
+        }
+        assert!((got.mean - cpu.mean).abs() <= 1e-5 * cpu.mean);
+        assert!(cpu.mean > 0.0 && got.ema_step == 0);
+        let thresh = cpu.mean.min(0.01);
+        for (byte, (&g, &c)) in got.bitfield().iter().zip(cpu.bitfield()).enumerate() {
+            if g != c && byte < N_CELLS / 8 {
+                for j in 0..8 {
+                    let i = byte * 8 + j;
+                    assert!(
+                        (g ^ c) >> j & 1 == 0 || (cpu.density[i] - thresh).abs() <= 1e-5 * thresh,
+                        "cell {i}"
+                    );
+                }
+            }
+        }
+        let set: u32 = cpu.bitfield().iter().map(|b| b.count_ones()).sum();
+        assert!(set > 5000, "{set} bits set");
+    }
+
     #[test]
     fn bad_inputs_are_errors() {
         let Some(ctx) = test_context() else { return };
@@ -603,6 +819,21 @@ mod tests {
         assert_eq!(gpu.ema_step, 0, "a refused splat does not count");
         assert!(
             gpu.encode_samples(ctx, &mut encoder, u32::MAX, 1, 1)
+                .is_err()
+        );
+        // A rebuild's splat needs a rebuild's draw, an update's splat an update's draw; a
+        // draw past the grid's cells or octants is refused.
+        assert!(gpu.encode_splat_max(ctx, &mut encoder, &short).is_err());
+        gpu.encode_cell_points(ctx, &mut encoder, 0, 3, 7, 1)
+            .unwrap();
+        assert!(gpu.encode_splat(ctx, &mut encoder, &short).is_err());
+        gpu.encode_splat_max(ctx, &mut encoder, &short).unwrap();
+        assert!(
+            gpu.encode_cell_points(ctx, &mut encoder, N_CELLS as u32 - 2, 3, 0, 1)
+                .is_err()
+        );
+        assert!(
+            gpu.encode_cell_points(ctx, &mut encoder, 0, 3, 8, 1)
                 .is_err()
         );
     }

@@ -29,6 +29,12 @@ struct OccParams {
     // (aabb sides are powers of two, so this is the CPU's division to the bit).
     aabb_min: vec3<f32>,
     inv_extent: f32,
+    // A rebuild's draw: the first cell (cascade offset included; `n_uniform` cells from it)
+    // and the octant of each cell its points fall in.
+    first: u32,
+    octant: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<storage, read_write> density: array<f32>;
@@ -103,6 +109,58 @@ fn sample_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         draw(k, p.n_uniform, 1u, -0.01, k);
     } else if (k < p.n_uniform + p.n_nonuniform) {
         draw(k - p.n_uniform, p.n_nonuniform, 2u, MIN_OPTICAL_THICKNESS, k);
+    }
+}
+
+// OccupancyGrid::points_in_cell_octant over cells first..first + n_uniform, as a rebuild
+// draws them: sample k is cell c = first + k, drawn with Pcg32::new(seed, c) (seed is the
+// round's `seed + round`, not mixed with the update count), x then y then z, uniform in the
+// cell's octant `octant` (bit d: the upper half along axis d); warped like the others.
+@compute @workgroup_size(64)
+fn cell_points_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x + gid.y * p.row_width;
+    if (k >= p.n_uniform) {
+        return;
+    }
+    let c = p.first + k;
+    var r = pcg_new(p.seed, c, 0u);
+    let level = c / N_CELLS;
+    let idx = c % N_CELLS;
+    let s = f32(1u << level);
+    let g = f32(GRID_SIZE);
+    let cell = vec3<f32>(
+        f32(morton3d_invert(idx)),
+        f32(morton3d_invert(idx >> 1u)),
+        f32(morton3d_invert(idx >> 2u)),
+    );
+    let o = (cell / g - 0.5) * s + 0.5;
+    let vs = s / g;
+    let lo = 0.5 * vec3<f32>(f32(p.octant & 1u), f32((p.octant >> 1u) & 1u), f32((p.octant >> 2u) & 1u));
+    // Every product here is by a power of two (exact), so a fused multiply-add rounds as
+    // the CPU's separate operations do.
+    let x = o.x + vs * (lo.x + 0.5 * pcg_f32(&r));
+    let y = o.y + vs * (lo.y + 0.5 * pcg_f32(&r));
+    let z = o.z + vs * (lo.z + 0.5 * pcg_f32(&r));
+    let w = (vec3<f32>(x, y, z) - p.aabb_min) * p.inv_extent;
+    sample_pos[3u * k] = w.x;
+    sample_pos[3u * k + 1u] = w.y;
+    sample_pos[3u * k + 2u] = w.z;
+}
+
+// OccupancyGrid::splat_max after cell_points_main: sample k raises cell first + k to its
+// optical thickness (one sample a cell per pass, so no atomics), no decay; culled cells
+// (−1) stay culled.
+@compute @workgroup_size(64)
+fn splat_max_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x + gid.y * p.row_width;
+    if (k >= p.n_uniform) {
+        return;
+    }
+    let c = p.first + k;
+    let t = exp(log_density[k]) * MIN_CONE_STEPSIZE;
+    let d = density[c];
+    if (d >= 0.0 && t > d) {
+        density[c] = t;
     }
 }
 

@@ -96,6 +96,11 @@ pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
     Some(morton3d(i[0] as u32, i[1] as u32, i[2] as u32))
 }
 
+/// The octant of every cell that round `r` of [`OccupancyGrid::rebuild`] samples is
+/// `REBUILD_OCTANTS[r % 8]` (seed `seed + r`): opposite octants come first, so that any
+/// number of rounds spreads over the cell.
+pub const REBUILD_OCTANTS: [u32; 8] = [0, 7, 3, 4, 5, 2, 6, 1];
+
 /// The occupancy grid of one scene.
 #[derive(Clone, Debug, PartialEq)]
 pub struct OccupancyGrid {
@@ -259,12 +264,10 @@ impl OccupancyGrid {
         grid.density.iter_mut().for_each(|d| *d = 0.0);
         let cells: Vec<u32> = (0..(N_CELLS * grid.n_cascades) as u32).collect();
         for round in 0..samples_per_cell {
-            // Every cell once per round, at a random point of one of its octants; opposite
-            // octants come first so that any number of rounds spreads over the cell.
-            const OCTANTS: [u32; 8] = [0, 7, 3, 4, 5, 2, 6, 1];
+            // Every cell once per round, at a random point of one of its octants.
             let pos = grid.points_in_cell_octant(
                 &cells,
-                OCTANTS[round % 8],
+                REBUILD_OCTANTS[round % 8],
                 seed.wrapping_add(round as u64),
             );
             let dens = log_density(&pos);
