@@ -15,6 +15,7 @@ pub mod occupancy;
 pub mod optimizer;
 pub mod rays;
 pub mod render;
+pub mod renderer;
 pub mod trainer;
 
 pub use field::{DensityScratch, GpuField};
@@ -26,6 +27,7 @@ pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
 pub use rays::{GenRay, MarchedHost, RAYS_WGSL, RayBatch, RayKernels};
 pub use render::{CompositeKernel, RayState, WaveSamples};
+pub use renderer::{GpuRenderer, rebuild_occupancy_gpu};
 pub use trainer::GpuTrainer;
 
 use std::sync::OnceLock;

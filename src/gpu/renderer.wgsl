@@ -1,0 +1,170 @@
+// Rendering whole images on the device, as ngp::render::image::render_image renders them on
+// the CPU: a ray per pixel through its centre, marching from half a step inside the box in
+// waves of at most `samples_per_wave` samples per live ray, every wave's samples through the
+// network, composited (composite.wgsl), a ray retired once it left the box or its
+// transmittance fell below the threshold. Concatenated after u64.wgsl, pcg.wgsl and
+// rays.wgsl, whose camera, box and marching functions it calls: its uniform `p` (the box and
+// stepping space), `cams` (the one camera, at 0) and `bitfield` are bound as there.
+//
+// One tile of pixels at a time. The live rays are a list of tile-local ray indices; a wave
+// marches each listed ray, reserves its samples with one atomicAdd on the wave's counter
+// (marching twice: count, then write, as rays.wgsl does), and after compositing the retire
+// pass appends the rays still alive to the next list. The order of the lists and of the
+// samples depends on the order the device runs the invocations; what each ray computes
+// does not (the network evaluates every sample on its own).
+
+struct RenderParams {
+    // Rays (pixels) of this tile and the tile's first pixel; the image's width.
+    n_tile: u32,
+    first_pixel: u32,
+    width: u32,
+    // Invocations per dispatch row (dispatches wider than 65535 workgroups fold into y).
+    row_width: u32,
+    samples_per_wave: u32,
+    // Rays in `live` (the retire pass's exact count; marching reads the device's counter).
+    n_live: u32,
+    min_transmittance: f32,
+    _pad: u32,
+}
+
+struct RenderRay {
+    o: vec3<f32>,
+    // Where the next wave resumes marching.
+    t: f32,
+    d: vec3<f32>,
+    // 1 once marching left the box (the wave's samples are still composited).
+    done: u32,
+}
+
+@group(0) @binding(12) var<storage, read_write> rrays: array<RenderRay>;
+@group(0) @binding(13) var<storage, read_write> live: array<u32>;
+@group(0) @binding(14) var<storage, read_write> live_next: array<u32>;
+// [0]: samples of the wave marched last, [1]: rays in `live`.
+@group(0) @binding(15) var<storage, read_write> rcount: array<atomic<u32>, 4>;
+// Per tile ray: this wave's samples (start, count), for composite.wgsl.
+@group(0) @binding(16) var<storage, read_write> wave: array<vec2<u32>>;
+// Per sample: warped position and view direction (3 floats each), dt, distance.
+@group(0) @binding(17) var<storage, read_write> s_pos: array<f32>;
+@group(0) @binding(18) var<storage, read_write> s_dir: array<f32>;
+@group(0) @binding(19) var<storage, read_write> s_dt: array<f32>;
+@group(0) @binding(20) var<storage, read_write> s_dist: array<f32>;
+// Per tile ray: the compositing state's transmittance (gpu::render::RayState::trans).
+@group(0) @binding(21) var<storage, read_write> trans: array<f32>;
+@group(0) @binding(22) var<uniform> rp: RenderParams;
+
+// The tile's rays: through pixel first_pixel + k's centre; a ray that meets the box starts
+// half a step inside it and joins the live list.
+@compute @workgroup_size(64)
+fn render_gen_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let k = gid.x + gid.y * rp.row_width;
+    if (k >= rp.n_tile) {
+        return;
+    }
+    trans[k] = 1.0;
+    let pixel = rp.first_pixel + k;
+    let ray = camera_ray(cams[0], f32(pixel % rp.width) + 0.5, f32(pixel / rp.width) + 0.5);
+    var r: RenderRay;
+    r.o = ray.o;
+    r.d = ray.d;
+    r.t = 0.0;
+    r.done = 1u;
+    let tmin = intersect(ray.o, ray.d);
+    if (tmin >= 0.0) {
+        r.t = advance_n_steps(tmin, 0.5);
+        r.done = 0u;
+        live[atomicAdd(&rcount[1], 1u)] = k;
+    }
+    rrays[k] = r;
+}
+
+struct WaveEnd {
+    n: u32,
+    // Where the next wave resumes.
+    t: f32,
+    // 1: the ray left the box.
+    left: u32,
+}
+
+// One wave of Marcher::march from t0: at most max_n samples; counts them, or (write) writes
+// them from sample slot `base` on.
+fn march_wave(o: vec3<f32>, d: vec3<f32>, t0: f32, max_n: u32, write: bool, base: u32) -> WaveEnd {
+    let idir = 1.0 / d;
+    var t = t0;
+    var n = 0u;
+    var left = 0u;
+    // A wave that reaches the iteration bound (an invocation must end) stops where it is;
+    // the next wave resumes from there, so the bound changes no result.
+    for (var it = 0u; it < MAX_ITERATIONS; it++) {
+        let q = o + t * d;
+        if (!inside_box(q)) {
+            left = 1u;
+            break;
+        }
+        if (n >= max_n) {
+            break;
+        }
+        let dt = calc_dt(t);
+        let mip = mip_from_dt(dt, q);
+        var next: f32;
+        if (is_occupied(q, mip)) {
+            if (write) {
+                let k = base + n;
+                let w = (q - p.aabb_min) * p.inv_extent;
+                s_pos[3u * k] = w.x;
+                s_pos[3u * k + 1u] = w.y;
+                s_pos[3u * k + 2u] = w.z;
+                s_dir[3u * k] = d.x;
+                s_dir[3u * k + 1u] = d.y;
+                s_dir[3u * k + 2u] = d.z;
+                s_dt[k] = dt;
+                s_dist[k] = t;
+            }
+            n += 1u;
+            next = t + dt;
+        } else {
+            next = advance_to_next_voxel(t, q, d, idir, mip);
+        }
+        // The next float where a step falls below the float spacing at t (t ≥ 0).
+        t = select(bitcast<f32>(bitcast<u32>(t) + 1u), next, next > t);
+    }
+    return WaveEnd(n, t, left);
+}
+
+// One wave of every live ray (the list's length is the device's counter).
+@compute @workgroup_size(64)
+fn render_march_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x + gid.y * rp.row_width;
+    if (i >= atomicLoad(&rcount[1])) {
+        return;
+    }
+    let k = live[i];
+    let r = rrays[k];
+    let end = march_wave(r.o, r.d, r.t, rp.samples_per_wave, false, 0u);
+    var start = 0u;
+    if (end.n > 0u) {
+        start = atomicAdd(&rcount[0], end.n);
+        // At most the samples reserved, whatever the second pass finds.
+        march_wave(r.o, r.d, r.t, end.n, true, start);
+    }
+    wave[k] = vec2<u32>(start, end.n);
+    rrays[k].t = end.t;
+    rrays[k].done = end.left;
+}
+
+// After compositing: the rays still in the box and not yet opaque go on to the next list
+// (`!(T < min)`: a NaN transmittance goes on, as on the CPU); the others get an empty wave
+// record, since compositing passes over every ray of the tile (marching writes the live
+// rays' records anew every wave).
+@compute @workgroup_size(64)
+fn render_retire_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let i = gid.x + gid.y * rp.row_width;
+    if (i >= rp.n_live) {
+        return;
+    }
+    let k = live[i];
+    if (rrays[k].done == 0u && !(trans[k] < rp.min_transmittance)) {
+        live_next[atomicAdd(&rcount[1], 1u)] = k;
+    } else {
+        wave[k] = vec2<u32>(0u, 0u);
+    }
+}
