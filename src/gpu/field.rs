@@ -1,6 +1,6 @@
 //! The radiance field on the device: one parameter vector (laid out as the CPU's), one
 //! index per level, and the grid and network kernels composed. What an occupancy update, a
-//! key holder's grid rebuild and (later) rendering ask of a model.
+//! key holder's grid rebuild and rendering ask of a model.
 
 use super::grid::{GradAtomics, GridEncoding, GridShape};
 use super::mlp::{EncodedBatch, MlpKernels};
