@@ -108,6 +108,20 @@ impl GpuField {
         n: u32,
         scratch: &mut DensityScratch,
     ) -> GpuResult<()> {
+        self.encode_density_under(ctx, encoder, &self.index, positions, n, scratch)
+    }
+
+    /// [`encode_density`](Self::encode_density) through `index` instead of the field's own
+    /// (one scene of a multi-scene trainer, each with its index on the device).
+    pub fn encode_density_under(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        index: &GpuIndex,
+        positions: &wgpu::Buffer,
+        n: u32,
+        scratch: &mut DensityScratch,
+    ) -> GpuResult<()> {
         if n == 0 {
             return Ok(());
         }
@@ -132,7 +146,7 @@ impl GpuField {
         let g1 = 4 * self.layout.n_params as u64;
         let dispatch = self.grid.bind_forward(
             ctx,
-            &self.index,
+            index,
             positions.slice(..),
             self.params.slice(g0..g1),
             enc.slice(..),

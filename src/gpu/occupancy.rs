@@ -8,8 +8,8 @@
 use super::field::{DensityScratch, GpuField};
 use super::index::{PCG_WGSL, U64_WGSL};
 use super::{
-    GpuContext, GpuError, GpuResult, buffer_entry, check_binding, device_buffer as storage,
-    shared_layout_pipelines,
+    GpuContext, GpuError, GpuIndex, GpuResult, buffer_entry, check_binding,
+    device_buffer as storage, shared_layout_pipelines,
 };
 use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
@@ -496,8 +496,42 @@ impl GpuOccupancy {
         n_nonuniform: u32,
         seed: u64,
     ) -> GpuResult<()> {
+        let index = field.index();
+        self.encode_update_under(
+            ctx,
+            encoder,
+            field,
+            index,
+            scratch,
+            n_uniform,
+            n_nonuniform,
+            seed,
+        )
+    }
+
+    /// [`encode_update`](Self::encode_update) with the field seen through `index` (the
+    /// scene's own, where several scenes share the weights).
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_update_under(
+        &mut self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        field: &GpuField,
+        index: &GpuIndex,
+        scratch: &mut DensityScratch,
+        n_uniform: u32,
+        n_nonuniform: u32,
+        seed: u64,
+    ) -> GpuResult<()> {
         self.encode_samples(ctx, encoder, n_uniform, n_nonuniform, seed)?;
-        field.encode_density(ctx, encoder, &self.sample_pos, self.n_samples, scratch)?;
+        field.encode_density_under(
+            ctx,
+            encoder,
+            index,
+            &self.sample_pos,
+            self.n_samples,
+            scratch,
+        )?;
         match &scratch.out {
             Some(out) => self.encode_splat(ctx, encoder, out),
             None => Err(GpuError::Input("occupancy: an update of 0 samples".into())),
