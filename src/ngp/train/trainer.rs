@@ -202,6 +202,18 @@ pub(crate) fn mix(a: u64, b: u64) -> u64 {
     z ^ (z >> 31)
 }
 
+/// The scenes step `step` trains, in order: all of them (mixed), or one drawn for the step
+/// (random scene). Also the GPU trainer's, so both backends train the same scenes.
+pub(crate) fn step_scenes(schedule: Schedule, seed: u64, step: u32, n_scenes: usize) -> Vec<usize> {
+    match schedule {
+        Schedule::Mixed => (0..n_scenes).collect(),
+        Schedule::RandomScene => {
+            let mut r = Pcg32::new(mix(seed, step as u64), 0x5ce7e);
+            vec![r.below(n_scenes as u32) as usize]
+        }
+    }
+}
+
 impl Trainer {
     pub fn new(model: ModelConfig, scenes: Vec<SceneSpec>, config: TrainConfig) -> Result<Self> {
         if scenes.is_empty() {
@@ -380,13 +392,12 @@ impl Trainer {
         self.update_occupancy();
         let t_occ = t0.elapsed().as_secs_f64();
         let step = self.step;
-        let scene_ids: Vec<usize> = match self.config.schedule {
-            Schedule::Mixed => (0..self.scenes.len()).collect(),
-            Schedule::RandomScene => {
-                let mut r = Pcg32::new(mix(self.config.seed, step as u64), 0x5ce7e);
-                vec![r.below(self.scenes.len() as u32) as usize]
-            }
-        };
+        let scene_ids = step_scenes(
+            self.config.schedule,
+            self.config.seed,
+            step,
+            self.scenes.len(),
+        );
         let mut stats = StepStats {
             step,
             ..Default::default()
