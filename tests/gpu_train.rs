@@ -88,8 +88,10 @@ fn train_gpu(train: &Arc<Dataset>) -> Option<Model> {
     let mut t = GpuTrainer::new(
         ctx,
         cfg,
-        train.clone(),
-        reference_indices(&layout.grid),
+        vec![SceneSpec {
+            dataset: train.clone(),
+            indices: reference_indices(&layout.grid),
+        }],
         config(),
     )
     .unwrap();

@@ -1,16 +1,33 @@
 //! A whole training step on the device (issue 10), composed from the tested kernels: the
-//! occupancy update on the CPU trainer's schedule with the field on the device, a batch of
+//! occupancy updates on the CPU trainer's schedule with the field on the device, a batch of
 //! rays drawn, marched and compacted ([`RayKernels`]), the grid forward, the network forward
 //! keeping its activations, the loss, the network and grid backward, and Adam + EMA. One
-//! scene (plain Instant-NGP under any [`LevelIndices`]); the CPU [`Trainer`] is the oracle:
-//! same initial weights, same seeds (`mix`), same ray draws, same rays-per-batch adaptation,
-//! same loss normalisation and density pull-up.
+//! or more scenes on one set of weights, as the CPU [`Trainer`], which is the oracle: same
+//! initial weights, same seeds (`mix`, per scene), same ray draws, same rays-per-batch
+//! adaptation per scene, same loss normalisation (scene weight / rays) and density
+//! pull-up, same schedules ([`Schedule::Mixed`]: every scene every step, their gradients
+//! summed into one Adam step; [`Schedule::RandomScene`]: one scene a step, drawn as the CPU
+//! draws it), and the same [`IndexRefresh`] hook at the same point of the step.
 //!
-//! Host round trips per step: the batch's three counters (the network kernels take their
-//! sample count from the host, so the step submits twice: rays, then the rest), the per-ray
-//! (loss, samples used) pairs that the rays-per-batch adaptation and the reported loss need,
-//! and the occupancy grid's mean after an update (it switches the pull-up). Samples and
-//! weights never leave the device.
+//! Each scene has its own index functions on the device ([`GpuIndex`]: the grid kernels
+//! bind one per dispatch), its own occupancy grid ([`GpuOccupancy`]), its own frames
+//! ([`RayKernels`]) and counters. The sample buffers, the network workspace and the
+//! gradient are shared: the scenes of a step run one after another, each in its own
+//! submissions, and both backward passes ADD into the gradient (the network's reduction
+//! adds its chunk sums, the grid's atomics add), which only the optimizer's kernel zeroes,
+//! after it has read it. So a mixed step's gradient is the sum of its scenes' gradients
+//! when the one Adam step runs, as the CPU sums its workers' partials (in another order:
+//! the sums agree to rounding, not bit for bit).
+//!
+//! Host round trips per scene trained: the batch's three counters (the network kernels take
+//! their sample count from the host, so a scene submits twice: rays, then the rest), the
+//! per-ray (loss, samples used) pairs that the rays-per-batch adaptation and the reported
+//! loss need, and each occupancy grid's mean after an update (it switches the pull-up).
+//! With an [`IndexRefresh`] installed, every update of the cover's grid (and the
+//! installation itself) also reads back the cover's grid and the EMA weights, calls the
+//! refresh on the host and uploads the indices it returns, before the other scenes' grids
+//! update: the weights' whole vector crosses the bus once per cover update. Otherwise
+//! samples and weights never leave the device.
 //!
 //! Differences from the CPU step, by design of this first version: the network runs (and
 //! keeps activations) on every marched sample, where the CPU first finds where each ray's
@@ -20,6 +37,8 @@
 //! ([`GpuTrainer::sample_budget`]); rays past it train nothing this step, as in instant-ngp.
 //!
 //! [`Trainer`]: crate::ngp::train::Trainer
+//! [`Schedule::Mixed`]: crate::ngp::train::Schedule::Mixed
+//! [`Schedule::RandomScene`]: crate::ngp::train::Schedule::RandomScene
 
 use super::field::{DensityScratch, GpuField};
 use super::grid::GridShape;
@@ -28,18 +47,17 @@ use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
 use super::occupancy::GpuOccupancy;
 use super::optimizer::GpuOptimizer;
 use super::rays::{RayBatch, RayKernels};
-use super::{GpuContext, GpuError, GpuResult, buffer_entry, device_buffer};
+use super::{GpuContext, GpuError, GpuIndex, GpuResult, buffer_entry, device_buffer};
 use crate::ngp::data::Dataset;
-use crate::ngp::encoding::LevelIndices;
+use crate::ngp::encoding::{LevelIndices, check_indices};
 use crate::ngp::model::Model;
 use crate::ngp::network::ModelConfig;
 use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
-use crate::ngp::train::StepStats;
-use crate::ngp::train::TrainConfig;
 use crate::ngp::train::loss::DENSITY_PULL_UP;
-use crate::ngp::train::trainer::{initial_rays_per_batch, mix, next_rays_per_batch};
+use crate::ngp::train::trainer::{initial_rays_per_batch, mix, next_rays_per_batch, step_scenes};
+use crate::ngp::train::{IndexRefresh, SceneSpec, StepStats, TrainConfig};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -65,17 +83,31 @@ struct DirsParams {
     _pad: [u32; 2],
 }
 
-/// One scene trained on the device.
+/// One scene's state on the device (and the host copies the API hands out).
+struct GpuScene {
+    dataset: Arc<Dataset>,
+    /// The index functions as trained now (host copy of `index`).
+    indices: LevelIndices,
+    index: GpuIndex,
+    occupancy: GpuOccupancy,
+    rays: RayKernels,
+    loss_weight: f32,
+    grid_mean: f32,
+    rays_per_batch: u32,
+    measured_samples: u32,
+    measured_marched: u32,
+}
+
+/// One or more scenes trained on the device on one set of weights (scene 0: the cover).
 pub struct GpuTrainer<'c> {
     ctx: &'c GpuContext,
     pub config: TrainConfig,
     model: ModelConfig,
-    dataset: Arc<Dataset>,
     marcher: Marcher,
     field: GpuField,
-    occupancy: GpuOccupancy,
+    scenes: Vec<GpuScene>,
+    refresh: Option<Box<dyn IndexRefresh>>,
     density_scratch: DensityScratch,
-    rays: RayKernels,
     batch: RayBatch,
     loss: LossKernel,
     optimizer: GpuOptimizer,
@@ -89,10 +121,6 @@ pub struct GpuTrainer<'c> {
     ray_out: wgpu::Buffer,
     dirs_pipeline: wgpu::ComputePipeline,
     dirs_uniform: wgpu::Buffer,
-    grid_mean: f32,
-    rays_per_batch: u32,
-    measured_samples: u32,
-    measured_marched: u32,
     /// Steps taken.
     pub step: u32,
 }
@@ -102,36 +130,41 @@ fn input<T>(msg: String) -> GpuResult<T> {
 }
 
 impl<'c> GpuTrainer<'c> {
-    /// A trainer of `dataset` under `indices` with `model`'s architecture, starting from the
-    /// weights and occupancy grid the CPU [`Trainer`](crate::ngp::train::Trainer) starts
-    /// from for `config.seed`. `config.schedule` and `hidden_loss_weight` do not apply (one
-    /// scene), nor does `workers`.
+    /// A trainer of `scenes` (scene 0 the cover, the others weighted by
+    /// `config.hidden_loss_weight`) with `model`'s architecture, starting from the weights
+    /// and occupancy grids the CPU [`Trainer`](crate::ngp::train::Trainer) starts from for
+    /// `config.seed`, with its checks. `config.schedule` applies; `workers` does not.
     pub fn new(
         ctx: &'c GpuContext,
         model: ModelConfig,
-        dataset: Arc<Dataset>,
-        indices: LevelIndices,
+        scenes: Vec<SceneSpec>,
         config: TrainConfig,
     ) -> GpuResult<Self> {
+        if scenes.is_empty() {
+            return input("no scene to train".into());
+        }
         let net = NerfNetwork::new(model).map_err(|e| GpuError::Input(e.to_string()))?;
         let layout = net.layout.clone();
         let n_levels = layout.grid.levels.len();
-        if indices.len() != n_levels {
-            return input(format!(
-                "{} index functions for {n_levels} grid levels",
-                indices.len()
-            ));
-        }
-        if dataset.frames.is_empty() {
-            return input(format!("{}: no training images", dataset.root.display()));
-        }
-        if dataset.aabb_scale != model.aabb_scale {
-            return input(format!(
-                "{}: aabb_scale {} differs from the model's {}",
-                dataset.root.display(),
-                dataset.aabb_scale,
-                model.aabb_scale
-            ));
+        for s in &scenes {
+            if s.indices.len() != n_levels {
+                return input(format!(
+                    "{} index functions for {n_levels} grid levels",
+                    s.indices.len()
+                ));
+            }
+            check_indices(&s.indices, &layout.grid).map_err(|e| GpuError::Input(e.to_string()))?;
+            if s.dataset.frames.is_empty() {
+                return input(format!("{}: no training images", s.dataset.root.display()));
+            }
+            if s.dataset.aabb_scale != model.aabb_scale {
+                return input(format!(
+                    "{}: aabb_scale {} differs from the model's {}",
+                    s.dataset.root.display(),
+                    s.dataset.aabb_scale,
+                    model.aabb_scale
+                ));
+            }
         }
         if config.batch_samples == 0 {
             return input("a batch of 0 samples".into());
@@ -149,15 +182,33 @@ impl<'c> GpuTrainer<'c> {
             ));
         }
         let params = net.init_params(config.seed);
-        let field = GpuField::new(ctx, &layout, &params, &indices)?;
+        // The field's own index is the cover's; the trainer binds each scene's.
+        let field = GpuField::new(ctx, &layout, &params, &scenes[0].indices)?;
         let marcher = Marcher::new(model.aabb_scale);
-        // The CPU trainer's starting grid: every cell seen by no camera culled.
-        let mut grid = OccupancyGrid::new(model.aabb_scale);
-        let cams: Vec<_> = dataset.frames.iter().map(|f| f.camera.clone()).collect();
-        grid.mark_untrained(&cams);
-        let grid_mean = grid.mean;
-        let occupancy = GpuOccupancy::upload(ctx, &grid, &marcher)?;
-        let rays = RayKernels::new(ctx, &dataset.frames, &marcher)?;
+        let mut states = Vec::with_capacity(scenes.len());
+        for s in scenes {
+            // The CPU trainer's starting grid: every cell seen by no camera culled.
+            let mut grid = OccupancyGrid::new(model.aabb_scale);
+            let cams: Vec<_> = s.dataset.frames.iter().map(|f| f.camera.clone()).collect();
+            grid.mark_untrained(&cams);
+            let loss_weight = if states.is_empty() {
+                1.0
+            } else {
+                config.hidden_loss_weight
+            };
+            states.push(GpuScene {
+                index: field.grid().upload_index(ctx, &s.indices)?,
+                occupancy: GpuOccupancy::upload(ctx, &grid, &marcher)?,
+                rays: RayKernels::new(ctx, &s.dataset.frames, &marcher)?,
+                grid_mean: grid.mean,
+                dataset: s.dataset,
+                indices: s.indices,
+                loss_weight,
+                rays_per_batch: initial_rays_per_batch(config.batch_samples),
+                measured_samples: 0,
+                measured_marched: 0,
+            });
+        }
         let batch = RayBatch::new(ctx, MAX_RAYS, budget)?;
         let loss = LossKernel::new(ctx)?;
         let optimizer = GpuOptimizer::new(
@@ -215,15 +266,13 @@ impl<'c> GpuTrainer<'c> {
         })?;
         Ok(GpuTrainer {
             ctx,
-            rays_per_batch: initial_rays_per_batch(config.batch_samples),
             config,
             model,
-            dataset,
             marcher,
             field,
-            occupancy,
+            scenes: states,
+            refresh: None,
             density_scratch: DensityScratch::default(),
-            rays,
             batch,
             loss,
             optimizer,
@@ -237,9 +286,6 @@ impl<'c> GpuTrainer<'c> {
             ray_out,
             dirs_pipeline,
             dirs_uniform,
-            grid_mean,
-            measured_samples: 0,
-            measured_marched: 0,
             step: 0,
         })
     }
@@ -249,74 +295,182 @@ impl<'c> GpuTrainer<'c> {
         self.batch.sample_budget()
     }
 
-    /// (rays per batch, trained samples, marched samples) of the last step, as
-    /// [`Trainer::batch_counters`](crate::ngp::train::Trainer::batch_counters).
-    pub fn batch_counters(&self) -> (u32, u32, u32) {
-        (
-            self.rays_per_batch,
-            self.measured_samples,
-            self.measured_marched,
-        )
+    pub fn n_scenes(&self) -> usize {
+        self.scenes.len()
     }
 
-    /// The occupancy grid's cascade-0 mean after the last update.
-    pub fn grid_mean(&self) -> f32 {
-        self.grid_mean
+    /// The training images of scene `i` (0 = the cover). Panics if `i` is not a scene, as
+    /// indexing does (and as the CPU trainer's accessors).
+    pub fn dataset(&self, i: usize) -> &Dataset {
+        &self.scenes[i].dataset
+    }
+
+    /// Index functions of scene `i` as trained now.
+    pub fn indices(&self, i: usize) -> &LevelIndices {
+        &self.scenes[i].indices
+    }
+
+    /// Scene `i`'s (rays per batch, trained samples, marched samples) of the last step that
+    /// trained it, as [`Trainer::batch_counters`](crate::ngp::train::Trainer::batch_counters).
+    pub fn batch_counters(&self, i: usize) -> (u32, u32, u32) {
+        let s = &self.scenes[i];
+        (s.rays_per_batch, s.measured_samples, s.measured_marched)
+    }
+
+    /// Scene `i`'s occupancy grid's cascade-0 mean after its last update.
+    pub fn grid_mean(&self, i: usize) -> f32 {
+        self.scenes[i].grid_mean
+    }
+
+    /// Scene `i`'s occupancy grid, read back (`i` past the scenes: an input error).
+    pub fn grid(&self, i: usize) -> GpuResult<OccupancyGrid> {
+        match self.scenes.get(i) {
+            Some(s) => s.occupancy.download(self.ctx),
+            None => input(format!("scene {i} of {}", self.scenes.len())),
+        }
+    }
+
+    /// Installs an [`IndexRefresh`] and applies it to the cover's current grid, as
+    /// [`Trainer::set_index_refresh`](crate::ngp::train::Trainer::set_index_refresh). Each
+    /// application reads the cover's grid and the EMA weights back from the device, calls
+    /// the refresh on the host and uploads the index functions it returns.
+    pub fn set_index_refresh(&mut self, refresh: Box<dyn IndexRefresh>) -> GpuResult<()> {
+        self.refresh = Some(refresh);
+        self.apply_refresh()
+    }
+
+    /// The refresh's new indices for the scenes it names, checked all before any is used
+    /// (an error changes nothing), then uploaded.
+    fn apply_refresh(&mut self) -> GpuResult<()> {
+        let Some(r) = &self.refresh else {
+            return Ok(());
+        };
+        let ctx = self.ctx;
+        let cover_grid = self.scenes[0].occupancy.download(ctx)?;
+        let published = self.optimizer.ema_params(ctx, &self.field.params)?;
+        let layout = self.field.layout();
+        let n_levels = layout.grid.levels.len();
+        let fresh = r.refresh(&cover_grid, &published);
+        let mut uploaded = Vec::with_capacity(fresh.len());
+        for (i, indices) in fresh {
+            if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
+                return input(format!(
+                    "index refresh for scene {i} with {} levels ({} scenes, {n_levels} \
+                     levels; scene 0 is never refreshed)",
+                    indices.len(),
+                    self.scenes.len()
+                ));
+            }
+            let index = self.field.grid().upload_index(ctx, &indices)?;
+            uploaded.push((i, indices, index));
+        }
+        for (i, indices, index) in uploaded {
+            self.scenes[i].indices = indices;
+            self.scenes[i].index = index;
+        }
+        Ok(())
     }
 
     /// The CPU trainer's occupancy schedule: every step for the first 16, then every
-    /// `step / 16` steps up to every 16th; the update runs on the current weights.
+    /// `step / 16` steps up to every 16th; every scene's grid updates on the current
+    /// weights under its own indices, the index refresh right after the cover's.
     fn update_occupancy(&mut self) -> GpuResult<()> {
         let step = self.step;
         let interval = (step / 16).clamp(1, 16);
         if !step.is_multiple_of(interval) {
             return Ok(());
         }
-        let (nu, nn) = OccupancyGrid::sample_counts(
-            self.occupancy.n_cascades as usize,
-            step,
-            self.config.occupancy_fraction,
-        );
-        let (nu, nn) = match (u32::try_from(nu), u32::try_from(nn)) {
-            (Ok(a), Ok(b)) => (a, b),
-            _ => return input(format!("occupancy: {nu} + {nn} samples")),
-        };
         let ctx = self.ctx;
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        // Scene 0's update seed on the CPU.
-        let seed = mix(self.config.seed, 0x6772_6964);
-        self.occupancy.encode_update(
-            ctx,
-            &mut encoder,
-            &self.field,
-            &mut self.density_scratch,
-            nu,
-            nn,
-            seed,
-        )?;
-        ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
-        self.grid_mean = self.occupancy.read_mean(ctx)?;
+        for si in 0..self.scenes.len() {
+            let scene = &mut self.scenes[si];
+            let (nu, nn) = OccupancyGrid::sample_counts(
+                scene.occupancy.n_cascades as usize,
+                step,
+                self.config.occupancy_fraction,
+            );
+            let (nu, nn) = match (u32::try_from(nu), u32::try_from(nn)) {
+                (Ok(a), Ok(b)) => (a, b),
+                _ => return input(format!("occupancy: {nu} + {nn} samples")),
+            };
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            // Scene si's update seed on the CPU.
+            let seed = mix(self.config.seed, 0x6772_6964 + si as u64);
+            scene.occupancy.encode_update_under(
+                ctx,
+                &mut encoder,
+                &self.field,
+                &scene.index,
+                &mut self.density_scratch,
+                nu,
+                nn,
+                seed,
+            )?;
+            ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
+            scene.grid_mean = scene.occupancy.read_mean(ctx)?;
+            if si == 0 {
+                // Refreshed indices take effect before the other scenes' grids update.
+                self.apply_refresh()?;
+            }
+        }
         Ok(())
     }
 
-    /// One training step.
+    /// One training step: the occupancy updates due, the scenes of the step's schedule one
+    /// after another (their gradients summed), one Adam + EMA step. `optimizer_seconds` is
+    /// the optimizer's own submission, timed from its recording until the device has run it
+    /// (every scene's work has finished before: each scene's losses are read back).
     pub fn train_step(&mut self) -> GpuResult<StepStats> {
         let t0 = Instant::now();
         self.update_occupancy()?;
         let t_occ = t0.elapsed().as_secs_f64();
+        let step = self.step;
+        let mut stats = StepStats {
+            step,
+            ..Default::default()
+        };
+        let ids = step_scenes(
+            self.config.schedule,
+            self.config.seed,
+            step,
+            self.scenes.len(),
+        );
+        for si in ids {
+            self.train_scene(si, &mut stats)?;
+        }
+        let t_rays = t0.elapsed().as_secs_f64();
+        // The CPU steps the optimizer even when nothing was trained (its MLP weights still
+        // take L2 and momentum).
+        let ctx = self.ctx;
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        self.optimizer
+            .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
+        ctx.scoped("optimizer", || ctx.queue.submit([encoder.finish()]))?;
+        ctx.wait()?;
+        self.step += 1;
+        stats.seconds = t0.elapsed().as_secs_f64();
+        stats.occupancy_seconds = t_occ;
+        stats.rays_seconds = t_rays - t_occ;
+        stats.optimizer_seconds = stats.seconds - t_rays;
+        Ok(stats)
+    }
+
+    /// Scene `si`'s batch: rays, then network, loss and backward into the gradient; its
+    /// losses and counters read back into `stats` and the scene's rays-per-batch state.
+    fn train_scene(&mut self, si: usize, stats: &mut StepStats) -> GpuResult<()> {
         let ctx = self.ctx;
         let step = self.step;
-        let n_rays = self.rays_per_batch;
-        // Scene 0's batch seed on the CPU.
-        let seed = mix(mix(self.config.seed, step as u64), 1);
+        let scene = &self.scenes[si];
+        let n_rays = scene.rays_per_batch;
+        // Scene si's batch seed on the CPU.
+        let seed = mix(mix(self.config.seed, step as u64), si as u64 + 1);
 
         // 1. Rays: draw, march, compact; then the counts the network kernels need.
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        self.rays.encode(
+        scene.rays.encode(
             ctx,
             &mut encoder,
             &self.batch,
-            &self.occupancy.bitfield,
+            &scene.occupancy.bitfield,
             n_rays,
             seed,
         )?;
@@ -324,59 +478,48 @@ impl<'c> GpuTrainer<'c> {
         let (_asked, written, with_samples) = self.batch.read_counters(ctx)?;
         let n = written.min(self.batch.sample_budget());
 
-        // 2. Network, loss, backward and the optimizer in one submission.
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        let loss_norm = 1.0 / n_rays as f32;
-        let pull_up = if self.grid_mean < MIN_OPTICAL_THICKNESS {
+        // 2. Network, loss and backward (adding into the gradient) in one submission.
+        let loss_norm = scene.loss_weight / n_rays as f32;
+        let pull_up = if scene.grid_mean < MIN_OPTICAL_THICKNESS {
             DENSITY_PULL_UP
         } else {
             0.0
         };
-        if n > 0 {
-            self.encode_samples(&mut encoder, n_rays, n, loss_norm, pull_up)?;
-        }
-        // The CPU steps the optimizer even when nothing was trained (its MLP weights still
-        // take L2 and momentum).
-        self.optimizer
-            .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
-        ctx.scoped("training step", || ctx.queue.submit([encoder.finish()]))?;
         let (loss, used) = if n > 0 {
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.encode_samples(&mut encoder, si, n_rays, n, loss_norm, pull_up)?;
+            ctx.scoped("training samples", || ctx.queue.submit([encoder.finish()]))?;
             let out: Vec<[f32; 2]> = ctx.read_buffer(&self.ray_out, 8 * n_rays as u64)?;
             out.iter().fold((0.0f64, 0u64), |(l, u), o| {
                 (l + o[0] as f64, u + o[1].to_bits() as u64)
             })
         } else {
-            ctx.wait()?;
             (0.0, 0)
         };
         let scene_loss = (loss / n_rays as f64) as f32;
-        self.measured_samples = used as u32;
-        self.measured_marched = n;
+        stats.loss += scene_loss;
+        if si == 0 {
+            stats.cover_loss = Some(scene_loss);
+        }
+        stats.n_rays += with_samples as u64;
+        stats.n_samples += used;
+        stats.n_marched += n as u64;
+        let scene = &mut self.scenes[si];
+        scene.measured_samples = used as u32;
+        scene.measured_marched = n;
         // The reference keeps its ray count when nothing was trained.
         if used > 0 {
-            self.rays_per_batch = next_rays_per_batch(n_rays, self.config.batch_samples, used);
+            scene.rays_per_batch = next_rays_per_batch(n_rays, self.config.batch_samples, used);
         }
-        self.step += 1;
-        let seconds = t0.elapsed().as_secs_f64();
-        Ok(StepStats {
-            step,
-            loss: scene_loss,
-            cover_loss: Some(scene_loss),
-            n_rays: with_samples as u64,
-            n_samples: used,
-            n_marched: n as u64,
-            seconds,
-            occupancy_seconds: t_occ,
-            rays_seconds: seconds - t_occ,
-            optimizer_seconds: 0.0,
-        })
+        Ok(())
     }
 
     /// Records directions, grid forward, network forward, loss, network backward and grid
-    /// backward over the batch's `n` compacted samples.
+    /// backward over the batch's `n` compacted samples of scene `si`.
     fn encode_samples(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
+        si: usize,
         n_rays: u32,
         n: u32,
         loss_norm: f32,
@@ -421,9 +564,9 @@ impl<'c> GpuTrainer<'c> {
             pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
         })?;
 
-        // Grid forward.
+        // Grid forward, under the scene's index.
         let grid = self.field.grid();
-        let index = self.field.index();
+        let index = &self.scenes[si].index;
         let forward = grid.bind_forward(
             ctx,
             index,
@@ -460,7 +603,7 @@ impl<'c> GpuTrainer<'c> {
         let cfg = LossConfig::new(&self.marcher, loss_norm, pull_up);
         self.loss.encode(ctx, encoder, &bufs, n_rays, n, &cfg)?;
 
-        // Network backward: MLP weight gradients into `grad`, dL/d(enc) into `d_enc`.
+        // Network backward: MLP weight gradients added into `grad`, dL/d(enc) into `d_enc`.
         mlp.encode_backward(
             ctx,
             encoder,
@@ -471,7 +614,7 @@ impl<'c> GpuTrainer<'c> {
             &self.d_enc,
         )?;
 
-        // Grid backward into the grid block of `grad`.
+        // Grid backward, added into the grid block of `grad`.
         let backward = grid.bind_backward(
             ctx,
             index,
@@ -496,21 +639,17 @@ impl<'c> GpuTrainer<'c> {
             .read_buffer(&self.field.params, 4 * self.field.layout().n_params as u64)
     }
 
-    /// The occupancy grid, read back.
-    pub fn grid(&self) -> GpuResult<OccupancyGrid> {
-        self.occupancy.download(self.ctx)
-    }
-
-    /// The model as published (what [`Model::from_trainer`] makes of a CPU trainer).
+    /// The model as published (what [`Model::from_trainer`] makes of a CPU trainer): the
+    /// EMA weights with the cover's grid, dataset and counters.
     pub fn model(&self, loss: f32) -> GpuResult<Model> {
         Model::from_parts(
             self.model,
             self.inference_params()?,
-            self.grid()?,
+            self.grid(0)?,
             self.step,
             loss,
-            &self.dataset,
-            self.batch_counters(),
+            &self.scenes[0].dataset,
+            self.batch_counters(0),
         )
         .map_err(|e| GpuError::Input(e.to_string()))
     }
