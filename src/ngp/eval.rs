@@ -2,11 +2,15 @@
 //! v0.1) against the images composited on the same background (white by default, as the
 //! NeRF literature).
 
+use crate::backend::RenderBackend;
+use crate::error::Result;
+use crate::ngp::camera::Camera;
 use crate::ngp::data::Dataset;
 use crate::ngp::lpips::{Lpips, LpipsFeatures};
 use crate::ngp::metrics::{psnr, ssim};
 use crate::ngp::render::image::{RenderOptions, RenderedImage, SceneView, render_image};
 use serde::Serialize;
+use std::convert::Infallible;
 
 #[derive(Clone, Debug, Serialize)]
 pub struct ViewScore {
@@ -84,8 +88,40 @@ pub fn evaluate_each(
     opts: &RenderOptions,
     which: Option<&[usize]>,
     lpips: Option<&Lpips>,
-    mut on_view: impl FnMut(&ViewScore, &RenderedImage, &[f32]),
+    on_view: impl FnMut(&ViewScore, &RenderedImage, &[f32]),
 ) -> EvalResult {
+    let render = |cam: &Camera, o: &RenderOptions| Ok::<_, Infallible>(render_image(view, cam, o));
+    let Ok(r) = evaluate_by(render, data, opts, which, lpips, on_view);
+    r
+}
+
+/// [`evaluate_each`] on any device: `renderer` renders each view.
+pub fn evaluate_on(
+    renderer: &mut dyn RenderBackend,
+    data: &Dataset,
+    opts: &RenderOptions,
+    which: Option<&[usize]>,
+    lpips: Option<&Lpips>,
+    on_view: impl FnMut(&ViewScore, &RenderedImage, &[f32]),
+) -> Result<EvalResult> {
+    evaluate_by(
+        |cam, o| renderer.render(cam, o),
+        data,
+        opts,
+        which,
+        lpips,
+        on_view,
+    )
+}
+
+fn evaluate_by<E>(
+    mut render: impl FnMut(&Camera, &RenderOptions) -> std::result::Result<RenderedImage, E>,
+    data: &Dataset,
+    opts: &RenderOptions,
+    which: Option<&[usize]>,
+    lpips: Option<&Lpips>,
+    mut on_view: impl FnMut(&ViewScore, &RenderedImage, &[f32]),
+) -> std::result::Result<EvalResult, E> {
     let t0 = std::time::Instant::now();
     let all: Vec<usize> = (0..data.frames.len()).collect();
     let which = which.unwrap_or(&all);
@@ -97,7 +133,7 @@ pub fn evaluate_each(
     let mut blank_features: Option<LpipsFeatures> = None;
     for &i in which {
         let frame = &data.frames[i];
-        let img = render_image(view, &frame.camera, opts);
+        let img = render(&frame.camera, opts)?;
         let gt = ground_truth(data, i, opts.background);
         let (w, h) = (img.width as usize, img.height as usize);
         let p = psnr(&img.rgb, &gt);
@@ -136,7 +172,7 @@ pub fn evaluate_each(
     let n = views.len().max(1) as f64;
     let lpips_mean =
         (n_lpips > 0).then(|| views.iter().filter_map(|v| v.lpips).sum::<f64>() / n_lpips as f64);
-    EvalResult {
+    Ok(EvalResult {
         psnr: views.iter().map(|v| v.psnr).sum::<f64>() / n,
         ssim: views.iter().map(|v| v.ssim).sum::<f64>() / n,
         lpips: lpips_mean,
@@ -146,7 +182,7 @@ pub fn evaluate_each(
         blank_lpips: (n_lpips > 0).then(|| blank_lpips / n_lpips as f64),
         views,
         seconds: t0.elapsed().as_secs_f64(),
-    }
+    })
 }
 
 /// `n` view indices spread evenly over `total` (all when n ≥ total).

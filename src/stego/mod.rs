@@ -60,4 +60,4 @@ pub use keys::{
 };
 pub use strength::{Disclosure, KeyStrength, key_strength};
 pub use variant::KeyVariant;
-pub use view::{OpenedScene, open_scene};
+pub use view::{OpenedScene, open_scene, open_scene_on};

@@ -6,10 +6,13 @@
 
 use super::keys::Key;
 use super::stealth::hidden_indices;
+use crate::backend::{Device, RenderBackend};
+use crate::error::Result;
 use crate::ngp::encoding::{LevelIndices, reference_indices};
 use crate::ngp::model::Model;
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy};
+use std::convert::Infallible;
 
 /// What renders: index functions and, for a key, the rebuilt grid.
 pub struct OpenedScene {
@@ -20,25 +23,66 @@ pub struct OpenedScene {
 
 impl OpenedScene {
     pub fn view<'a>(&'a self, model: &'a Model) -> SceneView<'a> {
-        model.view(&self.indices, self.rebuilt.as_ref().unwrap_or(&model.grid))
+        model.view(&self.indices, self.grid(model))
+    }
+
+    /// The occupancy grid to march through: the rebuilt one, else the model's stored one.
+    pub fn grid<'a>(&'a self, model: &'a Model) -> &'a OccupancyGrid {
+        self.rebuilt.as_ref().unwrap_or(&model.grid)
+    }
+
+    /// A renderer of this scene on `device`.
+    pub fn renderer<'a>(
+        &'a self,
+        device: &'a Device,
+        model: &'a Model,
+    ) -> Result<Box<dyn RenderBackend + 'a>> {
+        device.renderer(model, &self.indices, self.grid(model))
     }
 }
 
 /// Opens `model` as seen through `key` (`None` or the reference key: the cover). `stealth`
 /// says the model was trained with `train --stealth`; `seed` draws the rebuild's samples.
 pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) -> OpenedScene {
+    let rebuild = |indices: &LevelIndices| {
+        Ok::<_, Infallible>(rebuild_occupancy(
+            &model.net,
+            &model.params,
+            indices,
+            model.config.aabb_scale,
+            KEY_HOLDER_SAMPLES_PER_CELL,
+            seed,
+        ))
+    };
+    let Ok(opened) = open_with(model, key, stealth, rebuild);
+    opened
+}
+
+/// [`open_scene`] with a key holder's grid rebuilt on `device` (the same grid as the CPU's
+/// up to cells at the threshold).
+pub fn open_scene_on(
+    device: &Device,
+    model: &Model,
+    key: Option<&Key>,
+    stealth: bool,
+    seed: u64,
+) -> Result<OpenedScene> {
+    open_with(model, key, stealth, |indices| {
+        device.rebuild_occupancy(model, indices, KEY_HOLDER_SAMPLES_PER_CELL, seed)
+    })
+}
+
+fn open_with<E>(
+    model: &Model,
+    key: Option<&Key>,
+    stealth: bool,
+    rebuild: impl FnOnce(&LevelIndices) -> std::result::Result<OccupancyGrid, E>,
+) -> std::result::Result<OpenedScene, E> {
     let layout = &model.net.layout.grid;
-    match key {
+    Ok(match key {
         Some(k) if !k.is_reference() => {
             let indices = hidden_indices(k, &model.net.layout, &model.grid, &model.params, stealth);
-            let rebuilt = rebuild_occupancy(
-                &model.net,
-                &model.params,
-                &indices,
-                model.config.aabb_scale,
-                KEY_HOLDER_SAMPLES_PER_CELL,
-                seed,
-            );
+            let rebuilt = rebuild(&indices)?;
             OpenedScene {
                 indices,
                 rebuilt: Some(rebuilt),
@@ -48,5 +92,5 @@ pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) ->
             indices: reference_indices(layout),
             rebuilt: None,
         },
-    }
+    })
 }
