@@ -3,6 +3,7 @@
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
+use stegongp::backend::{Device, DeviceRequest};
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::eval::spread_views;
 use stegongp::ngp::model::Model;
@@ -44,10 +45,29 @@ pub struct ViewArgs {
     /// (confined to the cover's reachable table entries, computed from the stored grid).
     #[arg(long)]
     pub stealth: bool,
+    #[command(flatten)]
+    pub device: DeviceArg,
+}
+
+/// `--device`, as every subcommand that trains or renders takes it.
+#[derive(clap::Args, Debug)]
+pub struct DeviceArg {
+    /// Where to run: auto (a hardware GPU when there is one, else the CPU), cpu, or gpu (any
+    /// GPU, Mesa's software llvmpipe included). The device that ran is printed, and in
+    /// `--json` output.
+    #[arg(long = "device", value_enum, default_value_t = DeviceRequest::Auto)]
+    pub request: DeviceRequest,
+}
+
+impl DeviceArg {
+    pub fn open(&self) -> Result<Device> {
+        Ok(Device::open(self.request)?)
+    }
 }
 
 /// A model opened for viewing on a dataset's cameras.
 pub struct Viewing {
+    pub device: Device,
     pub model: Model,
     pub data: Dataset,
     pub scene: OpenedScene,
@@ -71,10 +91,17 @@ impl ViewArgs {
                 ..Default::default()
             },
         )?;
-        let scene =
-            super::scene_for_key(&model, self.key.as_deref(), self.key_variant, self.stealth)?;
+        let device = self.device.open()?;
+        let scene = super::scene_for_key(
+            &device,
+            &model,
+            self.key.as_deref(),
+            self.key_variant,
+            self.stealth,
+        )?;
         let which = spread_views(data.frames.len(), self.views);
         Ok(Viewing {
+            device,
             model,
             data,
             scene,

@@ -1,18 +1,19 @@
 //! The whole story on generated scenes: a cover object and a hidden 3D-text message in one
 //! Instant-NGP model; the cover renders for everyone, the text only with the key.
 
-use super::common::ensure_dir;
+use super::common::{DeviceArg, ensure_dir};
 use anyhow::Result;
 use std::path::PathBuf;
 use stegongp::experiments::report::save_grid;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split, save_png_rgb};
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate, ground_truth, spread_views};
+use stegongp::ngp::eval::{evaluate_on, ground_truth, spread_views};
+use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::stego::{Key, generate_prf, load_key, open_scene, save_key};
+use stegongp::ngp::train::{SceneSpec, TrainConfig};
+use stegongp::stego::{Key, generate_prf, load_key, open_scene_on, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
@@ -34,6 +35,8 @@ pub struct Args {
     pub text: String,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -93,14 +96,16 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_fraction: 0.125,
         ..Default::default()
     };
-    let mut trainer = Trainer::new(config, scenes, cfg)?;
+    let device = a.device.open()?;
+    eprintln!("device: {}", device.report());
+    let mut trainer = device.trainer(config, scenes, cfg)?;
     let pb = super::common::progress(
         a.steps as u64,
         "{spinner} training cover + hidden [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
     );
     let (mut secs, mut samples, mut loss) = (0.0, 0u64, 0.0);
     for _ in 0..a.steps {
-        let st = trainer.train_step();
+        let st = trainer.train_step()?;
         secs += st.seconds;
         samples += st.n_samples;
         loss = st.cover_loss.unwrap_or(loss);
@@ -112,7 +117,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     pb.finish_and_clear();
     let model_path = a.out.join("model.ingp");
-    Model::from_trainer(&trainer, loss).save(&model_path)?;
+    trainer.model(loss)?.save(&model_path)?;
     drop(trainer);
 
     // Everything below uses only the published file, as a viewer or a key holder would.
@@ -134,12 +139,19 @@ pub fn run(a: Args) -> Result<()> {
     let images = a.out.join("images");
     ensure_dir(&images)?;
     for (label, k, data) in cases {
-        let scene = open_scene(&model, k, false, a.seed);
-        let view = scene.view(&model);
+        let scene = open_scene_on(&device, &model, k, false, a.seed)?;
+        let mut renderer = scene.renderer(&device, &model)?;
         let mut first = None;
-        let r = evaluate(&view, data, &ropts, Some(&views), |_, img, _| {
-            first.get_or_insert_with(|| img.rgb.clone());
-        });
+        let r = evaluate_on(
+            renderer.as_mut(),
+            data,
+            &ropts,
+            Some(&views),
+            Some(Lpips::embedded()),
+            |_, img, _| {
+                first.get_or_insert_with(|| img.rgb.clone());
+            },
+        )?;
         let img = first.unwrap_or_default();
         let name = label
             .split(' ')
@@ -167,8 +179,9 @@ pub fn run(a: Args) -> Result<()> {
     let grid_path = a.out.join("demo.png");
     save_grid(&grid_path, &tiles, cover_test.width, cover_test.height, 3)?;
     println!(
-        "\nStegoNGP demo: one Instant-NGP model, {} steps ({:.0} s training, {:.0}k samples/s)",
+        "\nStegoNGP demo: one Instant-NGP model, {} steps on the {} ({:.0} s training, {:.0}k samples/s)",
         a.steps,
+        device.report().kind,
         secs,
         samples as f64 / secs / 1e3
     );

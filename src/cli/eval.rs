@@ -1,8 +1,9 @@
 use super::common::{ViewArgs, Viewing, ensure_dir};
 use anyhow::Result;
 use std::path::PathBuf;
+use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::save_png_rgb;
-use stegongp::ngp::eval::evaluate_each;
+use stegongp::ngp::eval::{EvalResult, evaluate_on};
 use stegongp::ngp::lpips::Lpips;
 
 #[derive(clap::Args, Debug)]
@@ -23,55 +24,76 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let Viewing {
+        device,
         model,
         data,
         scene,
         opts,
         which,
     } = a.view.open()?;
-    let view = scene.view(&model);
+    let mut renderer = scene.renderer(&device, &model)?;
+    if !a.json {
+        eprintln!("device: {}", device.report());
+    }
     if let Some(dir) = &a.out {
         ensure_dir(dir)?;
     }
     let mut io_err = None;
     let lpips = (!a.no_lpips).then(Lpips::embedded);
-    let r = evaluate_each(&view, &data, &opts, Some(&which), lpips, |v, img, gt| {
-        let i = v.index;
-        if let Some(dir) = &a.out {
-            let res = save_png_rgb(
-                &dir.join(format!("rgb_{i:03}.png")),
-                img.width,
-                img.height,
-                &img.rgb,
-            )
-            .and_then(|_| {
-                save_png_rgb(
-                    &dir.join(format!("gt_{i:03}.png")),
+    let r = evaluate_on(
+        renderer.as_mut(),
+        &data,
+        &opts,
+        Some(&which),
+        lpips,
+        |v, img, gt| {
+            let i = v.index;
+            if let Some(dir) = &a.out {
+                let res = save_png_rgb(
+                    &dir.join(format!("rgb_{i:03}.png")),
                     img.width,
                     img.height,
-                    gt,
+                    &img.rgb,
                 )
-            });
-            if let Err(e) = res {
-                io_err.get_or_insert(e);
+                .and_then(|_| {
+                    save_png_rgb(
+                        &dir.join(format!("gt_{i:03}.png")),
+                        img.width,
+                        img.height,
+                        gt,
+                    )
+                });
+                if let Err(e) = res {
+                    io_err.get_or_insert(e);
+                }
             }
-        }
-        if !a.json {
-            eprintln!(
-                "view {i:3}: PSNR {:.2} dB, SSIM {:.4}{}",
-                v.psnr,
-                v.ssim,
-                v.lpips
-                    .map(|l| format!(", LPIPS {l:.4}"))
-                    .unwrap_or_default()
-            );
-        }
-    });
+            if !a.json {
+                eprintln!(
+                    "view {i:3}: PSNR {:.2} dB, SSIM {:.4}{}",
+                    v.psnr,
+                    v.ssim,
+                    v.lpips
+                        .map(|l| format!(", LPIPS {l:.4}"))
+                        .unwrap_or_default()
+                );
+            }
+        },
+    )?;
     if let Some(e) = io_err {
         return Err(e.into());
     }
     if a.json {
-        println!("{}", serde_json::to_string(&r)?);
+        #[derive(serde::Serialize)]
+        struct WithDevice<'a> {
+            device: DeviceReport,
+            #[serde(flatten)]
+            result: &'a EvalResult,
+        }
+        let out = WithDevice {
+            device: device.report(),
+            result: &r,
+        };
+        println!("{}", serde_json::to_string(&out)?);
     } else {
         let lp = |l: Option<f64>| l.map(|l| format!(", LPIPS {l:.4}")).unwrap_or_default();
         println!(

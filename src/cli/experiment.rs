@@ -1,3 +1,4 @@
+use super::common::DeviceArg;
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::experiments::{
@@ -11,6 +12,8 @@ use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength |
     /// detectability | pairs
     pub name: Experiment,
@@ -171,6 +174,8 @@ pub fn run(a: Args) -> Result<()> {
             hidden.push(gen_scene("hidden_logo_1", SceneKind::Logo, 20)?);
         }
     }
+    let device = a.device.open()?;
+    eprintln!("device: {}", device.report());
     let cfg = ExpConfig {
         out: a.out.join(a.name.name()),
         cover,
@@ -203,6 +208,7 @@ pub fn run(a: Args) -> Result<()> {
         stealth: a.stealth,
         lpips: !a.no_lpips,
         verbose: true,
+        device: std::sync::Arc::new(device),
     };
     let report = if pairs_exp {
         let mut pairs = a.pairs.clone();

@@ -15,11 +15,12 @@ pub mod train;
 use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use stegongp::backend::Device;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::NerfLayout;
 use stegongp::ngp::train::SceneSpec;
-use stegongp::stego::{Key, KeyVariant, OpenedScene, open_scene};
+use stegongp::stego::{Key, KeyVariant, OpenedScene, open_scene_on};
 
 /// The hidden scenes of a `train --hidden … --key …` call, each with its key's indices.
 pub fn stego_scenes(
@@ -69,6 +70,7 @@ pub fn stego_scenes(
 /// What renders a model: without a key the cover; with a key (or one of its diagnostic
 /// variants) the hidden scene it unlocks, confined as the model was trained when `stealth`.
 pub fn scene_for_key(
+    device: &Device,
     model: &Model,
     key: Option<&Path>,
     variant: Option<KeyVariant>,
@@ -81,7 +83,7 @@ pub fn scene_for_key(
         if stealth {
             bail!("--stealth needs --key (it says how the hidden scene's key is applied)");
         }
-        return Ok(open_scene(model, None, false, 0));
+        return Ok(open_scene_on(device, model, None, false, 0)?);
     };
     let mut key = keygen::load_key_reporting(kp)?;
     key.validate_for(&model.net.layout.grid)
@@ -89,5 +91,5 @@ pub fn scene_for_key(
     if let Some(v) = variant {
         key = v.apply(&key);
     }
-    Ok(open_scene(model, Some(&key), stealth, 0))
+    Ok(open_scene_on(device, model, Some(&key), stealth, 0)?)
 }

@@ -2,7 +2,6 @@ use super::common::{ViewArgs, Viewing, ensure_dir, progress};
 use anyhow::Result;
 use std::path::PathBuf;
 use stegongp::ngp::data::{save_png_gray, save_png_rgb};
-use stegongp::ngp::render::image::render_image;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -15,20 +14,22 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let Viewing {
+        device,
         model,
         data,
         scene,
         opts,
         which,
     } = a.view.open()?;
-    let view = scene.view(&model);
+    let mut renderer = scene.renderer(&device, &model)?;
+    eprintln!("device: {}", device.report());
     ensure_dir(&a.out)?;
     let pb = progress(
         which.len() as u64,
         "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} views {msg}",
     );
     for &i in &which {
-        let img = render_image(&view, &data.frames[i].camera, &opts);
+        let img = renderer.render(&data.frames[i].camera, &opts)?;
         let (w, h) = (img.width, img.height);
         save_png_rgb(&a.out.join(format!("rgb_{i:03}.png")), w, h, &img.rgb)?;
         let max_depth = img.depth.iter().cloned().fold(0.0f32, f32::max).max(1e-6);

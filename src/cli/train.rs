@@ -1,15 +1,16 @@
-use super::common::{check_model_path, progress};
+use super::common::{DeviceArg, check_model_path, progress};
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::PathBuf;
+use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate, spread_views};
-use stegongp::ngp::model::Model;
+use stegongp::ngp::eval::{evaluate_on, spread_views};
+use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::{Background, RenderOptions};
-use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
+use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig};
 use stegongp::stego::stealth::StealthRefresh;
 
 #[derive(clap::Args, Debug)]
@@ -87,6 +88,8 @@ pub struct Args {
     pub eval_views: usize,
     #[arg(long, value_enum, default_value_t = Background::White)]
     pub background: Background,
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
@@ -103,6 +106,7 @@ struct Checkpoint {
 #[derive(Serialize)]
 struct Summary {
     model: PathBuf,
+    device: DeviceReport,
     steps: u32,
     train_seconds: f64,
     /// The cover's loss (what the file stores).
@@ -182,11 +186,13 @@ pub fn run(a: Args) -> Result<()> {
         workers: a.workers,
         ..Default::default()
     };
-    let mut trainer = Trainer::new(config, scenes, cfg)?;
+    let device = a.device.open()?;
+    let mut trainer = device.trainer(config, scenes, cfg)?;
     if a.stealth {
         trainer.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), hidden_keys)))?;
     }
     if !a.json {
+        eprintln!("device: {}", device.report());
         for i in 0..trainer.n_scenes() {
             let d = trainer.dataset(i);
             let role = if i == 0 { "cover" } else { "hidden" };
@@ -223,15 +229,15 @@ pub fn run(a: Args) -> Result<()> {
     let mut checkpoints = Vec::new();
     let mut pending: Vec<f64> = a.checkpoints.clone();
     pending.sort_by(|x, y| x.total_cmp(y));
-    while trainer.step < steps && budget_s.is_none_or(|b| train_s < b) {
-        let st = trainer.train_step();
+    while trainer.step() < steps && budget_s.is_none_or(|b| train_s < b) {
+        let st = trainer.train_step()?;
         train_s += st.seconds;
         samples += st.n_samples;
         marched += st.n_marched;
         phase[0] += st.occupancy_seconds;
         phase[1] += st.rays_seconds;
         phase[2] += st.optimizer_seconds;
-        loss_ema = if trainer.step == 1 {
+        loss_ema = if trainer.step() == 1 {
             st.loss
         } else {
             0.95 * loss_ema + 0.05 * st.loss
@@ -242,13 +248,13 @@ pub fn run(a: Args) -> Result<()> {
         if budget_s.is_some() {
             pb.set_position(train_s as u64);
         } else {
-            pb.set_position(trainer.step as u64);
+            pb.set_position(trainer.step() as u64);
         }
         pb.set_message(format!(
             "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s",
-            trainer.step,
+            trainer.step(),
             loss_ema,
-            trainer.step as f64 / train_s,
+            trainer.step() as f64 / train_s,
             samples as f64 / train_s / 1e3
         ));
         while let Some(&m) = pending.first() {
@@ -257,18 +263,28 @@ pub fn run(a: Args) -> Result<()> {
             }
             pending.remove(0);
             let data = eval_data.as_ref().expect("loaded with checkpoints");
-            let model = Model::from_trainer(&trainer, cover_ema.unwrap_or(0.0));
+            let model = trainer.model(cover_ema.unwrap_or(0.0))?;
             let idx = reference_indices(&layout.grid);
-            let view = model.view(&idx, &model.grid);
+            let mut renderer = device.renderer(&model, &idx, &model.grid)?;
             let opts = RenderOptions {
                 background: a.background.rgb(),
                 ..Default::default()
             };
             let which = spread_views(data.frames.len(), a.eval_views);
-            let r = evaluate(&view, data, &opts, Some(&which), |_, _, _| {});
+            let r = evaluate_on(
+                renderer.as_mut(),
+                data,
+                &opts,
+                Some(&which),
+                Some(Lpips::embedded()),
+                |_, _, _| {},
+            )?;
             let line = format!(
                 "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views)",
-                trainer.step, r.psnr, r.ssim, r.n_views
+                trainer.step(),
+                r.psnr,
+                r.ssim,
+                r.n_views
             );
             // A hidden bar (no terminal) swallows println: write the line ourselves.
             if pb.is_hidden() {
@@ -278,23 +294,24 @@ pub fn run(a: Args) -> Result<()> {
             }
             checkpoints.push(Checkpoint {
                 minutes: m,
-                step: trainer.step,
+                step: trainer.step(),
                 psnr: r.psnr,
                 ssim: r.ssim,
             });
         }
     }
     pb.finish_and_clear();
-    let model = Model::from_trainer(&trainer, cover_ema.unwrap_or(0.0));
+    let model = trainer.model(cover_ema.unwrap_or(0.0))?;
     model.save(&a.out)?;
     let summary = Summary {
         model: a.out.clone(),
-        steps: trainer.step,
+        device: device.report(),
+        steps: trainer.step(),
         train_seconds: train_s,
         final_loss: cover_ema.unwrap_or(0.0),
         samples_per_second: samples as f64 / train_s,
         marched_samples_per_second: marched as f64 / train_s,
-        steps_per_second: trainer.step as f64 / train_s,
+        steps_per_second: trainer.step() as f64 / train_s,
         occupancy_seconds: phase[0],
         rays_seconds: phase[1],
         optimizer_seconds: phase[2],
@@ -304,8 +321,9 @@ pub fn run(a: Args) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         eprintln!(
-            "trained {} steps in {:.1} s ({:.2} steps/s, {:.0} k samples/s), loss {:.5}; wrote {}",
+            "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s), loss {:.5}; wrote {}",
             summary.steps,
+            summary.device.kind,
             summary.train_seconds,
             summary.steps_per_second,
             summary.samples_per_second / 1e3,

@@ -23,8 +23,8 @@ use crate::ngp::lpips::Lpips;
 use crate::ngp::metrics::{psnr, ssim};
 use crate::ngp::model::Model;
 use crate::ngp::network::ModelConfig;
-use crate::ngp::render::image::{RenderOptions, render_image};
-use crate::stego::{Key, open_scene};
+use crate::ngp::render::image::RenderOptions;
+use crate::stego::{Key, open_scene_on};
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 
@@ -276,13 +276,15 @@ fn score_scene(
     stego: &Model,
     stego_key: &Key,
     lp: Option<&Lpips>,
-) -> SceneScores {
+) -> Result<SceneScores> {
     let pi = Key::reference();
     // The plain model is a one-scene model: its own stored grid. The stego model is opened
     // as its user would: the cover from the file, a hidden scene through its key.
-    let p_open = open_scene(plain, Some(&pi), false, cfg.seed);
-    let s_open = open_scene(stego, Some(stego_key), cfg.stealth, cfg.seed);
-    let (p_view, s_view) = (p_open.view(plain), s_open.view(stego));
+    let device = &cfg.device;
+    let p_open = open_scene_on(device, plain, Some(&pi), false, cfg.seed)?;
+    let s_open = open_scene_on(device, stego, Some(stego_key), cfg.stealth, cfg.seed)?;
+    let mut p_render = p_open.renderer(device, plain)?;
+    let mut s_render = s_open.renderer(device, stego)?;
     let opts = RenderOptions::default();
     let which = spread_views(scene.test.frames.len(), cfg.eval_views);
     let mut out = SceneScores {
@@ -294,8 +296,8 @@ fn score_scene(
     };
     for &i in &which {
         let cam = &scene.test.frames[i].camera;
-        let a = render_image(&p_view, cam, &opts);
-        let b = render_image(&s_view, cam, &opts);
+        let a = p_render.render(cam, &opts)?;
+        let b = s_render.render(cam, &opts)?;
         let gt = ground_truth(&scene.test, i, opts.background);
         let (w, h) = (a.width as usize, a.height as usize);
         // Each image goes through the LPIPS network once for its three comparisons.
@@ -319,7 +321,7 @@ fn score_scene(
             out.tiles = vec![gt, a.rgb, b.rgb];
         }
     }
-    out
+    Ok(out)
 }
 
 /// Runs the pairs experiment and writes its report into `cfg.out`.
@@ -430,8 +432,8 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             },
         )?;
         let t_eval = std::time::Instant::now();
-        let sc = score_scene(cfg, &cover, &plain_c.model, &stego.model, &pi, lp);
-        let sh = score_scene(cfg, &hidden, &plain_h.model, &stego.model, &key, lp);
+        let sc = score_scene(cfg, &cover, &plain_c.model, &stego.model, &pi, lp)?;
+        let sh = score_scene(cfg, &hidden, &plain_h.model, &stego.model, &key, lp)?;
         let eval_s = t_eval.elapsed().as_secs_f64();
         for (acc, s) in table1
             .iter_mut()

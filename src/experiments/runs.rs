@@ -1,19 +1,21 @@
 //! The experiments themselves.
 
 use super::report::{Report, Table, save_grid};
+use crate::backend::Device;
 use crate::error::{Error, Result};
 use crate::ngp::data::{Dataset, LoadOptions, Split};
 use crate::ngp::encoding::GridConfig;
-use crate::ngp::eval::{EvalResult, evaluate_with, spread_views};
+use crate::ngp::eval::{EvalResult, evaluate_on, spread_views};
 use crate::ngp::lpips::Lpips;
 use crate::ngp::model::Model;
 use crate::ngp::network::{ModelConfig, NerfLayout};
 use crate::ngp::render::image::RenderOptions;
-use crate::ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
+use crate::ngp::train::{SceneSpec, Schedule, TrainConfig};
 use crate::rng::Pcg32;
 use crate::stego::stealth::StealthRefresh;
 use crate::stego::{
-    Key, Mixed, SchemeKind, generate_prf, generate_primes, generate_with, key_strength, open_scene,
+    Key, Mixed, SchemeKind, generate_prf, generate_primes, generate_with, key_strength,
+    open_scene_on,
 };
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -117,6 +119,8 @@ pub struct ExpConfig {
     pub lpips: bool,
     /// Progress lines on stderr.
     pub verbose: bool,
+    /// Where every model trains and renders (shared: one device for the whole run).
+    pub device: Arc<Device>,
 }
 
 pub(super) struct Scene {
@@ -199,7 +203,7 @@ pub(super) fn train_scenes(
         schedule: cfg.schedule,
         ..Default::default()
     };
-    let mut t = Trainer::new(config, specs, tc)?;
+    let mut t = cfg.device.trainer(config, specs, tc)?;
     if cfg.stealth && scenes.len() > 1 {
         let keys = scenes[1..].iter().map(|(_, k)| (*k).clone()).collect();
         t.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), keys)))?;
@@ -218,7 +222,7 @@ pub(super) fn train_scenes(
         if done {
             break;
         }
-        let st = t.train_step();
+        let st = t.train_step()?;
         secs += st.seconds;
         samples += st.n_samples;
         loss = st.cover_loss.unwrap_or(loss);
@@ -231,7 +235,7 @@ pub(super) fn train_scenes(
         );
     }
     Ok(Trained {
-        model: Model::from_trainer(&t, loss),
+        model: t.model(loss)?,
         seconds: secs,
         samples_per_s: samples as f64 / secs.max(1e-9),
         steps: steps / per_step,
@@ -272,13 +276,14 @@ impl Ctx<'_> {
     /// the stored one for the reference key, otherwise rebuilt from the network with the key
     /// (what a key holder — or an attacker trying a key — does). Returns the scores and the
     /// rendering of the first evaluated view.
-    fn score(&self, model: &Model, key: &Key, scene: &Scene) -> (EvalResult, Vec<f32>) {
-        let opened = open_scene(model, Some(key), self.cfg.stealth, self.cfg.seed);
-        let view = opened.view(model);
+    fn score(&self, model: &Model, key: &Key, scene: &Scene) -> Result<(EvalResult, Vec<f32>)> {
+        let device = &self.cfg.device;
+        let opened = open_scene_on(device, model, Some(key), self.cfg.stealth, self.cfg.seed)?;
+        let mut renderer = opened.renderer(device, model)?;
         let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
         let mut first = None;
-        let r = evaluate_with(
-            &view,
+        let r = evaluate_on(
+            renderer.as_mut(),
             &scene.test,
             &self.render_opts(),
             Some(&which),
@@ -288,8 +293,8 @@ impl Ctx<'_> {
                     first = Some(img.rgb.clone());
                 }
             },
-        );
-        (r, first.unwrap_or_default())
+        )?;
+        Ok((r, first.unwrap_or_default()))
     }
 
     fn gt(&self, scene: &Scene) -> Vec<f32> {
@@ -314,7 +319,7 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
         "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth, "lpips": cfg.lpips,
-        "threads": rayon::current_num_threads(),
+        "threads": rayon::current_num_threads(), "device": cfg.device.report(),
     })
 }
 
@@ -392,10 +397,10 @@ fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let plain_c = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi)], "plain cover")?;
     let plain_h = ctx.train(ctx.cfg.grid, &[(h, &pi)], "plain hidden")?;
     let stego = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi), (h, &key)], "stego")?;
-    let (pc, img_pc) = ctx.score(&plain_c.model, &pi, &ctx.cover);
-    let (ph, img_ph) = ctx.score(&plain_h.model, &pi, h);
-    let (sc, img_sc) = ctx.score(&stego.model, &pi, &ctx.cover);
-    let (sh, img_sh) = ctx.score(&stego.model, &key, h);
+    let (pc, img_pc) = ctx.score(&plain_c.model, &pi, &ctx.cover)?;
+    let (ph, img_ph) = ctx.score(&plain_h.model, &pi, h)?;
+    let (sc, img_sc) = ctx.score(&stego.model, &pi, &ctx.cover)?;
+    let (sh, img_sh) = ctx.score(&stego.model, &key, h)?;
     let mut t = Table::new("Fidelity at the same per-scene step and sample budget");
     for (model, scene, r, tr) in [
         ("plain", &ctx.cover.name, &pc, &plain_c),
@@ -466,8 +471,8 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         ));
         let mut tiles = vec![ctx.gt(&ctx.cover), ctx.gt(h)];
         for (label, k) in &variants {
-            let (vs_hidden, img) = ctx.score(&stego.model, k, h);
-            let (vs_cover, _) = ctx.score(&stego.model, k, &ctx.cover);
+            let (vs_hidden, img) = ctx.score(&stego.model, k, h)?;
+            let (vs_cover, _) = ctx.score(&stego.model, k, &ctx.cover)?;
             t.push(json!({"key": label, "psnr_vs_hidden": vs_hidden.psnr, "ssim_vs_hidden": vs_hidden.ssim, "lpips_vs_hidden": vs_hidden.lpips,
                 "psnr_vs_cover": vs_cover.psnr, "empty_render_vs_hidden": vs_hidden.blank_psnr}));
             tiles.push(img);
@@ -511,7 +516,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
                 &[(&ctx.cover, &pi), (h, &key)],
                 &format!("{} m={m}", scheme.name()),
             )?;
-            let (wrong, _) = ctx.score(&stego.model, &Key::wrong(ctx.cfg.seed ^ 0x77, &key), h);
+            let (wrong, _) = ctx.score(&stego.model, &Key::wrong(ctx.cfg.seed ^ 0x77, &key), h)?;
             // prf: partial key material (all-or-nothing), then leaked level subkeys (the
             // paper's per-level substitution); primes: the two are the same.
             let variants: Vec<(&str, Disclose)> = match scheme {
@@ -528,7 +533,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
                 row.insert("given".into(), json!(given));
                 let mut tiles = vec![];
                 for &p in &fractions {
-                    let (r, img) = ctx.score(&stego.model, &disclose(&key, p), h);
+                    let (r, img) = ctx.score(&stego.model, &disclose(&key, p), h)?;
                     row.insert(format!("{}%", (p * 100.0) as u32), json!(r.psnr));
                     if p == 1.0 {
                         row.insert("LPIPS 100%".into(), json!(r.lpips));
@@ -575,7 +580,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
         }
         ctx.log(&format!("multi-hidden: Φ = {phi}"));
         let m = ctx.train(ctx.cfg.grid, &scenes, &format!("Φ={phi}"))?;
-        let (c, img_c) = ctx.score(&m.model, &pi, &ctx.cover);
+        let (c, img_c) = ctx.score(&m.model, &pi, &ctx.cover)?;
         let mut row = serde_json::Map::new();
         row.insert("phi".into(), json!(phi));
         row.insert("cover".into(), json!(c.psnr));
@@ -583,7 +588,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
         tiles.push(img_c);
         let (mut hs, mut hl) = (vec![], vec![]);
         for (i, k) in keys.iter().enumerate() {
-            let (r, img) = ctx.score(&m.model, k, ctx.hidden(i));
+            let (r, img) = ctx.score(&m.model, k, ctx.hidden(i))?;
             row.insert(format!("hidden {}", i + 1), json!(r.psnr));
             hs.push(r.psnr);
             hl.extend(r.lpips);
@@ -626,8 +631,8 @@ fn table_size(ctx: &Ctx, report: &mut Report) -> Result<()> {
             &[(&ctx.cover, &pi), (h, &key)],
             &format!("T=2^{log2_t}"),
         )?;
-        let (c, _) = ctx.score(&m.model, &pi, &ctx.cover);
-        let (hs, _) = ctx.score(&m.model, &key, h);
+        let (c, _) = ctx.score(&m.model, &pi, &ctx.cover)?;
+        let (hs, _) = ctx.score(&m.model, &key, h)?;
         t.push(json!({"T": format!("2^{log2_t}"), "params": m.model.net.layout.n_params, "cover_psnr": c.psnr,
             "cover_lpips": c.lpips, "hidden_psnr": hs.psnr, "hidden_lpips": hs.lpips, "train_s": m.seconds}));
     }
@@ -775,10 +780,11 @@ pub(super) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Resu
     }
     let trained = ctx.train(cfg.grid, &scenes, label)?;
     let t0 = std::time::Instant::now();
-    let (cover, _) = ctx.score(&trained.model, &pi, &ctx.cover);
+    let (cover, _) = ctx.score(&trained.model, &pi, &ctx.cover)?;
     let hidden = key
         .as_ref()
-        .map(|k| ctx.score(&trained.model, k, &ctx.hidden[0]).0);
+        .map(|k| ctx.score(&trained.model, k, &ctx.hidden[0]).map(|r| r.0))
+        .transpose()?;
     Ok(PairRun {
         model: trained.model,
         train_seconds: trained.seconds,

@@ -1,0 +1,136 @@
+//! `--device` as a user meets it: `train`, `eval` and `render` on the GPU (in CI: Mesa's
+//! software llvmpipe), the device named in the output and in `--json`, and the same model
+//! scored the same on both devices.
+#![cfg(feature = "gpu")]
+
+use serde_json::Value;
+use std::process::{Command, Output};
+use stegongp::gpu::{AdapterRequest, GpuContext, test_context};
+
+fn stegongp(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_stegongp"))
+        .args(args)
+        .output()
+        .expect("run stegongp")
+}
+
+fn ok(out: Output) -> (String, String) {
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(out.status.success(), "stegongp failed: {err}");
+    (String::from_utf8_lossy(&out.stdout).to_string(), err)
+}
+
+fn json(out: Output) -> Value {
+    let (stdout, _) = ok(out);
+    serde_json::from_str(&stdout).unwrap_or_else(|e| panic!("{e}: {stdout}"))
+}
+
+#[test]
+fn train_eval_and_render_on_the_gpu_agree_with_the_cpu() {
+    if test_context().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let (cover, text, key, model) = (p("cover"), p("text"), p("k.json"), p("m.ingp"));
+    for (scene, dir) in [("object", &cover), ("text", &text)] {
+        ok(stegongp(&[
+            "synth", "--scene", scene, "--res", "32", "--train", "16", "--test", "2", "--out", dir,
+        ]));
+    }
+    ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    let trained = json(stegongp(&[
+        "train",
+        &cover,
+        "--hidden",
+        &text,
+        "--key",
+        &key,
+        "--steps",
+        "40",
+        "--batch",
+        "4096",
+        "--log2-t",
+        "14",
+        "--occupancy-fraction",
+        "0.01",
+        "--device",
+        "gpu",
+        "--json",
+        "--out",
+        &model,
+    ]));
+    assert_eq!(trained["device"]["kind"], "gpu", "{trained}");
+    assert_eq!(trained["steps"], 40);
+    assert!(trained["samples_per_second"].as_f64().unwrap() > 0.0);
+
+    // The same file scored on both devices. (A key holder's grid rebuild on the device is
+    // tested against the CPU's in gpu_render.rs: on llvmpipe it takes about a minute.)
+    let score = |device: &str| {
+        let r = json(stegongp(&[
+            "eval",
+            "--model",
+            &model,
+            "--data",
+            &cover,
+            "--no-lpips",
+            "--json",
+            "--device",
+            device,
+        ]));
+        assert_eq!(r["device"]["kind"], device, "{r}");
+        (
+            r["psnr"].as_f64().unwrap(),
+            r["blank_psnr"].as_f64().unwrap(),
+        )
+    };
+    let ((cpu, blank), (gpu, _)) = (score("cpu"), score("gpu"));
+    eprintln!("cover: CPU {cpu:.3} dB, GPU {gpu:.3} dB, empty render {blank:.3}");
+    assert!(
+        (cpu - gpu).abs() < 0.1,
+        "CPU {cpu:.3} dB against GPU {gpu:.3} dB"
+    );
+    assert!(
+        cpu > blank + 2.0,
+        "cover {cpu:.2} dB against empty {blank:.2}: learnt nothing"
+    );
+
+    let out = p("renders");
+    let (_, log) = ok(stegongp(&[
+        "render", "--model", &model, "--data", &cover, "--views", "1", "--device", "gpu", "--out",
+        &out,
+    ]));
+    assert!(log.contains("device: gpu"), "{log}");
+    for f in ["rgb_000.png", "depth_000.png", "opacity_000.png"] {
+        assert!(d.path().join("renders").join(f).is_file(), "{f} missing");
+    }
+}
+
+/// `auto` never takes a software adapter: on a machine whose only GPU is llvmpipe (CI) it
+/// runs on the CPU and says why; `cpu` is the CPU.
+#[test]
+fn auto_and_cpu_say_which_device_ran() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let (scene, model) = (p("scene"), p("m.ingp"));
+    ok(stegongp(&[
+        "synth", "--scene", "object", "--res", "16", "--train", "2", "--test", "1", "--out", &scene,
+    ]));
+    let hardware = GpuContext::new(AdapterRequest::Auto).is_ok();
+    for (device, kind) in [
+        ("cpu", "cpu"),
+        ("auto", if hardware { "gpu" } else { "cpu" }),
+    ] {
+        let r = json(stegongp(&[
+            "train", &scene, "--steps", "2", "--batch", "1024", "--log2-t", "12", "--device",
+            device, "--json", "--out", &model,
+        ]));
+        assert_eq!(r["device"]["kind"], kind, "--device {device}: {r}");
+        let fallback = r["device"].get("fallback").is_some();
+        assert_eq!(fallback, device == "auto" && !hardware, "{r}");
+    }
+    let out = stegongp(&["train", &scene, "--device", "cuda", "--out", &model]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("cuda") && err.contains("gpu"), "{err}");
+}
