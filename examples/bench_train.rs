@@ -4,10 +4,12 @@
 //! at which the test PSNR first reached each target.
 //!
 //! cargo run --release --example bench_train -- [DEVICE] [SCENE] [STEPS] [LOG2_BATCH]
-//!     [EVAL_EVERY] [TARGETS]
+//!     [EVAL_EVERY] [TARGETS] [OCCUPANCY_FRACTION]
 //! DEVICE: auto | cpu | gpu (default auto); SCENE: a dataset folder, or `object` (default)
 //! for a generated 64 px object; STEPS default 400; LOG2_BATCH default 16; EVAL_EVERY
-//! default 50; TARGETS comma-separated dB (default 20,24,26).
+//! default 50; TARGETS comma-separated dB (default 20,24,26); OCCUPANCY_FRACTION of the
+//! reference's occupancy-update samples (default 1; small batches on a slow device want less:
+//! the first 16 steps each update the whole grid).
 //!
 //! Output: one JSON object on stdout (device, samples/s, steps/s, evaluations,
 //! time_to_psnr), progress on stderr.
@@ -41,6 +43,7 @@ fn main() -> anyhow::Result<()> {
         .split(',')
         .filter_map(|t| t.trim().parse().ok())
         .collect();
+    let occupancy_fraction: f32 = arg(7, 1.0);
 
     let tmp = tempfile::tempdir()?;
     let dir = if scene == "object" {
@@ -79,6 +82,7 @@ fn main() -> anyhow::Result<()> {
     );
     let cfg = TrainConfig {
         batch_samples: 1 << log2_batch,
+        occupancy_fraction,
         ..Default::default()
     };
     let scenes = vec![SceneSpec {
@@ -122,6 +126,7 @@ fn main() -> anyhow::Result<()> {
         "scene": scene,
         "steps": trainer.step(),
         "batch_samples": 1u64 << log2_batch,
+        "occupancy_fraction": occupancy_fraction,
         "train_seconds": secs,
         "samples_per_second": samples as f64 / secs,
         "steps_per_second": trainer.step() as f64 / secs,
