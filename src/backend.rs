@@ -153,10 +153,6 @@ impl Device {
         }
     }
 
-    pub fn is_gpu(&self) -> bool {
-        !matches!(self, Device::Cpu { .. })
-    }
-
     /// A trainer of `scenes` on this device, starting from the weights and grids the CPU
     /// [`Trainer`] starts from for `config.seed`.
     pub fn trainer<'d>(
@@ -320,7 +316,7 @@ mod tests {
         let d = Device::open(DeviceRequest::Cpu).unwrap();
         let r = d.report();
         assert_eq!(r.kind, "cpu");
-        assert!(!d.is_gpu() && r.fallback.is_none());
+        assert!(matches!(d, Device::Cpu { .. }) && r.fallback.is_none());
         let json = serde_json::to_value(&r).unwrap();
         assert_eq!(json["kind"], "cpu");
         assert!(json.get("fallback").is_none());
