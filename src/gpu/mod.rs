@@ -340,6 +340,32 @@ pub(crate) fn device_buffer(ctx: &GpuContext, label: &str, bytes: u64) -> wgpu::
     })
 }
 
+/// Compiles `source` once and makes one pipeline per entry point, each with the bind-group
+/// layout wgpu derives from the shader (kernels whose bind groups are built per pipeline).
+/// Call inside [`GpuContext::scoped`].
+pub(crate) fn auto_layout_pipelines<const N: usize>(
+    ctx: &GpuContext,
+    label: &str,
+    source: &str,
+    entries: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
+    let d = &ctx.device;
+    let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
+        label: Some(label),
+        source: wgpu::ShaderSource::Wgsl(source.into()),
+    });
+    entries.map(|entry| {
+        d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: None,
+            module: &module,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        })
+    })
+}
+
 /// Entry points of one WGSL module that share one explicit bind-group layout: storage
 /// buffers at bindings `0..n_storage` (read-only where `read_only(binding)`), then one
 /// uniform at binding `n_storage` (with a dynamic offset if asked). Returns the layout and

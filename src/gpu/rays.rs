@@ -24,7 +24,7 @@
 
 use super::index::{PCG_WGSL, U64_WGSL};
 use super::loss::GpuRay;
-use super::{GpuContext, GpuError, GpuResult, buffer_entry, device_buffer};
+use super::{GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer};
 use crate::ngp::camera::Camera;
 use crate::ngp::data::Frame;
 use crate::ngp::data::color::SRGB8_TO_LINEAR;
@@ -311,20 +311,8 @@ impl RayKernels {
         ctx.scoped("ray kernels", || {
             let d = &ctx.device;
             let source = format!("{U64_WGSL}\n{PCG_WGSL}\n{RAYS_WGSL}");
-            let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("rays.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            });
-            let pipeline = |entry: &str| {
-                d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: None,
-                    module: &module,
-                    entry_point: Some(entry),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-            };
+            let [gen_pipeline, march_pipeline] =
+                auto_layout_pipelines(ctx, "rays.wgsl", &source, ["gen_main", "march_main"]);
             let init = |label: &str, bytes: &[u8]| {
                 // A binding cannot be empty.
                 let bytes: &[u8] = if bytes.is_empty() { &[0; 16] } else { bytes };
@@ -335,8 +323,8 @@ impl RayKernels {
                 })
             };
             RayKernels {
-                gen_pipeline: pipeline("gen_main"),
-                march_pipeline: pipeline("march_main"),
+                gen_pipeline,
+                march_pipeline,
                 uniform: d.create_buffer(&wgpu::BufferDescriptor {
                     label: Some("rays params"),
                     size: std::mem::size_of::<RayParams>() as u64,

@@ -29,7 +29,10 @@ use super::mlp::EncodedBatch;
 use super::occupancy::GpuOccupancy;
 use super::rays::{RAYS_WGSL, box_extent, gpu_cam, ray_params};
 use super::render::{CompositeKernel, RayState, WaveSamples};
-use super::{GpuContext, GpuError, GpuResult, buffer_entry, check_binding, device_buffer};
+use super::{
+    GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry, check_binding,
+    device_buffer,
+};
 use crate::ngp::camera::Camera;
 use crate::ngp::encoding::LevelIndices;
 use crate::ngp::model::Model;
@@ -162,31 +165,23 @@ impl<'c> GpuRenderer<'c> {
         let bitfield = upload_bitfield(ctx, grid)?;
         let params = ray_params(&marcher, inv_extent, 0, [0, 0], 0, 0);
         let (generate, march, retire, marching) = ctx.scoped("render kernels", || {
-            let d = &ctx.device;
             let source = format!("{U64_WGSL}\n{PCG_WGSL}\n{RAYS_WGSL}\n{RENDERER_WGSL}");
-            let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("renderer.wgsl"),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
-            });
-            let pipeline = |entry: &str| {
-                d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: None,
-                    module: &module,
-                    entry_point: Some(entry),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-            };
+            let [generate, march, retire] = auto_layout_pipelines(
+                ctx,
+                "renderer.wgsl",
+                &source,
+                ["render_gen_main", "render_march_main", "render_retire_main"],
+            );
             (
-                pipeline("render_gen_main"),
-                pipeline("render_march_main"),
-                pipeline("render_retire_main"),
-                d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("render marching params"),
-                    contents: bytemuck::bytes_of(&params),
-                    usage: wgpu::BufferUsages::UNIFORM,
-                }),
+                generate,
+                march,
+                retire,
+                ctx.device
+                    .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                        label: Some("render marching params"),
+                        contents: bytemuck::bytes_of(&params),
+                        usage: wgpu::BufferUsages::UNIFORM,
+                    }),
             )
         })?;
         Ok(GpuRenderer {

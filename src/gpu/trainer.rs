@@ -47,7 +47,9 @@ use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
 use super::occupancy::GpuOccupancy;
 use super::optimizer::GpuOptimizer;
 use super::rays::{RayBatch, RayKernels};
-use super::{GpuContext, GpuError, GpuIndex, GpuResult, buffer_entry, device_buffer};
+use super::{
+    GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
+};
 use crate::ngp::data::Dataset;
 use crate::ngp::encoding::{LevelIndices, check_indices};
 use crate::ngp::model::Model;
@@ -240,22 +242,7 @@ impl<'c> GpuTrainer<'c> {
                 )
             })?;
         let (dirs_pipeline, dirs_uniform) = ctx.scoped("trainer dirs kernel", || {
-            let module = ctx
-                .device
-                .create_shader_module(wgpu::ShaderModuleDescriptor {
-                    label: Some("dirs.wgsl"),
-                    source: wgpu::ShaderSource::Wgsl(DIRS_WGSL.into()),
-                });
-            let pipeline = ctx
-                .device
-                .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some("dirs"),
-                    layout: None,
-                    module: &module,
-                    entry_point: Some("dirs_main"),
-                    compilation_options: Default::default(),
-                    cache: None,
-                });
+            let [pipeline] = auto_layout_pipelines(ctx, "dirs.wgsl", DIRS_WGSL, ["dirs_main"]);
             let uniform = ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("dirs params"),
                 size: std::mem::size_of::<DirsParams>() as u64,
