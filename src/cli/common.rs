@@ -55,7 +55,7 @@ pub struct DeviceArg {
     /// Where to run: auto (a hardware GPU when there is one, else the CPU), cpu, or gpu (any
     /// GPU, Mesa's software llvmpipe included). The device that ran is printed, and in
     /// `--json` output.
-    #[arg(long = "device", value_enum, default_value_t = DeviceRequest::Auto)]
+    #[arg(long = "device", value_name = "DEVICE", value_enum, default_value_t = DeviceRequest::Auto)]
     pub request: DeviceRequest,
 }
 
