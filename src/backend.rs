@@ -14,7 +14,7 @@ use crate::ngp::model::Model;
 use crate::ngp::network::ModelConfig;
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::render::image::{
-    RenderOptions, RenderedImage, SceneView, rebuild_occupancy, render_image,
+    RenderOptions, RenderedImage, SceneView, rebuild_occupancy_in_box, render_image,
 };
 use crate::ngp::train::{IndexRefresh, SceneSpec, StepStats, TrainConfig, Trainer};
 use serde::Serialize;
@@ -191,27 +191,36 @@ impl Device {
 
 impl Device {
     /// A key holder's occupancy grid of `model` under `indices`, rebuilt from the network
-    /// on this device ([`OccupancyGrid::rebuild`]'s samples).
+    /// on this device ([`OccupancyGrid::rebuild_in_box`]'s samples), confined to
+    /// `scene_box` when the key gives one.
     pub fn rebuild_occupancy(
         &self,
         model: &Model,
         indices: &LevelIndices,
+        scene_box: Option<u32>,
         samples_per_cell: usize,
         seed: u64,
     ) -> Result<OccupancyGrid> {
         match self {
-            Device::Cpu { .. } => Ok(rebuild_occupancy(
+            Device::Cpu { .. } => Ok(rebuild_occupancy_in_box(
                 &model.net,
                 &model.params,
                 indices,
                 model.config.aabb_scale,
+                scene_box,
                 samples_per_cell,
                 seed,
             )),
             #[cfg(feature = "gpu")]
             Device::Gpu(ctx) => {
-                crate::gpu::rebuild_occupancy_gpu(ctx, model, indices, samples_per_cell, seed)
-                    .map_err(gpu_error)
+                // The device samples every cell; cut to the box after (the same grid).
+                let mut grid =
+                    crate::gpu::rebuild_occupancy_gpu(ctx, model, indices, samples_per_cell, seed)
+                        .map_err(gpu_error)?;
+                if let Some(b) = scene_box.filter(|&b| b < model.config.aabb_scale) {
+                    grid.confine_to_box(b);
+                }
+                Ok(grid)
             }
         }
     }

@@ -26,6 +26,13 @@ pub struct Args {
     /// How dense (coarse) levels are keyed.
     #[arg(long, value_enum, default_value_t = DenseMode::Permute)]
     pub dense: DenseMode,
+    /// The box (an aabb_scale) the hidden scene fills: 1 for an object (NeRF-synthetic,
+    /// the generated scenes), a capture's own aabb_scale to hide a capture (fox 4, COLMAP
+    /// and LLFF 16). In a cover with a larger box the hidden scene is confined to this one,
+    /// so its key holder's grid, and a wrong key's, are empty outside it; `train` refuses
+    /// a hidden scene larger than its key's box.
+    #[arg(long, default_value_t = 1, value_name = "N")]
+    pub aabb_scale: u32,
     /// Grid levels the key is meant for (checks m, and the strength report).
     #[arg(long, default_value_t = 16)]
     pub levels: u32,
@@ -89,7 +96,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             stego::derive_prf_from_passphrase(&pass, &salt, args.m)?
         }
     };
-    let key = key.with_dense(args.dense);
+    let key = key
+        .with_dense(args.dense)
+        .with_scene_box(Some(args.aabb_scale))
+        .map_err(|e| anyhow::anyhow!("--aabb-scale: {e}"))?;
     key.validate_for(&layout)?;
     // The error already names the file.
     stego::save_key(&args.out, &key, args.force)?;
@@ -102,6 +112,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             "scheme": key.scheme().name(),
             "m": key.m(),
             "dense": key.dense().name(),
+            "aabb_scale": key.scene_box(),
             "salt": key.kdf().map(|k| k.salt.clone()),
             "kdf": key.kdf(),
             "strength": strength,
@@ -109,11 +120,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         println!(
-            "wrote {} (mode 0600): scheme {}, m = {}, dense levels: {}",
+            "wrote {} (mode 0600): scheme {}, m = {}, dense levels: {}, scene box: aabb {}",
             args.out.display(),
             key.scheme().name(),
             key.m(),
-            key.dense().name()
+            key.dense().name(),
+            args.aabb_scale
         );
         println!(
             "key strength on {} levels, T = 2^{}: {:.1} bits brute force, {:.1} bits with a per-{} oracle",

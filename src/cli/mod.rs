@@ -49,7 +49,7 @@ pub fn stego_scenes(
                 kp.display()
             );
         }
-        if let Some((_, other)) = loaded.iter().find(|(k, _)| *k == key) {
+        if let Some((_, other)) = loaded.iter().find(|(k, _)| k.same_index(&key)) {
             bail!(
                 "{} and {}: two hidden scenes share one key and would overwrite each other",
                 kp.display(),
@@ -57,7 +57,8 @@ pub fn stego_scenes(
             );
         }
         let mut data = Dataset::load(h, Split::Train, opts)?;
-        data.fit_into_box(aabb_scale)?;
+        data.fit_into_box(aabb_scale, key.scene_box())
+            .with_context(|| format!("placing it with its key {}", kp.display()))?;
         out.push(SceneSpec {
             dataset: Arc::new(data),
             indices: key.level_indices(&layout.grid),

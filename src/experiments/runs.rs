@@ -139,8 +139,8 @@ pub(super) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) ->
     let mut train = Dataset::load(dir, Split::Train, &opts)?;
     let mut test = Dataset::load(dir, Split::Test, &opts)?;
     if let Some(a) = aabb_scale {
-        train.fit_into_box(a)?;
-        test.fit_into_box(a)?;
+        train.fit_into_box(a, None)?;
+        test.fit_into_box(a, None)?;
     }
     Ok(Scene {
         train: Arc::new(train),

@@ -58,7 +58,9 @@ use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
 use crate::ngp::train::loss::DENSITY_PULL_UP;
-use crate::ngp::train::trainer::{initial_rays_per_batch, mix, next_rays_per_batch, step_scenes};
+use crate::ngp::train::trainer::{
+    initial_rays_per_batch, mix, next_rays_per_batch, starting_grid, step_scenes,
+};
 use crate::ngp::train::{IndexRefresh, SceneSpec, StepStats, TrainConfig};
 use std::sync::Arc;
 use std::time::Instant;
@@ -189,10 +191,7 @@ impl<'c> GpuTrainer<'c> {
         let marcher = Marcher::new(model.aabb_scale);
         let mut states = Vec::with_capacity(scenes.len());
         for s in scenes {
-            // The CPU trainer's starting grid: every cell seen by no camera culled.
-            let mut grid = OccupancyGrid::new(model.aabb_scale);
-            let cams: Vec<_> = s.dataset.frames.iter().map(|f| f.camera.clone()).collect();
-            grid.mark_untrained(&cams);
+            let grid = starting_grid(model.aabb_scale, &s.dataset);
             let loss_weight = if states.is_empty() {
                 1.0
             } else {

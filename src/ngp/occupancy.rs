@@ -178,7 +178,7 @@ impl OccupancyGrid {
         self.n_cascades as u32 - 1
     }
 
-    /// Centre of the Morton cell `idx` of cascade `c`, in ngp space, plus the voxel size.
+    /// Lower corner of the Morton cell `idx` of cascade `c`, in ngp space, plus the voxel size.
     fn cell_origin(idx: u32, c: usize) -> ([f32; 3], f32) {
         let s = (c as f32).exp2();
         let g = GRID_SIZE as f32;
@@ -232,6 +232,29 @@ impl OccupancyGrid {
         self.update_bitfield();
     }
 
+    /// Culls for good (−1) every cell whose centre lies outside the box of `aabb_scale`
+    /// (centred on the same point as the model's): the key holder's grid of a hidden scene
+    /// whose content fills a smaller box than the model's, e.g. an object in a capture's
+    /// large box. Rays then skip the rest of the model's box, where a keyed index meets the
+    /// cover's entries at random.
+    pub fn confine_to_box(&mut self, aabb_scale: u32) {
+        let h = 0.5 * aabb_scale as f32;
+        for c in 0..self.n_cascades {
+            // Cascade c spans 2^c: it lies inside a box at least as large.
+            if (1u64 << c) <= aabb_scale as u64 {
+                continue;
+            }
+            let cascade = &mut self.density[c * N_CELLS..(c + 1) * N_CELLS];
+            for (idx, d) in cascade.iter_mut().enumerate() {
+                let (o, vs) = Self::cell_origin(idx as u32, c);
+                if !(0..3).all(|k| (o[k] + 0.5 * vs - 0.5).abs() < h) {
+                    *d = -1.0;
+                }
+            }
+        }
+        self.update_bitfield();
+    }
+
     /// One of training's updates at `step` (the reference's `update_density_grid_nerf`):
     /// draws the step's cells and positions, asks `log_density` for the field's raw
     /// log-density at each position (ngp space, in order) and folds them in. The grid does not
@@ -258,11 +281,30 @@ impl OccupancyGrid {
         aabb_scale: u32,
         samples_per_cell: usize,
         seed: u64,
+        log_density: impl FnMut(&[[f32; 3]]) -> Vec<f32>,
+    ) -> OccupancyGrid {
+        Self::rebuild_in_box(aabb_scale, None, samples_per_cell, seed, log_density)
+    }
+
+    /// [`Self::rebuild`] of a scene confined to the box of `scene_box` (its key's): only
+    /// the cells inside are sampled, and those outside culled ([`Self::confine_to_box`]).
+    /// The same grid as a whole rebuild then confined, for a fraction of the field's work.
+    pub fn rebuild_in_box(
+        aabb_scale: u32,
+        scene_box: Option<u32>,
+        samples_per_cell: usize,
+        seed: u64,
         mut log_density: impl FnMut(&[[f32; 3]]) -> Vec<f32>,
     ) -> OccupancyGrid {
         let mut grid = OccupancyGrid::new(aabb_scale);
         grid.density.iter_mut().for_each(|d| *d = 0.0);
-        let cells: Vec<u32> = (0..(N_CELLS * grid.n_cascades) as u32).collect();
+        let scene_box = scene_box.filter(|&b| b < aabb_scale);
+        if let Some(b) = scene_box {
+            grid.confine_to_box(b);
+        }
+        let cells: Vec<u32> = (0..(N_CELLS * grid.n_cascades) as u32)
+            .filter(|&c| grid.density[c as usize] >= 0.0)
+            .collect();
         for round in 0..samples_per_cell {
             // Every cell once per round, at a random point of one of its octants.
             let pos = grid.points_in_cell_octant(
@@ -366,31 +408,34 @@ impl OccupancyGrid {
 
     /// A uniformly random point inside each given cell (index including the cascade offset).
     pub fn points_in_cells(&self, cells: &[u32], seed: u64) -> Vec<[f32; 3]> {
-        self.points_in_sub_boxes(cells, [0.0; 3], 1.0, seed)
+        self.points_in_sub_boxes(cells, [0.0; 3], 1.0, seed, |i, _| i as u64)
     }
 
     /// Like [`Self::points_in_cells`], but each point lies in octant `octant` (bit d set =
     /// upper half along axis d) of its cell: rounds over different octants stratify the
     /// samples, so a few rounds cover a cell far better than as many independent points.
+    /// A cell's point comes from the stream of its own number (not its place in `cells`),
+    /// so a rebuild of part of the grid draws what the whole one draws there.
     pub fn points_in_cell_octant(&self, cells: &[u32], octant: u32, seed: u64) -> Vec<[f32; 3]> {
         let lo = std::array::from_fn(|d| 0.5 * ((octant >> d) & 1) as f32);
-        self.points_in_sub_boxes(cells, lo, 0.5, seed)
+        self.points_in_sub_boxes(cells, lo, 0.5, seed, |_, c| c as u64)
     }
 
     /// A random point per cell in the sub-box `[lo, lo + extent]³` of the cell (fractions
-    /// of the cell's side).
+    /// of the cell's side), the i-th cell `c` drawn from the stream `stream(i, c)`.
     fn points_in_sub_boxes(
         &self,
         cells: &[u32],
         lo: [f32; 3],
         extent: f32,
         seed: u64,
+        stream: impl Fn(usize, u32) -> u64 + Sync,
     ) -> Vec<[f32; 3]> {
         cells
             .par_iter()
             .enumerate()
             .map(|(i, &c)| {
-                let mut rng = Pcg32::new(seed, i as u64);
+                let mut rng = Pcg32::new(seed, stream(i, c));
                 let (o, vs) = Self::cell_origin(c % N_CELLS as u32, c as usize / N_CELLS);
                 std::array::from_fn(|d| o[d] + vs * (lo[d] + extent * rng.next_f32()))
             })
@@ -552,6 +597,52 @@ mod tests {
     }
 
     #[test]
+    fn confine_to_box_keeps_the_inner_box_and_culls_the_rest() {
+        // aabb 4 (cascades 0, 1, 2) confined to box 1: cascade 0 is the box and stays; of
+        // cascade 1 (side 2) the central half per axis stays, 1/8 of its cells; of cascade 2
+        // (side 4) a quarter per axis, 1/64.
+        let mut g = OccupancyGrid::new(4);
+        g.density[5] = -1.0; // a cell no camera sees stays culled
+        g.confine_to_box(1);
+        let kept = |c: usize| {
+            g.density[c * N_CELLS..(c + 1) * N_CELLS]
+                .iter()
+                .filter(|&&d| d >= 0.0)
+                .count()
+        };
+        assert_eq!(kept(0), N_CELLS - 1);
+        assert_eq!(kept(1), N_CELLS / 8);
+        assert_eq!(kept(2), N_CELLS / 64);
+        // With every kept cell dense: inside the unit cube every mip is occupied, just
+        // outside it none is; far outside, cascade 2 is empty too.
+        g.density
+            .iter_mut()
+            .filter(|d| **d >= 0.0)
+            .for_each(|d| *d = 1.0);
+        g.update_bitfield();
+        assert!(g.is_occupied([0.99, 0.5, 0.5], 1));
+        assert!(g.is_occupied([0.99, 0.5, 0.5], 2));
+        assert!(!g.is_occupied([1.01, 0.5, 0.5], 1));
+        assert!(!g.is_occupied([-0.01, 0.5, 0.5], 2));
+        assert!(!g.is_occupied([2.4, 2.4, -1.4], 2));
+        // A box as large as the grid changes nothing.
+        let mut h = OccupancyGrid::new(4);
+        h.confine_to_box(4);
+        assert_eq!(h.density, OccupancyGrid::new(4).density);
+        // Box 2 in aabb 8: cascades 0 and 1 whole, a half of cascade 2 per axis.
+        let mut e = OccupancyGrid::new(8);
+        e.confine_to_box(2);
+        let kept8 = |c: usize| {
+            e.density[c * N_CELLS..(c + 1) * N_CELLS]
+                .iter()
+                .filter(|&&d| d >= 0.0)
+                .count()
+        };
+        assert_eq!((kept8(0), kept8(1)), (N_CELLS, N_CELLS));
+        assert_eq!((kept8(2), kept8(3)), (N_CELLS / 8, N_CELLS / 64));
+    }
+
+    #[test]
     fn splat_max_decay_and_bitfield() {
         let mut g = OccupancyGrid::new(1);
         g.density.iter_mut().for_each(|d| *d = 0.0);
@@ -674,6 +765,22 @@ mod tests {
         let rebuilt = OccupancyGrid::rebuild(1, 2, 5, field);
         check(&rebuilt, "rebuild");
         assert_eq!(rebuilt, OccupancyGrid::rebuild(1, 2, 5, field));
+        // In a box: the whole rebuild confined afterwards, from a third of the samples.
+        let mut whole = OccupancyGrid::rebuild(4, 2, 5, field);
+        whole.confine_to_box(1);
+        let mut asked = 0;
+        let boxed = OccupancyGrid::rebuild_in_box(4, Some(1), 2, 5, |p: &[[f32; 3]]| {
+            asked += p.len();
+            field(p)
+        });
+        assert_eq!(boxed, whole);
+        assert_eq!(asked, 2 * (N_CELLS + N_CELLS / 8 + N_CELLS / 64));
+        check(&boxed, "rebuild in a box");
+        // A box as large as the model's is no box.
+        assert_eq!(
+            OccupancyGrid::rebuild_in_box(1, Some(4), 2, 5, field),
+            rebuilt
+        );
 
         let mut trained = OccupancyGrid::new(1);
         let mut calls = 0;

@@ -15,6 +15,9 @@
 //! (see [`KeyScheme::PrfShares`]); a version-1 `prf` key is written back as version 1, the
 //! only layout that keeps its index functions.
 //!
+//! `aabb_scale` (optional, a power of two ≤ 128) is the box the hidden scene fills inside
+//! the model's: training confines the scene to it and the key holder's occupancy grid is
+//! cut to it (absent: the model's whole box, as in keys made before it existed).
 //! `dense` is optional (default `permute`); `kdf` records how a passphrase key was made
 //! (the salt is not secret: passphrase + salt recreate the key); `reference_groups` (group
 //! numbers that fall back to the reference index) appears only in diagnostic partial keys.
@@ -106,6 +109,9 @@ pub fn key_to_json(key: &Key) -> Value {
     let rg = key.reference_group_list();
     if !rg.is_empty() {
         o.insert("reference_groups".into(), json!(rg));
+    }
+    if let Some(b) = key.scene_box() {
+        o.insert("aabb_scale".into(), json!(b));
     }
     Value::Object(o)
 }
@@ -528,11 +534,26 @@ pub fn parse_key_with_warnings(path: &Path, text: &str) -> Result<LoadedKey> {
                 )
             })?,
     };
+    let scene_box = match o.get("aabb_scale") {
+        None => None,
+        Some(b) => Some(
+            b.as_u64()
+                .filter(|&b| (1..=128).contains(&b) && b.is_power_of_two())
+                .ok_or_else(|| {
+                    bad(
+                        "aabb_scale",
+                        format!("expected a power of two between 1 and 128, got {b}"),
+                    )
+                })? as u32,
+        ),
+    };
     let key = Key::new(scheme, dense).map_err(|e| Error::format(path, e.to_string()))?;
     let key = key
         .with_kdf(kdf)
         .with_reference_groups(&groups)
-        .map_err(|e| bad("reference_groups", e.to_string()))?;
+        .map_err(|e| bad("reference_groups", e.to_string()))?
+        .with_scene_box(scene_box)
+        .map_err(|e| bad("aabb_scale", e.to_string()))?;
     let warnings = check_key_content(&key).map_err(|(field, msg)| bad(&field, msg))?;
     Ok(LoadedKey {
         legacy_layout: key.is_legacy_layout(),

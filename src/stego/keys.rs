@@ -212,8 +212,8 @@ pub enum Mixed {
     Pi1Pi2K3,
 }
 
-/// A key: scheme, dense-level mode, and (for diagnostic partial keys) the groups that fall
-/// back to the reference index.
+/// A key: scheme, dense-level mode, (for diagnostic partial keys) the groups that fall
+/// back to the reference index, and the box its hidden scene fills.
 #[derive(Clone, PartialEq, Eq)]
 pub struct Key {
     scheme: KeyScheme,
@@ -221,6 +221,9 @@ pub struct Key {
     /// Bit j set: group j uses the reference index (a `prf` partial key).
     reference_groups: u32,
     kdf: Option<KdfInfo>,
+    /// The aabb_scale of the box the hidden scene is confined to inside a larger model's
+    /// (`None`: the model's whole box, as keys made before boxes existed).
+    scene_box: Option<u32>,
 }
 
 impl std::fmt::Debug for Key {
@@ -229,6 +232,7 @@ impl std::fmt::Debug for Key {
             .field("scheme", &self.scheme)
             .field("dense", &self.dense)
             .field("reference_groups", &self.reference_group_list())
+            .field("scene_box", &self.scene_box)
             .finish()
     }
 }
@@ -267,6 +271,7 @@ impl Key {
             dense,
             reference_groups: 0,
             kdf: None,
+            scene_box: None,
         })
     }
 
@@ -277,6 +282,7 @@ impl Key {
             dense: DenseMode::default(),
             reference_groups: 0,
             kdf: None,
+            scene_box: None,
         }
     }
 
@@ -300,6 +306,30 @@ impl Key {
     pub fn with_dense(mut self, dense: DenseMode) -> Key {
         self.dense = dense;
         self
+    }
+    /// The box (an aabb_scale) the hidden scene fills inside the model's box, if the key
+    /// says: training confines the scene to it, and the key holder's grid is cut to it.
+    pub fn scene_box(&self) -> Option<u32> {
+        self.scene_box
+    }
+    /// This key confining its scene to the box of `aabb_scale` (a power of two ≤ 128).
+    pub fn with_scene_box(mut self, scene_box: Option<u32>) -> Result<Key> {
+        if let Some(b) = scene_box
+            && !((1..=128).contains(&b) && b.is_power_of_two())
+        {
+            return Err(Error::Key(format!(
+                "scene box {b} is not a power of two between 1 and 128"
+            )));
+        }
+        self.scene_box = scene_box;
+        Ok(self)
+    }
+    /// Whether both keys give every level the same index functions (their boxes and how
+    /// they were made aside): two hidden scenes under such keys would overwrite each other.
+    pub fn same_index(&self, other: &Key) -> bool {
+        self.scheme == other.scheme
+            && self.dense == other.dense
+            && self.reference_groups == other.reference_groups
     }
     pub(crate) fn with_kdf(mut self, kdf: Option<KdfInfo>) -> Key {
         self.kdf = kdf;
@@ -465,11 +495,13 @@ impl Key {
                 m: *m,
             },
         };
+        // Same box: a wrong key is tried where the hidden scene is.
         Key {
             scheme,
             dense: like.dense,
             reference_groups: 0,
             kdf: None,
+            scene_box: like.scene_box,
         }
     }
 }

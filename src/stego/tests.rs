@@ -383,6 +383,12 @@ fn key_file_round_trip_and_permissions() {
         derive_prf_from_passphrase_with("correct horse", "model-1", 2, CHEAP).unwrap(),
         Key::reference(),
         legacy_prf_key(4, DenseMode::Hash),
+        prf_key(4, DenseMode::Permute)
+            .with_scene_box(Some(4))
+            .unwrap(),
+        legacy_prf_key(2, DenseMode::Hash)
+            .with_scene_box(Some(1))
+            .unwrap(),
     ];
     for (i, key) in keys.iter().enumerate() {
         let p = dir.path().join(format!("k{i}.json"));
@@ -449,6 +455,9 @@ fn bad_key_files_are_rejected_with_file_and_field() {
         ("dense", format!(r#"{{"version":1,"scheme":"prf","m":1,"dense":"feistel","secret":"{hex64}"}}"#), "`dense`"),
         ("format", format!(r#"{{"format":"x","version":1,"scheme":"prf","m":1,"secret":"{hex64}"}}"#), "`format`"),
         ("groups", format!(r#"{{"version":1,"scheme":"prf","m":2,"reference_groups":[2],"secret":"{hex64}"}}"#), "`reference_groups`"),
+        ("box3", format!(r#"{{"version":2,"scheme":"prf","secrets":["{hex64}"],"aabb_scale":3}}"#), "`aabb_scale`: expected a power of two between 1 and 128, got 3"),
+        ("box256", format!(r#"{{"version":2,"scheme":"prf","secrets":["{hex64}"],"aabb_scale":256}}"#), "`aabb_scale`"),
+        ("boxstr", format!(r#"{{"version":2,"scheme":"prf","secrets":["{hex64}"],"aabb_scale":"1"}}"#), "`aabb_scale`"),
     ];
     for (name, text, want) in cases {
         let p = dir.path().join(format!("{name}.json"));
@@ -1301,5 +1310,27 @@ fn indices_are_bit_identical_to_the_trait_object_version() {
     for ((name, d), (want_name, want)) in got.iter().zip(DIGESTS_BEFORE_DATA) {
         assert_eq!(name, want_name);
         assert_eq!(*d, want, "{name}: {d:#018x}");
+    }
+}
+
+#[test]
+fn scene_boxes_travel_with_a_key_but_do_not_change_its_index() {
+    let k = prf_key(4, DenseMode::Permute);
+    let boxed = k.clone().with_scene_box(Some(2)).unwrap();
+    assert_eq!(boxed.scene_box(), Some(2));
+    assert_eq!(k.scene_box(), None);
+    // Same index functions: the same key as far as two hidden scenes are concerned.
+    assert!(boxed.same_index(&k) && boxed != k);
+    assert!(!boxed.same_index(&prf_key(4, DenseMode::Hash)));
+    // A wrong key is tried in the hidden scene's box; partial keys keep it too.
+    assert_eq!(Key::wrong(7, &boxed).scene_box(), Some(2));
+    assert!(!Key::wrong(7, &boxed).same_index(&boxed));
+    assert_eq!(boxed.partial(0.5).scene_box(), Some(2));
+    for bad in [0, 3, 256] {
+        let e = k.clone().with_scene_box(Some(bad)).unwrap_err().to_string();
+        assert!(
+            e.contains(&bad.to_string()) && e.contains("power of two"),
+            "{e}"
+        );
     }
 }

@@ -1,7 +1,7 @@
 //! Opening a published model for viewing: with no key, the cover (reference index, stored
 //! grid); with a key, the hidden scene it unlocks (the key's index functions, confined to the
 //! cover's reachable entries for a stealth model, and an occupancy grid rebuilt from the
-//! network, since a hidden scene's grid is never stored). One recipe for the CLI, the demo,
+//! network, since a hidden scene's grid is never stored, cut to the key's box). One recipe for the CLI, the demo,
 //! the experiments and the tests.
 
 use super::keys::Key;
@@ -11,7 +11,7 @@ use crate::error::Result;
 use crate::ngp::encoding::{LevelIndices, reference_indices};
 use crate::ngp::model::Model;
 use crate::ngp::occupancy::OccupancyGrid;
-use crate::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy};
+use crate::ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy_in_box};
 use std::convert::Infallible;
 
 /// What renders: index functions and, for a key, the rebuilt grid.
@@ -44,12 +44,13 @@ impl OpenedScene {
 /// Opens `model` as seen through `key` (`None` or the reference key: the cover). `stealth`
 /// says the model was trained with `train --stealth`; `seed` draws the rebuild's samples.
 pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) -> OpenedScene {
-    let rebuild = |indices: &LevelIndices| {
-        Ok::<_, Infallible>(rebuild_occupancy(
+    let rebuild = |indices: &LevelIndices, scene_box: Option<u32>| {
+        Ok::<_, Infallible>(rebuild_occupancy_in_box(
             &model.net,
             &model.params,
             indices,
             model.config.aabb_scale,
+            scene_box,
             KEY_HOLDER_SAMPLES_PER_CELL,
             seed,
         ))
@@ -67,8 +68,8 @@ pub fn open_scene_on(
     stealth: bool,
     seed: u64,
 ) -> Result<OpenedScene> {
-    open_with(model, key, stealth, |indices| {
-        device.rebuild_occupancy(model, indices, KEY_HOLDER_SAMPLES_PER_CELL, seed)
+    open_with(model, key, stealth, |indices, scene_box| {
+        device.rebuild_occupancy(model, indices, scene_box, KEY_HOLDER_SAMPLES_PER_CELL, seed)
     })
 }
 
@@ -76,13 +77,15 @@ fn open_with<E>(
     model: &Model,
     key: Option<&Key>,
     stealth: bool,
-    rebuild: impl FnOnce(&LevelIndices) -> std::result::Result<OccupancyGrid, E>,
+    rebuild: impl FnOnce(&LevelIndices, Option<u32>) -> std::result::Result<OccupancyGrid, E>,
 ) -> std::result::Result<OpenedScene, E> {
     let layout = &model.net.layout.grid;
     Ok(match key {
         Some(k) if !k.is_reference() => {
             let indices = hidden_indices(k, &model.net.layout, &model.grid, &model.params, stealth);
-            let rebuilt = rebuild(&indices)?;
+            // Cut to the box the scene was trained in: outside it, its index meets only
+            // the cover's entries, whose density would render as haze.
+            let rebuilt = rebuild(&indices, k.scene_box())?;
             OpenedScene {
                 indices,
                 rebuilt: Some(rebuilt),

@@ -125,7 +125,7 @@ pub struct Dataset {
     pub width: u32,
     pub height: u32,
     pub frames: Vec<Frame>,
-    /// Power of two ≤ 128 (default 1).
+    /// Power of two ≤ 128 (default 1): the box the scene trains in.
     pub aabb_scale: u32,
     /// nerf → ngp conversion used (0.33 and 0.5 by default).
     pub scale: f32,
@@ -561,9 +561,11 @@ impl Dataset {
 
     /// Puts this scene into the box of `aabb_scale` (another scene's, e.g. a stego model's
     /// cover). Every box is centred on the same point, so a scene whose own box is no larger
-    /// already lies inside it: it keeps its poses and only takes the larger box (whose extra
-    /// cascades stay empty for it). A larger scene would be cut off: an error.
-    pub fn fit_into_box(&mut self, aabb_scale: u32) -> Result<()> {
+    /// already lies inside it: it keeps its poses and takes the larger box (where it trains
+    /// as empty everything outside its own). A larger scene would be cut off: an error. So
+    /// is a scene larger than `scene_box`, the box its key holder's grid will be cut to
+    /// ([`crate::stego::Key::scene_box`]).
+    pub fn fit_into_box(&mut self, aabb_scale: u32, scene_box: Option<u32>) -> Result<()> {
         check_aabb_scale(aabb_scale)?;
         if self.aabb_scale > aabb_scale {
             return Err(Error::Config(format!(
@@ -573,6 +575,17 @@ impl Dataset {
                 aabb_scale,
                 self.aabb_scale
             )));
+        }
+        if let Some(b) = scene_box {
+            check_aabb_scale(b)?;
+            if self.aabb_scale > b {
+                return Err(Error::Config(format!(
+                    "{}: its aabb_scale {} is larger than the box {b} its key confines it to (make its key with `keygen --aabb-scale {}`)",
+                    self.root.display(),
+                    self.aabb_scale,
+                    self.aabb_scale
+                )));
+            }
         }
         self.aabb_scale = aabb_scale;
         Ok(())

@@ -238,8 +238,30 @@ pub fn rebuild_occupancy(
     samples_per_cell: usize,
     seed: u64,
 ) -> OccupancyGrid {
+    rebuild_occupancy_in_box(
+        net,
+        params,
+        indices,
+        aabb_scale,
+        None,
+        samples_per_cell,
+        seed,
+    )
+}
+
+/// [`rebuild_occupancy`] of a scene confined to the box of `scene_box` (its key's box,
+/// [`OccupancyGrid::rebuild_in_box`]).
+pub fn rebuild_occupancy_in_box(
+    net: &NerfNetwork,
+    params: &[f32],
+    indices: &LevelIndices,
+    aabb_scale: u32,
+    scene_box: Option<u32>,
+    samples_per_cell: usize,
+    seed: u64,
+) -> OccupancyGrid {
     let marcher = Marcher::new(aabb_scale);
-    OccupancyGrid::rebuild(aabb_scale, samples_per_cell, seed, |pos| {
+    OccupancyGrid::rebuild_in_box(aabb_scale, scene_box, samples_per_cell, seed, |pos| {
         let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
         net.density_batch(params, indices, &warped)
     })

@@ -190,6 +190,19 @@ pub struct Trainer {
     pub step: u32,
 }
 
+/// A scene's occupancy grid before its first step (the GPU trainer's too): every cell no
+/// training camera sees culled, as the reference does. A hidden scene in a larger cover box
+/// keeps the whole box: trained empty outside its own content under its key, the network
+/// learns that features met at random are empty space — what makes a wrong key, whose grid
+/// is cut to the scene's box like the key holder's, render close to an empty image
+/// (measured on fox + text, BENCHMARKS.md; confining training to the box loses it).
+pub(crate) fn starting_grid(aabb_scale: u32, data: &Dataset) -> OccupancyGrid {
+    let mut grid = OccupancyGrid::new(aabb_scale);
+    let cams: Vec<_> = data.frames.iter().map(|f| f.camera.clone()).collect();
+    grid.mark_untrained(&cams);
+    grid
+}
+
 /// Also the GPU trainer's seeds, so both backends draw the same rays for a seed.
 pub(crate) fn mix(a: u64, b: u64) -> u64 {
     // splitmix64 of a combination: decorrelates (seed, step, scene) streams.
@@ -242,9 +255,7 @@ impl Trainer {
                     model.aabb_scale
                 )));
             }
-            let mut grid = OccupancyGrid::new(model.aabb_scale);
-            let cams: Vec<_> = s.dataset.frames.iter().map(|f| f.camera.clone()).collect();
-            grid.mark_untrained(&cams);
+            let grid = starting_grid(model.aabb_scale, &s.dataset);
             let rays = initial_rays_per_batch(config.batch_samples);
             states.push(SceneState {
                 data: s.dataset,
