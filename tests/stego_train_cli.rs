@@ -71,7 +71,8 @@ fn cover_downscale_leaves_hidden_scenes_at_their_resolution() {
 
 /// A hidden scene whose box (aabb_scale 8) is larger than the capture-like cover's (4) is
 /// refused before any training, naming both boxes; with `--aabb-scale 8` the cover takes the
-/// larger box, the hidden scene trains in it, and the file is the cover's, at aabb_scale 8.
+/// larger box, and a key whose box holds the scene (`keygen --aabb-scale 8`; the default
+/// box 1 is refused) trains it there; the file is the cover's, at aabb_scale 8.
 #[test]
 fn hidden_scenes_take_the_cover_box_or_are_refused() {
     let d = tempfile::tempdir().unwrap();
@@ -131,7 +132,29 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
     );
     assert!(!std::path::Path::new(&model).exists());
 
+    // In a box large enough, a key whose own box (keygen's default 1) is smaller than the
+    // scene is refused too, naming the key and the fix.
     args.extend_from_slice(&["--aabb-scale", "8"]);
+    let out = stegongp(&args);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("k.json") && err.contains("keygen --aabb-scale 8"),
+        "{err}"
+    );
+    assert!(!std::path::Path::new(&model).exists());
+    let key8 = p("k8.json");
+    ok(stegongp(&[
+        "keygen",
+        "--scheme",
+        "prf",
+        "--aabb-scale",
+        "8",
+        "--out",
+        &key8,
+    ]));
+    let i = args.iter().position(|a| *a == key.as_str()).unwrap();
+    args[i] = &key8;
     let log = ok(stegongp(&args));
     assert!(log.contains("hidden: 4 images of 16×16"), "{log}");
     let info = stegongp(&["inspect", &model, "--json"]);

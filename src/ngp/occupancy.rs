@@ -601,18 +601,18 @@ mod tests {
         // aabb 4 (cascades 0, 1, 2) confined to box 1: cascade 0 is the box and stays; of
         // cascade 1 (side 2) the central half per axis stays, 1/8 of its cells; of cascade 2
         // (side 4) a quarter per axis, 1/64.
-        let mut g = OccupancyGrid::new(4);
-        g.density[5] = -1.0; // a cell no camera sees stays culled
-        g.confine_to_box(1);
-        let kept = |c: usize| {
+        fn kept(g: &OccupancyGrid, c: usize) -> usize {
             g.density[c * N_CELLS..(c + 1) * N_CELLS]
                 .iter()
                 .filter(|&&d| d >= 0.0)
                 .count()
-        };
-        assert_eq!(kept(0), N_CELLS - 1);
-        assert_eq!(kept(1), N_CELLS / 8);
-        assert_eq!(kept(2), N_CELLS / 64);
+        }
+        let mut g = OccupancyGrid::new(4);
+        g.density[5] = -1.0; // a cell no camera sees stays culled
+        g.confine_to_box(1);
+        assert_eq!(kept(&g, 0), N_CELLS - 1);
+        assert_eq!(kept(&g, 1), N_CELLS / 8);
+        assert_eq!(kept(&g, 2), N_CELLS / 64);
         // With every kept cell dense: inside the unit cube every mip is occupied, just
         // outside it none is; far outside, cascade 2 is empty too.
         g.density
@@ -632,14 +632,8 @@ mod tests {
         // Box 2 in aabb 8: cascades 0 and 1 whole, a half of cascade 2 per axis.
         let mut e = OccupancyGrid::new(8);
         e.confine_to_box(2);
-        let kept8 = |c: usize| {
-            e.density[c * N_CELLS..(c + 1) * N_CELLS]
-                .iter()
-                .filter(|&&d| d >= 0.0)
-                .count()
-        };
-        assert_eq!((kept8(0), kept8(1)), (N_CELLS, N_CELLS));
-        assert_eq!((kept8(2), kept8(3)), (N_CELLS / 8, N_CELLS / 64));
+        assert_eq!((kept(&e, 0), kept(&e, 1)), (N_CELLS, N_CELLS));
+        assert_eq!((kept(&e, 2), kept(&e, 3)), (N_CELLS / 8, N_CELLS / 64));
     }
 
     #[test]
