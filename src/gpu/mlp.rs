@@ -23,7 +23,9 @@
 //!   the adapter has no float atomics) on the same addresses, while the second pass reads
 //!   each partial once.
 
-use super::{GpuContext, GpuError, GpuResult, buffer_entry as entry, check_binding};
+use super::{
+    GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry as entry, check_binding,
+};
 use crate::ngp::network::layout::{DENSITY_OUT, NerfLayout, SH_DIMS};
 use crate::ngp::network::mlp::matrix_offset;
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -232,32 +234,26 @@ impl MlpKernels {
             din = dm.n_in,
         );
         let source = format!("{header}{MLP_WGSL}");
-        let module = ctx.scoped("mlp kernels", || {
-            ctx.device
-                .create_shader_module(wgpu::ShaderModuleDescriptor {
-                    label: Some("mlp.wgsl"),
-                    source: wgpu::ShaderSource::Wgsl(source.into()),
-                })
+        let [forward, density, backward, wgrad, reduce] = ctx.scoped("mlp kernels", || {
+            auto_layout_pipelines(
+                ctx,
+                "mlp.wgsl",
+                &source,
+                [
+                    "forward_main",
+                    "density_main",
+                    "backward_main",
+                    "wgrad_main",
+                    "reduce_main",
+                ],
+            )
         })?;
-        let pipeline = |entry: &'static str| {
-            ctx.scoped("mlp pipeline", || {
-                ctx.device
-                    .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                        label: Some(entry),
-                        layout: None,
-                        module: &module,
-                        entry_point: Some(entry),
-                        compilation_options: Default::default(),
-                        cache: None,
-                    })
-            })
-        };
         Ok(MlpKernels {
-            forward: pipeline("forward_main")?,
-            density: pipeline("density_main")?,
-            backward: pipeline("backward_main")?,
-            wgrad: pipeline("wgrad_main")?,
-            reduce: pipeline("reduce_main")?,
+            forward,
+            density,
+            backward,
+            wgrad,
+            reduce,
             dummy: zeroed(ctx, "mlp no activations", 4)?,
             tile,
             n_enc: n_enc as u32,
