@@ -285,6 +285,70 @@ fn random_scene_trains_the_cpus_scenes() {
     );
 }
 
+/// The cover-paced table (stealth training's) on the device: a random-scene step that
+/// trains only the hidden scene leaves every table entry where it was, on the GPU as on the
+/// CPU, and the next cover steps take what waited: the losses stay the CPU's.
+#[test]
+fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
+    let Some(ctx) = test_context() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (ctrain, _) = scene(&dir.path().join("cover"), SceneKind::Object, 3);
+    let (htrain, _) = scene(&dir.path().join("hidden"), SceneKind::Text("HI".into()), 4);
+    let key = key();
+    let cfg = model_config();
+    let table = NerfLayout::new(cfg).unwrap().grid_offset;
+    let mut tc = config(Schedule::RandomScene);
+    tc.cover_paced_table = true;
+    let mut cpu = Trainer::new(cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
+    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).unwrap();
+    let (mut held, mut moved) = (0, 0);
+    for step in 0..5 {
+        let (c0, g0) = (
+            cpu.params[table..].to_vec(),
+            gpu.params().unwrap()[table..].to_vec(),
+        );
+        let (a, b) = (cpu.train_step(), gpu.train_step().unwrap());
+        assert_eq!(
+            a.cover_loss.is_some(),
+            b.cover_loss.is_some(),
+            "step {step}"
+        );
+        let (c1, g1) = (&cpu.params[table..], &gpu.params().unwrap()[table..]);
+        let changed = |x: &[f32], y: &[f32]| x.iter().zip(y).filter(|(u, v)| u != v).count();
+        let (nc, ng) = (changed(&c0, c1), changed(&g0, g1));
+        if a.cover_loss.is_none() {
+            assert_eq!(
+                (nc, ng),
+                (0, 0),
+                "step {step}: a hidden-only step moved the table"
+            );
+            held += 1;
+        } else {
+            assert!(
+                nc > 0 && ng > 0,
+                "step {step}: the cover's step moved nothing"
+            );
+            // Both backends move the same entries, but for the few whose gradient sums to
+            // zero in one order and not the other.
+            assert!(
+                nc.abs_diff(ng) <= nc / 1000 + 2,
+                "step {step}: CPU moved {nc} table parameters, GPU {ng}"
+            );
+            moved += 1;
+        }
+        assert!(
+            (a.loss - b.loss).abs() <= 1e-3 * a.loss,
+            "step {step}: CPU loss {} vs GPU {}",
+            a.loss,
+            b.loss
+        );
+    }
+    assert!(
+        held > 0 && moved > 0,
+        "{held} hidden-only and {moved} cover steps"
+    );
+}
+
 /// Fraction of each level's table entries two index functions share.
 fn same_tables(a: &LevelIndices, b: &LevelIndices) -> Vec<f64> {
     a.iter()

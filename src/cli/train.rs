@@ -76,8 +76,9 @@ pub struct Args {
     pub hidden_weight: f32,
     /// Stealth: confine the hidden scenes to the table entries the cover itself trains (its
     /// reachable set under the stored occupancy grid), so that the file's statistics look
-    /// like a plain model's (see `stegongp detect`). Render and evaluate the hidden scenes
-    /// with `--stealth` too.
+    /// like a plain model's (see `stegongp detect`), and move a table entry only in steps
+    /// where the cover's own gradient reaches it. Render and evaluate the hidden scenes with
+    /// `--stealth` too.
     #[arg(long)]
     pub stealth: bool,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
@@ -183,6 +184,7 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_fraction: a.occupancy_fraction,
         schedule: a.schedule,
         hidden_loss_weight: a.hidden_weight,
+        cover_paced_table: a.stealth,
         workers: a.workers,
         ..Default::default()
     };

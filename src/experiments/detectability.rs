@@ -63,6 +63,8 @@ impl Default for DetectOptions {
 
 /// Bump when a change makes earlier model files no longer what this code would train.
 const MODEL_FORMAT: u32 = 1;
+/// Bump when stealth training changes (the stealth arm alone is trained again).
+const STEALTH_FORMAT: u32 = 2;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Arm {
@@ -320,7 +322,7 @@ fn model_config(
     let g = &cfg.grid;
     // Relative to the output folder, so a moved folder still resumes.
     let rel = |p: &Path| p.strip_prefix(&cfg.out).unwrap_or(p).to_path_buf();
-    json!({
+    let mut v = json!({
         "format": MODEL_FORMAT, "arm": arm.name(), "cover": rel(scenes.0),
         "hidden": if arm == Arm::Plain { Value::Null } else { json!(rel(scenes.1)) },
         "seed": seed, "scheme": if arm == Arm::Plain { Value::Null } else { json!(combo.0.name()) },
@@ -331,7 +333,12 @@ fn model_config(
         "levels": g.n_levels, "features": g.n_features, "log2_t": g.log2_hashmap_size,
         "base_resolution": g.base_resolution, "eval_views": cfg.eval_views,
         "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
-    })
+    });
+    if arm == Arm::Stealth {
+        // Only this arm's key, so that plain and default stego files stay reusable.
+        v["stealth"] = json!(STEALTH_FORMAT);
+    }
+    v
 }
 
 /// Trains (or reuses) one model and analyses its file.

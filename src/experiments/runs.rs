@@ -201,6 +201,7 @@ pub(super) fn train_scenes(
         batch_samples: cfg.batch,
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
+        cover_paced_table: cfg.stealth,
         ..Default::default()
     };
     let mut t = cfg.device.trainer(config, specs, tc)?;

@@ -13,6 +13,7 @@ pub mod loss;
 pub mod mlp;
 pub mod occupancy;
 pub mod optimizer;
+pub mod pacing;
 pub mod rays;
 pub mod render;
 pub mod renderer;

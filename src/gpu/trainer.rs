@@ -46,6 +46,7 @@ use super::loss::{LossBuffers, LossConfig, LossKernel};
 use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
 use super::occupancy::GpuOccupancy;
 use super::optimizer::GpuOptimizer;
+use super::pacing::GpuPacing;
 use super::rays::{RayBatch, RayKernels};
 use super::{
     GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
@@ -115,6 +116,8 @@ pub struct GpuTrainer<'c> {
     batch: RayBatch,
     loss: LossKernel,
     optimizer: GpuOptimizer,
+    /// `config.cover_paced_table`'s state.
+    pacing: Option<GpuPacing>,
     ws: MlpWorkspace,
     dirs: wgpu::Buffer,
     raw: wgpu::Buffer,
@@ -218,6 +221,11 @@ impl<'c> GpuTrainer<'c> {
             layout.n_params,
             layout.n_mlp_params(),
         )?;
+        let pacing = if config.cover_paced_table {
+            Some(GpuPacing::new(ctx, layout.n_params, layout.n_mlp_params())?)
+        } else {
+            None
+        };
         let ws = field.mlp().workspace(ctx, budget)?;
         let width = layout.grid.config.n_output_dims() as u64;
         let b = budget as u64;
@@ -262,6 +270,7 @@ impl<'c> GpuTrainer<'c> {
             batch,
             loss,
             optimizer,
+            pacing,
             ws,
             dirs,
             raw,
@@ -422,12 +431,23 @@ impl<'c> GpuTrainer<'c> {
         );
         for si in ids {
             self.train_scene(si, &mut stats)?;
+            if si == 0
+                && let Some(p) = &self.pacing
+            {
+                let mut encoder = self.ctx.device.create_command_encoder(&Default::default());
+                p.encode_open_gate(self.ctx, &mut encoder, &self.grad)?;
+                self.ctx
+                    .scoped("pacing gate", || self.ctx.queue.submit([encoder.finish()]))?;
+            }
         }
         let t_rays = t0.elapsed().as_secs_f64();
         // The CPU steps the optimizer even when nothing was trained (its MLP weights still
         // take L2 and momentum).
         let ctx = self.ctx;
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        if let Some(p) = &self.pacing {
+            p.encode_hold_back(ctx, &mut encoder, &self.grad)?;
+        }
         self.optimizer
             .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
         ctx.scoped("optimizer", || ctx.queue.submit([encoder.finish()]))?;

@@ -22,6 +22,15 @@
 //! (`i ↦ a·i + c mod size`); a keyed index that lands on an unreachable slot moves to the next
 //! reachable slot in that order. When the grid gains or loses a cell, only the indices whose
 //! slot run crosses a changed slot move, so the hidden scene keeps what it learnt.
+//!
+//! Confinement decides *which* entries a hidden scene may use; it does not decide how often
+//! they move. Adam moves a table entry by about its learning rate at every step its
+//! gradient is non-zero, so an entry that the cover and a hidden scene both reach takes more
+//! steps than in a plain model, and ends larger (measured: the median magnitude of the
+//! reachable hashed entries, AUC 1.0 between plain and confined-only stealth models).
+//! Stealth training therefore also sets
+//! [`TrainConfig::cover_paced_table`](crate::ngp::train::TrainConfig::cover_paced_table):
+//! an entry moves only in steps where the cover's gradient reaches it.
 
 use super::keys::Key;
 use crate::ngp::encoding::reach::{EntrySet, reachable_entries};

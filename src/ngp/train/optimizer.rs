@@ -105,6 +105,20 @@ impl Touched {
     fn get(&self, group: usize) -> bool {
         self.bits[group / 64] >> (group % 64) & 1 != 0
     }
+    /// The marked groups, in increasing order.
+    pub fn groups(&self) -> impl Iterator<Item = usize> + '_ {
+        self.bits.iter().enumerate().flat_map(|(k, &word)| {
+            let mut rest = word;
+            std::iter::from_fn(move || {
+                if rest == 0 {
+                    return None;
+                }
+                let b = rest.trailing_zeros() as usize;
+                rest &= rest - 1;
+                Some(k * 64 + b)
+            })
+        })
+    }
     pub fn clear(&mut self) {
         self.bits.fill(0);
     }

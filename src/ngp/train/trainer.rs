@@ -9,7 +9,7 @@
 //! fixed order: the result is deterministic for a seed and worker count.
 
 use super::loss::{DENSITY_PULL_UP, ray_loss};
-use super::optimizer::{Optimizer, OptimizerConfig, Touched};
+use super::optimizer::{GROUP, Optimizer, OptimizerConfig, Touched};
 use crate::error::{Error, Result};
 use crate::ngp::data::Dataset;
 use crate::ngp::encoding::{LevelIndices, check_indices};
@@ -57,6 +57,13 @@ pub struct TrainConfig {
     /// Loss weight of every scene after the first (the hidden scenes of a stego model), relative
     /// to the first scene's 1. Shared table entries settle where the scenes' gradients balance.
     pub hidden_loss_weight: f32,
+    /// Table entries move only in steps where the cover's (scene 0's) own gradient reaches
+    /// them; the other scenes' gradients on an entry wait, summed, for the cover's next
+    /// touch. Each entry then takes as many Adam steps as the cover alone gives it. Adam
+    /// moves an entry by about the learning rate per step whatever the gradient's size, so a
+    /// table whose entries took extra steps for another scene is measurably larger than a
+    /// plain model's (stealth training sets this; see `stego::stealth`).
+    pub cover_paced_table: bool,
     pub optimizer: OptimizerConfig,
     /// Worker count (gradient partitions); 0 = one per core.
     pub workers: usize,
@@ -70,6 +77,7 @@ impl Default for TrainConfig {
             occupancy_fraction: 1.0,
             schedule: Schedule::Mixed,
             hidden_loss_weight: 1.0,
+            cover_paced_table: false,
             optimizer: OptimizerConfig::default(),
             workers: 0,
         }
@@ -145,6 +153,31 @@ struct Worker {
     n_rays: u64,
 }
 
+impl Worker {
+    fn new(n_params: usize) -> Self {
+        Worker {
+            grad: vec![0.0; n_params],
+            touched: Touched::new(n_params),
+            ws: Vec::new(),
+            pos: Vec::new(),
+            dir: Vec::new(),
+            dt: Vec::new(),
+            dist: Vec::new(),
+            raw: Vec::new(),
+            d_raw: Vec::new(),
+            rays: Vec::new(),
+            wave_pos: Vec::new(),
+            wave_owner: Vec::new(),
+            wave_dens: Vec::new(),
+            ray_state: Vec::new(),
+            loss: 0.0,
+            n_samples: 0,
+            n_marched: 0,
+            n_rays: 0,
+        }
+    }
+}
+
 #[derive(Clone, Copy)]
 struct RayRec {
     start: usize,
@@ -187,7 +220,74 @@ pub struct Trainer {
     scenes: Vec<SceneState>,
     workers: Vec<Worker>,
     refresh: Option<Box<dyn IndexRefresh>>,
+    pace: Option<Pacing>,
     pub step: u32,
+}
+
+/// [`TrainConfig::cover_paced_table`]'s state.
+struct Pacing {
+    /// One bit per parameter: the cover's gradient of this step reached it.
+    gate: Vec<u64>,
+    /// Other scenes' gradients waiting for the cover to reach their entry.
+    pending: Vec<f32>,
+    /// Parameters below this index are MLP weights, never held back.
+    n_matrix: usize,
+}
+
+impl Pacing {
+    fn new(n_params: usize, n_matrix: usize) -> Self {
+        Pacing {
+            gate: vec![0; n_params.div_ceil(64)],
+            pending: vec![0.0; n_params],
+            n_matrix,
+        }
+    }
+
+    fn gated(&self, i: usize) -> bool {
+        self.gate[i / 64] >> (i % 64) & 1 != 0
+    }
+
+    /// After the cover's rays: every table parameter the cover's gradient reached, i.e.
+    /// whose summed gradient is not zero (the optimizer's own rule, and the GPU's).
+    fn open_gate(&mut self, workers: &[Worker]) {
+        for w in workers {
+            for group in w.touched.groups() {
+                let g0 = (group * GROUP).max(self.n_matrix);
+                for i in g0..((group + 1) * GROUP).min(w.grad.len()) {
+                    if workers.iter().map(|w| w.grad[i]).sum::<f32>() != 0.0 {
+                        self.gate[i / 64] |= 1 << (i % 64);
+                    }
+                }
+            }
+        }
+    }
+
+    /// Before the update: table gradients the gate holds back go to `pending`; held-back
+    /// gradients of entries the gate lets through join this update.
+    fn hold_back(&mut self, workers: &mut [Worker]) {
+        for w in workers.iter_mut() {
+            for group in w.touched.groups() {
+                let g0 = (group * GROUP).max(self.n_matrix);
+                for i in g0..((group + 1) * GROUP).min(w.grad.len()) {
+                    if !self.gated(i) && w.grad[i] != 0.0 {
+                        self.pending[i] += w.grad[i];
+                        w.grad[i] = 0.0;
+                    }
+                }
+            }
+        }
+        let Some(first) = workers.first_mut() else {
+            return;
+        };
+        for (k, word) in self.gate.iter_mut().enumerate() {
+            let mut rest = std::mem::take(word);
+            while rest != 0 {
+                let i = k * 64 + rest.trailing_zeros() as usize;
+                rest &= rest - 1;
+                first.grad[i] += std::mem::take(&mut self.pending[i]);
+            }
+        }
+    }
 }
 
 /// A scene's occupancy grid before its first step (the GPU trainer's too): every cell no
@@ -278,28 +378,10 @@ impl Trainer {
         } else {
             config.workers
         };
-        let workers = (0..n_workers)
-            .map(|_| Worker {
-                grad: vec![0.0; params.len()],
-                touched: Touched::new(params.len()),
-                ws: Vec::new(),
-                pos: Vec::new(),
-                dir: Vec::new(),
-                dt: Vec::new(),
-                dist: Vec::new(),
-                raw: Vec::new(),
-                d_raw: Vec::new(),
-                rays: Vec::new(),
-                wave_pos: Vec::new(),
-                wave_owner: Vec::new(),
-                wave_dens: Vec::new(),
-                ray_state: Vec::new(),
-                loss: 0.0,
-                n_samples: 0,
-                n_marched: 0,
-                n_rays: 0,
-            })
-            .collect();
+        let workers = (0..n_workers).map(|_| Worker::new(params.len())).collect();
+        let pace = config
+            .cover_paced_table
+            .then(|| Pacing::new(params.len(), net.layout.n_mlp_params()));
         let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
         Ok(Trainer {
             net,
@@ -309,6 +391,7 @@ impl Trainer {
             scenes: states,
             workers,
             refresh: None,
+            pace,
             step: 0,
         })
     }
@@ -445,6 +528,9 @@ impl Trainer {
             stats.loss += scene_loss;
             if si == 0 {
                 stats.cover_loss = Some(scene_loss);
+                if let Some(p) = &mut self.pace {
+                    p.open_gate(&self.workers);
+                }
             }
             stats.n_samples += used;
             let scene = &mut self.scenes[si];
@@ -455,6 +541,9 @@ impl Trainer {
                 scene.rays_per_batch =
                     next_rays_per_batch(n_rays as u32, self.config.batch_samples, used);
             }
+        }
+        if let Some(p) = &mut self.pace {
+            p.hold_back(&mut self.workers);
         }
         let t_rays = t0.elapsed().as_secs_f64();
         let mut grads: Vec<Vec<f32>> = self
@@ -722,5 +811,56 @@ mod tests {
         // Capped at 2^18, never below one granule.
         assert_eq!(next_rays_per_batch(1 << 17, 1 << 18, 1), 1 << 18);
         assert_eq!(next_rays_per_batch(256, 1, 1 << 20), 256);
+    }
+
+    fn add(w: &mut Worker, i: usize, g: f32) {
+        w.grad[i] += g;
+        w.touched.mark(i);
+    }
+
+    #[test]
+    fn pacing_holds_table_gradients_until_the_cover_reaches_them() {
+        // 24 parameters, the first 4 MLP weights; two workers.
+        let mut ws = vec![Worker::new(24), Worker::new(24)];
+        let mut p = Pacing::new(24, 4);
+        // Step 1, the cover's rays: table parameters 5 and 9, and an MLP weight.
+        add(&mut ws[0], 5, 1.0);
+        add(&mut ws[1], 9, 2.0);
+        add(&mut ws[1], 1, 0.5);
+        p.open_gate(&ws);
+        // The hidden scene's rays: 5 again, 6 and 13 (the cover's gradient missed them),
+        // and an MLP weight the cover did not reach.
+        add(&mut ws[0], 5, 0.25);
+        add(&mut ws[1], 6, 4.0);
+        add(&mut ws[0], 13, 8.0);
+        add(&mut ws[1], 13, 16.0);
+        add(&mut ws[0], 2, 3.0);
+        p.hold_back(&mut ws);
+        let sum = |ws: &[Worker], i: usize| ws[0].grad[i] + ws[1].grad[i];
+        assert_eq!(sum(&ws, 5), 1.25);
+        assert_eq!(sum(&ws, 9), 2.0);
+        assert_eq!((sum(&ws, 6), sum(&ws, 13)), (0.0, 0.0));
+        assert_eq!(
+            (sum(&ws, 1), sum(&ws, 2)),
+            (0.5, 3.0),
+            "MLP weights are never held"
+        );
+        assert_eq!((p.pending[6], p.pending[13]), (4.0, 24.0));
+        // Step 2 (buffers zeroed by the optimizer): the cover reaches 6; 13 waits on.
+        for w in &mut ws {
+            w.grad.fill(0.0);
+            w.touched.clear();
+        }
+        add(&mut ws[1], 6, -1.0);
+        p.open_gate(&ws);
+        add(&mut ws[0], 13, 1.0);
+        p.hold_back(&mut ws);
+        assert_eq!(sum(&ws, 6), 3.0, "the held gradient joins the cover's");
+        assert_eq!(sum(&ws, 13), 0.0);
+        assert_eq!((p.pending[6], p.pending[13]), (0.0, 25.0));
+        assert!(
+            p.gate.iter().all(|&w| w == 0),
+            "the gate closes after each step"
+        );
     }
 }

@@ -1,0 +1,238 @@
+//! The cover-paced table on the device (`pacing.wgsl`): the CPU trainer's
+//! [`TrainConfig::cover_paced_table`](crate::ngp::train::TrainConfig::cover_paced_table)
+//! for a gradient that lives in a GPU buffer. The CPU decides per worker partial which
+//! entries the cover reached; here the summed gradient decides, which is the rule the
+//! optimizer applies to a zero gradient on both backends.
+
+use super::{
+    GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry as entry, check_binding,
+    device_buffer,
+};
+
+const PACING_WGSL: &str = include_str!("pacing.wgsl");
+const WORKGROUP: u32 = 256;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct PacingParams {
+    n_table: u32,
+    n_matrix: u32,
+    row_width: u32,
+    _pad: u32,
+}
+
+/// The gate and the held-back gradients of the table parameters `n_matrix..n_params`.
+pub struct GpuPacing {
+    gate: wgpu::Buffer,
+    pending: wgpu::Buffer,
+    uniform: wgpu::Buffer,
+    open: wgpu::ComputePipeline,
+    hold: wgpu::ComputePipeline,
+    groups: [u32; 2],
+    n_params: u32,
+}
+
+impl GpuPacing {
+    pub fn new(ctx: &GpuContext, n_params: usize, n_matrix: usize) -> GpuResult<GpuPacing> {
+        let n_table = n_params
+            .checked_sub(n_matrix)
+            .and_then(|n| u32::try_from(n).ok())
+            .filter(|&n| n > 0)
+            .ok_or_else(|| {
+                GpuError::Input(format!("{n_matrix} matrix parameters of {n_params}"))
+            })?;
+        check_binding(ctx, "held-back table gradients", 4 * n_table as u64)?;
+        let limits = ctx.device.limits();
+        let n_groups = n_table.div_ceil(WORKGROUP);
+        let gx = n_groups.min(limits.max_compute_workgroups_per_dimension);
+        let groups = [gx, n_groups.div_ceil(gx)];
+        let params = PacingParams {
+            n_table,
+            n_matrix: n_matrix as u32,
+            row_width: gx * WORKGROUP,
+            _pad: 0,
+        };
+        ctx.scoped("pacing kernels", || {
+            let [open, hold] =
+                auto_layout_pipelines(ctx, "pacing.wgsl", PACING_WGSL, ["open_gate", "hold_back"]);
+            let uniform = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("pacing params"),
+                size: std::mem::size_of::<PacingParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            ctx.queue
+                .write_buffer(&uniform, 0, bytemuck::bytes_of(&params));
+            GpuPacing {
+                // Zeroed at creation (wgpu's guarantee): no gate open, nothing held.
+                gate: device_buffer(ctx, "pacing gate", 4 * n_table as u64),
+                pending: device_buffer(ctx, "pacing held-back gradients", 4 * n_table as u64),
+                uniform,
+                open,
+                hold,
+                groups,
+                n_params: n_params as u32,
+            }
+        })
+    }
+
+    fn encode(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        pipeline: &wgpu::ComputePipeline,
+        grad: &wgpu::Buffer,
+        with_pending: bool,
+    ) -> GpuResult<()> {
+        if grad.size() < 4 * self.n_params as u64 {
+            return Err(GpuError::Input(format!(
+                "gradient buffer of {} bytes for {} parameters",
+                grad.size(),
+                self.n_params
+            )));
+        }
+        ctx.scoped("pacing", || {
+            // Each pipeline's layout is derived from what its entry point uses: the gate
+            // kernel has no held-back gradients.
+            let mut entries = vec![entry(0, grad), entry(1, &self.gate)];
+            if with_pending {
+                entries.push(entry(2, &self.pending));
+            }
+            entries.push(entry(3, &self.uniform));
+            let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("pacing"),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &entries,
+            });
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &bind_group, &[]);
+            pass.dispatch_workgroups(self.groups[0], self.groups[1], 1);
+        })
+    }
+
+    /// After the cover's backward pass: opens the gate of every table parameter its
+    /// gradient reached.
+    pub fn encode_open_gate(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        grad: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        self.encode(ctx, encoder, &self.open, grad, false)
+    }
+
+    /// Before Adam: holds back the gradients the gate keeps out, releases the held-back
+    /// gradients it lets through, and closes the gate.
+    pub fn encode_hold_back(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        grad: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        self.encode(ctx, encoder, &self.hold, grad, true)
+    }
+
+    /// The held-back gradients, read back (for tests).
+    pub fn pending(&self, ctx: &GpuContext) -> GpuResult<Vec<f32>> {
+        ctx.read_buffer(&self.pending, self.pending.size())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gpu::test_context;
+    use crate::rng::Pcg32;
+    use wgpu::util::DeviceExt;
+
+    /// Sparse random gradients: most parameters zero, as a batch leaves a table.
+    fn sparse(rng: &mut Pcg32, n: usize, density: f32) -> Vec<f32> {
+        (0..n)
+            .map(|_| {
+                if rng.next_f32() < density {
+                    rng.next_f32() - 0.5
+                } else {
+                    0.0
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn pacing_matches_the_rule_by_hand_over_steps() {
+        let Some(ctx) = test_context() else { return };
+        let (n, n_matrix) = (70_001usize, 1_000usize);
+        let pacing = GpuPacing::new(ctx, n, n_matrix).unwrap();
+        let grad = ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("test gradient"),
+                contents: bytemuck::cast_slice(&vec![0.0f32; n]),
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            });
+        let mut rng = Pcg32::new(7, 1);
+        let mut pending = vec![0.0f32; n - n_matrix];
+        // Steps with the cover (mixed), without it (a random-scene step of a hidden scene),
+        // and the cover alone.
+        for (step, (cover_trained, hidden_trained)) in
+            [(true, true), (false, true), (true, true), (true, false)]
+                .into_iter()
+                .enumerate()
+        {
+            let cover = if cover_trained {
+                sparse(&mut rng, n, 0.2)
+            } else {
+                vec![0.0; n]
+            };
+            let hidden = if hidden_trained {
+                sparse(&mut rng, n, 0.3)
+            } else {
+                vec![0.0; n]
+            };
+            ctx.queue
+                .write_buffer(&grad, 0, bytemuck::cast_slice(&cover));
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            if cover_trained {
+                pacing.encode_open_gate(ctx, &mut enc, &grad).unwrap();
+            }
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait().unwrap();
+            let summed: Vec<f32> = cover.iter().zip(&hidden).map(|(c, h)| c + h).collect();
+            ctx.queue
+                .write_buffer(&grad, 0, bytemuck::cast_slice(&summed));
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            pacing.encode_hold_back(ctx, &mut enc, &grad).unwrap();
+            ctx.queue.submit([enc.finish()]);
+            let got: Vec<f32> = ctx.read_buffer(&grad, 4 * n as u64).unwrap();
+            let mut want = summed.clone();
+            for (held, (w, c)) in pending
+                .iter_mut()
+                .zip(want[n_matrix..].iter_mut().zip(&cover[n_matrix..]))
+            {
+                if *c != 0.0 {
+                    *w += std::mem::take(held);
+                } else {
+                    *held += *w;
+                    *w = 0.0;
+                }
+            }
+            assert_eq!(got, want, "step {step}: gradient");
+            assert_eq!(
+                pacing.pending(ctx).unwrap(),
+                pending,
+                "step {step}: held back"
+            );
+        }
+        assert!(pending.iter().any(|&p| p != 0.0), "something was held back");
+    }
+
+    #[test]
+    fn a_table_of_nothing_is_an_error() {
+        let Some(ctx) = test_context() else { return };
+        assert!(GpuPacing::new(ctx, 10, 10).is_err());
+        assert!(GpuPacing::new(ctx, 10, 11).is_err());
+    }
+}
