@@ -298,7 +298,9 @@ fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
     let cfg = model_config();
     let table = NerfLayout::new(cfg).unwrap().grid_offset;
     let mut tc = config(Schedule::RandomScene);
+    // Stealth's whole configuration: a hidden-only step also leaves the MLP's gradient zero.
     tc.cover_paced_table = true;
+    tc.cover_only_mlp = true;
     let mut cpu = Trainer::new(cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
     let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).unwrap();
     let (mut held, mut moved) = (0, 0);
@@ -346,6 +348,72 @@ fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
     assert!(
         held > 0 && moved > 0,
         "{held} hidden-only and {moved} cover steps"
+    );
+}
+
+/// Stealth's cover-only MLP on both backends: after a mixed step the MLP is exactly where a
+/// plain model of the cover alone puts it (the hidden scene's gradient reached the table
+/// only), and not where the default stego step puts it.
+#[test]
+fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ctrain, _) = scene(&dir.path().join("cover"), SceneKind::Object, 3);
+    let (htrain, _) = scene(&dir.path().join("hidden"), SceneKind::Text("HI".into()), 4);
+    let key = key();
+    let cfg = model_config();
+    let mlp = NerfLayout::new(cfg).unwrap().grid_offset;
+    let arms = || {
+        let mut stealth = config(Schedule::Mixed);
+        stealth.cover_only_mlp = true;
+        let mut plain = specs(&ctrain, &htrain, &key);
+        plain.truncate(1);
+        [
+            (plain, config(Schedule::Mixed)),
+            (specs(&ctrain, &htrain, &key), stealth),
+            (specs(&ctrain, &htrain, &key), config(Schedule::Mixed)),
+        ]
+    };
+    let differ = |a: &[f32], b: &[f32]| a.iter().zip(b).filter(|(u, v)| u != v).count();
+    let [plain, stealth, stego] = arms().map(|(s, tc)| {
+        let mut t = Trainer::new(cfg, s, tc).unwrap();
+        t.train_step();
+        t.params[..mlp].to_vec()
+    });
+    let (same, other) = (differ(&plain, &stealth), differ(&plain, &stego));
+    eprintln!(
+        "CPU: MLP parameters off the cover-only model's: stealth {same}, stego {other} of {mlp}"
+    );
+    assert_eq!(same, 0, "CPU: the hidden scene moved the MLP");
+    assert!(
+        other > mlp / 100,
+        "CPU: the default stego step left the MLP as the cover's"
+    );
+
+    let Some(ctx) = test_context() else { return };
+    let [plain, stealth, stego] = arms().map(|(s, tc)| {
+        let mut t = GpuTrainer::new(ctx, cfg, s, tc).unwrap();
+        t.train_step().unwrap();
+        t.params().unwrap()[..mlp].to_vec()
+    });
+    // The device sums gradients in no fixed order (two plain runs differ by float rounding,
+    // ~1e-8): the GPU's bound is a rounding's, far under one Adam step (learning rate 1e-2).
+    let off = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(u, v)| (u - v).abs())
+            .fold(0f32, f32::max)
+    };
+    let (same, other) = (off(&plain, &stealth), off(&plain, &stego));
+    eprintln!(
+        "GPU: MLP's largest distance from the cover-only model's: stealth {same:e}, stego {other:e}"
+    );
+    assert!(
+        same <= 1e-6,
+        "GPU: the hidden scene moved the MLP by {same:e}"
+    );
+    assert!(
+        other > 1e-3,
+        "GPU: the default stego step left the MLP as the cover's"
     );
 }
 

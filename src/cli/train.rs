@@ -77,8 +77,8 @@ pub struct Args {
     /// Stealth: confine the hidden scenes to the table entries the cover itself trains (its
     /// reachable set under the stored occupancy grid), so that the file's statistics look
     /// like a plain model's (see `stegongp detect`), and move a table entry only in steps
-    /// where the cover's own gradient reaches it. Render and evaluate the hidden scenes with
-    /// `--stealth` too.
+    /// where the cover's own gradient reaches it; the MLP learns from the cover alone. Render
+    /// and evaluate the hidden scenes with `--stealth` too.
     #[arg(long)]
     pub stealth: bool,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
@@ -185,6 +185,7 @@ pub fn run(a: Args) -> Result<()> {
         schedule: a.schedule,
         hidden_loss_weight: a.hidden_weight,
         cover_paced_table: a.stealth,
+        cover_only_mlp: a.stealth,
         workers: a.workers,
         ..Default::default()
     };

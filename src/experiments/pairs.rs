@@ -420,8 +420,9 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
                    "steps": steps, "scheme": cfg.scheme.name(), "key": which,
                    "schedule": format!("{:?}", cfg.schedule),
-                   // A stealth model trained before stealth paced the table is not reused.
-                   "stealth": if cfg.stealth { json!("paced") } else { json!(false) }}),
+                   // A stealth model trained before stealth paced the table and learnt its MLP
+                   // from the cover alone is not reused.
+                   "stealth": if cfg.stealth { json!("paced, cover-only MLP") } else { json!(false) }}),
             || {
                 let t = train_scenes(
                     cfg,

@@ -202,6 +202,7 @@ pub(super) fn train_scenes(
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
+        cover_only_mlp: cfg.stealth,
         ..Default::default()
     };
     let mut t = cfg.device.trainer(config, specs, tc)?;

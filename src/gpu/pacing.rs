@@ -139,6 +139,72 @@ impl GpuPacing {
     }
 }
 
+/// The MLP learnt from the cover alone on the device: the CPU trainer's
+/// [`TrainConfig::cover_only_mlp`](crate::ngp::train::TrainConfig::cover_only_mlp). The
+/// gradient's MLP block (its first `n_matrix` parameters) is copied aside after the cover's
+/// backward pass and copied back before Adam, or cleared in a step without the cover.
+pub struct GpuCoverMlp {
+    kept: wgpu::Buffer,
+    bytes: u64,
+    cover_trained: bool,
+}
+
+impl GpuCoverMlp {
+    pub fn new(ctx: &GpuContext, n_matrix: usize) -> GpuResult<GpuCoverMlp> {
+        let bytes = 4 * n_matrix as u64;
+        if bytes == 0 {
+            return Err(GpuError::Input("an MLP of 0 parameters".into()));
+        }
+        check_binding(ctx, "the cover's MLP gradient", bytes)?;
+        Ok(GpuCoverMlp {
+            kept: ctx.scoped("cover MLP gradient", || {
+                device_buffer(ctx, "cover MLP gradient", bytes)
+            })?,
+            bytes,
+            cover_trained: false,
+        })
+    }
+
+    fn check(&self, grad: &wgpu::Buffer) -> GpuResult<()> {
+        if grad.size() < self.bytes {
+            return Err(GpuError::Input(format!(
+                "gradient buffer of {} bytes for an MLP block of {}",
+                grad.size(),
+                self.bytes
+            )));
+        }
+        Ok(())
+    }
+
+    /// After the cover's backward pass.
+    pub fn encode_keep(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        grad: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        self.check(grad)?;
+        encoder.copy_buffer_to_buffer(grad, 0, &self.kept, 0, self.bytes);
+        self.cover_trained = true;
+        Ok(())
+    }
+
+    /// Before Adam: the MLP gradient is the cover's, or zero in a step without it.
+    pub fn encode_restore(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        grad: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        self.check(grad)?;
+        if self.cover_trained {
+            encoder.copy_buffer_to_buffer(&self.kept, 0, grad, 0, self.bytes);
+        } else {
+            encoder.clear_buffer(grad, 0, Some(self.bytes));
+        }
+        self.cover_trained = false;
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

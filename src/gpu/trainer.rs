@@ -46,7 +46,7 @@ use super::loss::{LossBuffers, LossConfig, LossKernel};
 use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
 use super::occupancy::GpuOccupancy;
 use super::optimizer::GpuOptimizer;
-use super::pacing::GpuPacing;
+use super::pacing::{GpuCoverMlp, GpuPacing};
 use super::rays::{RayBatch, RayKernels};
 use super::{
     GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
@@ -118,6 +118,8 @@ pub struct GpuTrainer<'c> {
     optimizer: GpuOptimizer,
     /// `config.cover_paced_table`'s state.
     pacing: Option<GpuPacing>,
+    /// `config.cover_only_mlp`'s state.
+    cover_mlp: Option<GpuCoverMlp>,
     ws: MlpWorkspace,
     dirs: wgpu::Buffer,
     raw: wgpu::Buffer,
@@ -226,6 +228,11 @@ impl<'c> GpuTrainer<'c> {
         } else {
             None
         };
+        let cover_mlp = if config.cover_only_mlp {
+            Some(GpuCoverMlp::new(ctx, layout.n_mlp_params())?)
+        } else {
+            None
+        };
         let ws = field.mlp().workspace(ctx, budget)?;
         let width = layout.grid.config.n_output_dims() as u64;
         let b = budget as u64;
@@ -271,6 +278,7 @@ impl<'c> GpuTrainer<'c> {
             loss,
             optimizer,
             pacing,
+            cover_mlp,
             ws,
             dirs,
             raw,
@@ -431,13 +439,17 @@ impl<'c> GpuTrainer<'c> {
         );
         for si in ids {
             self.train_scene(si, &mut stats)?;
-            if si == 0
-                && let Some(p) = &self.pacing
-            {
+            if si == 0 && (self.pacing.is_some() || self.cover_mlp.is_some()) {
                 let mut encoder = self.ctx.device.create_command_encoder(&Default::default());
-                p.encode_open_gate(self.ctx, &mut encoder, &self.grad)?;
-                self.ctx
-                    .scoped("pacing gate", || self.ctx.queue.submit([encoder.finish()]))?;
+                if let Some(p) = &self.pacing {
+                    p.encode_open_gate(self.ctx, &mut encoder, &self.grad)?;
+                }
+                if let Some(m) = &mut self.cover_mlp {
+                    m.encode_keep(&mut encoder, &self.grad)?;
+                }
+                self.ctx.scoped("the cover's gradient", || {
+                    self.ctx.queue.submit([encoder.finish()])
+                })?;
             }
         }
         let t_rays = t0.elapsed().as_secs_f64();
@@ -447,6 +459,9 @@ impl<'c> GpuTrainer<'c> {
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         if let Some(p) = &self.pacing {
             p.encode_hold_back(ctx, &mut encoder, &self.grad)?;
+        }
+        if let Some(m) = &mut self.cover_mlp {
+            m.encode_restore(&mut encoder, &self.grad)?;
         }
         self.optimizer
             .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;

@@ -3,6 +3,7 @@
 
 pub mod loss;
 pub mod optimizer;
+mod pacing;
 pub mod trainer;
 
 pub use optimizer::{Optimizer, OptimizerConfig};

@@ -84,6 +84,21 @@ pub struct Optimizer {
 pub const GROUP: usize = 4;
 const BLOCK: usize = 1 << 14;
 
+/// The positions of the set bits of a bitmap given as 64-bit words, in increasing order.
+pub fn set_bits(words: impl Iterator<Item = u64>) -> impl Iterator<Item = usize> {
+    words.enumerate().flat_map(|(k, word)| {
+        let mut rest = word;
+        std::iter::from_fn(move || {
+            if rest == 0 {
+                return None;
+            }
+            let b = rest.trailing_zeros() as usize;
+            rest &= rest - 1;
+            Some(k * 64 + b)
+        })
+    })
+}
+
 /// One bit per [`GROUP`] parameters: which groups a worker's gradient touched.
 #[derive(Clone, Debug, Default)]
 pub struct Touched {
@@ -107,17 +122,12 @@ impl Touched {
     }
     /// The marked groups, in increasing order.
     pub fn groups(&self) -> impl Iterator<Item = usize> + '_ {
-        self.bits.iter().enumerate().flat_map(|(k, &word)| {
-            let mut rest = word;
-            std::iter::from_fn(move || {
-                if rest == 0 {
-                    return None;
-                }
-                let b = rest.trailing_zeros() as usize;
-                rest &= rest - 1;
-                Some(k * 64 + b)
-            })
-        })
+        set_bits(self.bits.iter().copied())
+    }
+    /// The groups any of `ts` marked, each once, in increasing order.
+    pub fn groups_of_any<'a>(ts: &'a [&'a Touched]) -> impl Iterator<Item = usize> + 'a {
+        let words = ts.first().map_or(0, |t| t.bits.len());
+        set_bits((0..words).map(move |k| ts.iter().fold(0, |a, t| a | t.bits[k])))
     }
     pub fn clear(&mut self) {
         self.bits.fill(0);

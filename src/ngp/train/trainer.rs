@@ -9,7 +9,8 @@
 //! fixed order: the result is deterministic for a seed and worker count.
 
 use super::loss::{DENSITY_PULL_UP, ray_loss};
-use super::optimizer::{GROUP, Optimizer, OptimizerConfig, Touched};
+use super::optimizer::{Optimizer, OptimizerConfig, Touched};
+use super::pacing::{CoverOnlyMlp, Pacing};
 use crate::error::{Error, Result};
 use crate::ngp::data::Dataset;
 use crate::ngp::encoding::{LevelIndices, check_indices};
@@ -64,6 +65,12 @@ pub struct TrainConfig {
     /// table whose entries took extra steps for another scene is measurably larger than a
     /// plain model's (stealth training sets this; see `stego::stealth`).
     pub cover_paced_table: bool,
+    /// The MLP learns from the cover (scene 0) alone: the other scenes' gradients reach the
+    /// table only, and a step without the cover gives the MLP a zero gradient. A plain
+    /// model's MLP is what its cover made it; one that also decodes hidden scenes drifts
+    /// measurably from it (its first density layer's spread gave the paced stealth models
+    /// away, BENCHMARKS.md). Stealth training sets this.
+    pub cover_only_mlp: bool,
     pub optimizer: OptimizerConfig,
     /// Worker count (gradient partitions); 0 = one per core.
     pub workers: usize,
@@ -78,6 +85,7 @@ impl Default for TrainConfig {
             schedule: Schedule::Mixed,
             hidden_loss_weight: 1.0,
             cover_paced_table: false,
+            cover_only_mlp: false,
             optimizer: OptimizerConfig::default(),
             workers: 0,
         }
@@ -132,9 +140,9 @@ pub struct StepStats {
 }
 
 /// Per-worker scratch, allocated once and reused every step.
-struct Worker {
-    grad: Vec<f32>,
-    touched: Touched,
+pub(super) struct Worker {
+    pub(super) grad: Vec<f32>,
+    pub(super) touched: Touched,
     ws: Vec<Workspace>,
     pos: Vec<[f32; 3]>,
     dir: Vec<[f32; 3]>,
@@ -154,7 +162,7 @@ struct Worker {
 }
 
 impl Worker {
-    fn new(n_params: usize) -> Self {
+    pub(super) fn new(n_params: usize) -> Self {
         Worker {
             grad: vec![0.0; n_params],
             touched: Touched::new(n_params),
@@ -221,73 +229,8 @@ pub struct Trainer {
     workers: Vec<Worker>,
     refresh: Option<Box<dyn IndexRefresh>>,
     pace: Option<Pacing>,
+    cover_mlp: Option<CoverOnlyMlp>,
     pub step: u32,
-}
-
-/// [`TrainConfig::cover_paced_table`]'s state.
-struct Pacing {
-    /// One bit per parameter: the cover's gradient of this step reached it.
-    gate: Vec<u64>,
-    /// Other scenes' gradients waiting for the cover to reach their entry.
-    pending: Vec<f32>,
-    /// Parameters below this index are MLP weights, never held back.
-    n_matrix: usize,
-}
-
-impl Pacing {
-    fn new(n_params: usize, n_matrix: usize) -> Self {
-        Pacing {
-            gate: vec![0; n_params.div_ceil(64)],
-            pending: vec![0.0; n_params],
-            n_matrix,
-        }
-    }
-
-    fn gated(&self, i: usize) -> bool {
-        self.gate[i / 64] >> (i % 64) & 1 != 0
-    }
-
-    /// After the cover's rays: every table parameter the cover's gradient reached, i.e.
-    /// whose summed gradient is not zero (the optimizer's own rule, and the GPU's).
-    fn open_gate(&mut self, workers: &[Worker]) {
-        for w in workers {
-            for group in w.touched.groups() {
-                let g0 = (group * GROUP).max(self.n_matrix);
-                for i in g0..((group + 1) * GROUP).min(w.grad.len()) {
-                    if workers.iter().map(|w| w.grad[i]).sum::<f32>() != 0.0 {
-                        self.gate[i / 64] |= 1 << (i % 64);
-                    }
-                }
-            }
-        }
-    }
-
-    /// Before the update: table gradients the gate holds back go to `pending`; held-back
-    /// gradients of entries the gate lets through join this update.
-    fn hold_back(&mut self, workers: &mut [Worker]) {
-        for w in workers.iter_mut() {
-            for group in w.touched.groups() {
-                let g0 = (group * GROUP).max(self.n_matrix);
-                for i in g0..((group + 1) * GROUP).min(w.grad.len()) {
-                    if !self.gated(i) && w.grad[i] != 0.0 {
-                        self.pending[i] += w.grad[i];
-                        w.grad[i] = 0.0;
-                    }
-                }
-            }
-        }
-        let Some(first) = workers.first_mut() else {
-            return;
-        };
-        for (k, word) in self.gate.iter_mut().enumerate() {
-            let mut rest = std::mem::take(word);
-            while rest != 0 {
-                let i = k * 64 + rest.trailing_zeros() as usize;
-                rest &= rest - 1;
-                first.grad[i] += std::mem::take(&mut self.pending[i]);
-            }
-        }
-    }
 }
 
 /// A scene's occupancy grid before its first step (the GPU trainer's too): every cell no
@@ -382,6 +325,9 @@ impl Trainer {
         let pace = config
             .cover_paced_table
             .then(|| Pacing::new(params.len(), net.layout.n_mlp_params()));
+        let cover_mlp = config
+            .cover_only_mlp
+            .then(|| CoverOnlyMlp::new(n_workers, net.layout.n_mlp_params()));
         let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
         Ok(Trainer {
             net,
@@ -392,6 +338,7 @@ impl Trainer {
             workers,
             refresh: None,
             pace,
+            cover_mlp,
             step: 0,
         })
     }
@@ -531,6 +478,9 @@ impl Trainer {
                 if let Some(p) = &mut self.pace {
                     p.open_gate(&self.workers);
                 }
+                if let Some(m) = &mut self.cover_mlp {
+                    m.keep(&self.workers);
+                }
             }
             stats.n_samples += used;
             let scene = &mut self.scenes[si];
@@ -544,6 +494,9 @@ impl Trainer {
         }
         if let Some(p) = &mut self.pace {
             p.hold_back(&mut self.workers);
+        }
+        if let Some(m) = &mut self.cover_mlp {
+            m.restore(&mut self.workers);
         }
         let t_rays = t0.elapsed().as_secs_f64();
         let mut grads: Vec<Vec<f32>> = self
@@ -811,56 +764,5 @@ mod tests {
         // Capped at 2^18, never below one granule.
         assert_eq!(next_rays_per_batch(1 << 17, 1 << 18, 1), 1 << 18);
         assert_eq!(next_rays_per_batch(256, 1, 1 << 20), 256);
-    }
-
-    fn add(w: &mut Worker, i: usize, g: f32) {
-        w.grad[i] += g;
-        w.touched.mark(i);
-    }
-
-    #[test]
-    fn pacing_holds_table_gradients_until_the_cover_reaches_them() {
-        // 24 parameters, the first 4 MLP weights; two workers.
-        let mut ws = vec![Worker::new(24), Worker::new(24)];
-        let mut p = Pacing::new(24, 4);
-        // Step 1, the cover's rays: table parameters 5 and 9, and an MLP weight.
-        add(&mut ws[0], 5, 1.0);
-        add(&mut ws[1], 9, 2.0);
-        add(&mut ws[1], 1, 0.5);
-        p.open_gate(&ws);
-        // The hidden scene's rays: 5 again, 6 and 13 (the cover's gradient missed them),
-        // and an MLP weight the cover did not reach.
-        add(&mut ws[0], 5, 0.25);
-        add(&mut ws[1], 6, 4.0);
-        add(&mut ws[0], 13, 8.0);
-        add(&mut ws[1], 13, 16.0);
-        add(&mut ws[0], 2, 3.0);
-        p.hold_back(&mut ws);
-        let sum = |ws: &[Worker], i: usize| ws[0].grad[i] + ws[1].grad[i];
-        assert_eq!(sum(&ws, 5), 1.25);
-        assert_eq!(sum(&ws, 9), 2.0);
-        assert_eq!((sum(&ws, 6), sum(&ws, 13)), (0.0, 0.0));
-        assert_eq!(
-            (sum(&ws, 1), sum(&ws, 2)),
-            (0.5, 3.0),
-            "MLP weights are never held"
-        );
-        assert_eq!((p.pending[6], p.pending[13]), (4.0, 24.0));
-        // Step 2 (buffers zeroed by the optimizer): the cover reaches 6; 13 waits on.
-        for w in &mut ws {
-            w.grad.fill(0.0);
-            w.touched.clear();
-        }
-        add(&mut ws[1], 6, -1.0);
-        p.open_gate(&ws);
-        add(&mut ws[0], 13, 1.0);
-        p.hold_back(&mut ws);
-        assert_eq!(sum(&ws, 6), 3.0, "the held gradient joins the cover's");
-        assert_eq!(sum(&ws, 13), 0.0);
-        assert_eq!((p.pending[6], p.pending[13]), (0.0, 25.0));
-        assert!(
-            p.gate.iter().all(|&w| w == 0),
-            "the gate closes after each step"
-        );
     }
 }
