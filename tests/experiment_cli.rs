@@ -87,3 +87,35 @@ fn partial_keys_report_and_figures() {
     .unwrap();
     assert_eq!(json["tables"], json2["tables"]);
 }
+
+/// `--cover-only-mlp` changes stealth training: without `--stealth` (outside detectability)
+/// or with detectability's stealth arm left out, it is refused before anything is written.
+#[test]
+fn cover_only_mlp_without_stealth_is_refused() {
+    let d = tempfile::tempdir().unwrap();
+    let out_dir = d.path().join("out");
+    let out = out_dir.to_str().unwrap();
+    for (args, says) in [
+        (
+            vec!["experiment", "fidelity", "--cover-only-mlp", "--out", out],
+            "--stealth",
+        ),
+        (
+            vec![
+                "experiment",
+                "detectability",
+                "--cover-only-mlp",
+                "--no-stealth-arm",
+                "--out",
+                out,
+            ],
+            "--no-stealth-arm",
+        ),
+    ] {
+        let r = stegongp(&args);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert!(!r.status.success(), "{args:?}");
+        assert!(err.contains(says), "{args:?}: {err}");
+        assert!(!out_dir.exists(), "{args:?} wrote {out}");
+    }
+}

@@ -73,7 +73,6 @@ fn train(mode: Mode, cover: &Arc<Dataset>, hidden: &Arc<Dataset>, key: &Key) -> 
         occupancy_fraction: 1.0 / 32.0,
         // As `train --stealth` trains.
         cover_paced_table: matches!(mode, Mode::Stealth),
-        cover_only_mlp: matches!(mode, Mode::Stealth),
         ..Default::default()
     };
     let mut t = Trainer::new(cfg, scenes, tc).unwrap();
@@ -207,9 +206,10 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
     eprintln!(
         "level {l} entries at init: plain {p:.3}, stego {d:.3}, stealth {s:.3}; cover PSNR plain/stego/stealth {cover:.2?}; hidden default {hidden_default:.2}, stealth {hidden_stealth:.2}, stealth model opened without --stealth {hidden_unconfined:.2}"
     );
-    // Measured (32 px, 250 steps): plain 0.279, default stego 0.037, stealth 0.279; cover
-    // 21.68 / 20.90 / 21.21 dB; hidden default 24.43, stealth 20.16 dB. (Paced, the MLP
-    // still shared: cover 19.63, hidden 21.63; confined only: cover 21.23, hidden 23.11.)
+    // Measured (32 px, 250 steps): plain 0.279, default stego 0.041, stealth 0.279; cover
+    // 21.68 / 20.94 / 19.63 dB; hidden default 24.46, stealth 21.63 dB. (Before stealth
+    // paced the table on the cover: cover 21.23, hidden 23.11 dB. With the cover-only MLP
+    // as well: cover 21.21, hidden 20.16 dB.)
     // The default stego model trains the slots no cover vertex maps to; stealth leaves them.
     assert!(p > 0.1, "plain {p:.3}");
     assert!(d < 0.5 * p, "default stego {d:.3} vs plain {p:.3}");
@@ -219,15 +219,15 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
         hidden_stealth > 18.0,
         "hidden (stealth) {hidden_stealth:.2}"
     );
-    // The hidden scene decoded by the cover's MLP pays for it (−4.27 dB measured).
     assert!(
-        hidden_stealth > hidden_default - 5.0,
+        hidden_stealth > hidden_default - 4.0,
         "hidden stealth {hidden_stealth:.2} vs default {hidden_default:.2}"
     );
     // (Opened without the confinement, only the indices that landed on unreachable slots
     // differ, so it shows most of the scene too: nothing to assert there.)
-    // The stealth cover measured 0.47 dB under plain (default stego: 0.78). The same seed
-    // gives other numbers on other machines (0.3–0.4 dB apart between this one and CI's,
-    // measured with the MLP shared; gemm picks its kernels by CPU): the bound leaves room.
-    assert!(cover[2] > cover[0] - 1.5, "cover {cover:.2?}");
+    // The stealth cover measured 2.05 dB under plain on CI and 1.76 dB on an earlier
+    // session's machine (same seed, other numbers: gemm picks its kernels by CPU, the likely
+    // cause): the bound leaves room for that spread and still fails a stealth mode that
+    // costs the cover its scene.
+    assert!(cover[2] > cover[0] - 3.0, "cover {cover:.2?}");
 }

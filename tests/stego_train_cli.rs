@@ -1,5 +1,6 @@
 //! `stegongp train --hidden`: each scene is trained at its own resolution (the cover's
-//! `--downscale` does not shrink the hidden scenes), and the key opens the hidden scene.
+//! `--downscale` does not shrink the hidden scenes), and the key opens the hidden scene;
+//! the stealth flags.
 
 use std::process::{Command, Output};
 
@@ -160,4 +161,50 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
     let info = stegongp(&["inspect", &model, "--json"]);
     let info: serde_json::Value = serde_json::from_slice(&info.stdout).unwrap();
     assert_eq!(info["aabb_scale"], 8, "{info}");
+}
+
+/// `--stealth --cover-only-mlp` trains a stealth model the key opens with `--stealth`;
+/// `--cover-only-mlp` alone is refused (it changes stealth training) and writes nothing.
+#[test]
+fn cover_only_mlp_trains_with_stealth_and_only_with_it() {
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let (cover, text, key, model) = (p("cover"), p("text"), p("k.json"), p("m.ingp"));
+    for (scene, dir) in [("object", &cover), ("text", &text)] {
+        ok(stegongp(&[
+            "synth", "--scene", scene, "--res", "16", "--train", "4", "--test", "1", "--out", dir,
+        ]));
+    }
+    ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    let train = |extra: &[&str]| {
+        let mut args = vec![
+            "train", &cover, "--hidden", &text, "--key", &key, "--steps", "3", "--batch", "2048",
+            "--log2-t", "12", "--out", &model,
+        ];
+        args.extend_from_slice(extra);
+        stegongp(&args)
+    };
+    let out = train(&["--cover-only-mlp"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("--stealth"), "{err}");
+    assert!(
+        !d.path().join("m.ingp").exists(),
+        "a refused run wrote a model"
+    );
+    let log = ok(train(&["--stealth", "--cover-only-mlp"]));
+    assert!(log.contains("the MLP learnt from the cover alone"), "{log}");
+    ok(stegongp(&[
+        "eval",
+        "--model",
+        &model,
+        "--data",
+        &text,
+        "--key",
+        &key,
+        "--stealth",
+        "--views",
+        "1",
+        "--no-lpips",
+    ]));
 }

@@ -63,6 +63,10 @@ pub struct Args {
     /// table entries; see `train --stealth`).
     #[arg(long)]
     pub stealth: bool,
+    /// Stealth models learn their MLP from the cover alone (see `train --cover-only-mlp`):
+    /// with --stealth, or for detectability's stealth arm.
+    #[arg(long)]
+    pub cover_only_mlp: bool,
     /// Use the paper's one-scene-per-step schedule instead of mixed batches.
     #[arg(long)]
     pub random_scene: bool,
@@ -127,6 +131,12 @@ pub fn run(a: Args) -> Result<()> {
              stealth itself: --cover, --hidden, --stealth and --random-scene do not apply \
              (--no-stealth-arm leaves the stealth models out)"
         );
+    }
+    if a.cover_only_mlp && !a.stealth && !detect {
+        bail!("--cover-only-mlp changes stealth training: give it with --stealth");
+    }
+    if a.cover_only_mlp && detect && a.no_stealth_arm {
+        bail!("--cover-only-mlp changes the stealth arm, which --no-stealth-arm leaves out");
     }
     let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
     std::fs::create_dir_all(&a.out)?;
@@ -206,6 +216,7 @@ pub fn run(a: Args) -> Result<()> {
             Schedule::Mixed
         },
         stealth: a.stealth,
+        cover_only_mlp: a.cover_only_mlp,
         lpips: !a.no_lpips,
         verbose: true,
         device: std::sync::Arc::new(device),

@@ -77,10 +77,16 @@ pub struct Args {
     /// Stealth: confine the hidden scenes to the table entries the cover itself trains (its
     /// reachable set under the stored occupancy grid), so that the file's statistics look
     /// like a plain model's (see `stegongp detect`), and move a table entry only in steps
-    /// where the cover's own gradient reaches it; the MLP learns from the cover alone. Render
-    /// and evaluate the hidden scenes with `--stealth` too.
+    /// where the cover's own gradient reaches it. Render and evaluate the hidden scenes with
+    /// `--stealth` too.
     #[arg(long)]
     pub stealth: bool,
+    /// With --stealth: the MLP learns from the cover alone, the hidden scenes train their
+    /// keyed table entries only and are decoded by the cover's MLP. Fewer statistics tell
+    /// the file from a plain one and the cover keeps more of its quality; the hidden scenes
+    /// lose more (BENCHMARKS.md, "Stealth with the cover's own MLP").
+    #[arg(long, requires = "stealth")]
+    pub cover_only_mlp: bool,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
     #[arg(long, value_delimiter = ',')]
     pub checkpoints: Vec<f64>,
@@ -185,7 +191,7 @@ pub fn run(a: Args) -> Result<()> {
         schedule: a.schedule,
         hidden_loss_weight: a.hidden_weight,
         cover_paced_table: a.stealth,
-        cover_only_mlp: a.stealth,
+        cover_only_mlp: a.cover_only_mlp,
         workers: a.workers,
         ..Default::default()
     };
@@ -204,6 +210,17 @@ pub fn run(a: Args) -> Result<()> {
                 d.frames.len(),
                 d.width,
                 d.height
+            );
+        }
+        if a.stealth {
+            eprintln!(
+                "stealth: hidden scenes confined to the cover's entries, the table paced on \
+                 the cover, the MLP {}",
+                if a.cover_only_mlp {
+                    "learnt from the cover alone"
+                } else {
+                    "shared"
+                }
             );
         }
     }

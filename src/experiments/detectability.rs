@@ -64,7 +64,7 @@ impl Default for DetectOptions {
 /// Bump when a change makes earlier model files no longer what this code would train.
 const MODEL_FORMAT: u32 = 1;
 /// Bump when stealth training changes (the stealth arm alone is trained again).
-const STEALTH_FORMAT: u32 = 3;
+const STEALTH_FORMAT: u32 = 2;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Arm {
@@ -337,6 +337,9 @@ fn model_config(
     if arm == Arm::Stealth {
         // Only this arm's key, so that plain and default stego files stay reusable.
         v["stealth"] = json!(STEALTH_FORMAT);
+        if cfg.cover_only_mlp {
+            v["cover_only_mlp"] = json!(true);
+        }
     }
     v
 }
@@ -680,7 +683,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let mut report = Report {
         name: Experiment::Detectability.to_string(),
         setup: json!({
-            "models_per_arm": opts.models, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
+            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
             "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
             "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
             "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,

@@ -418,11 +418,14 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         let stego = models.get(
             &format!("stego-{cl}-{hl}"),
             json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
-                   "steps": steps, "scheme": cfg.scheme.name(), "key": which,
-                   "schedule": format!("{:?}", cfg.schedule),
-                   // A stealth model trained before stealth paced the table and learnt its MLP
-                   // from the cover alone is not reused.
-                   "stealth": if cfg.stealth { json!("paced, cover-only MLP") } else { json!(false) }}),
+            "steps": steps, "scheme": cfg.scheme.name(), "key": which,
+            "schedule": format!("{:?}", cfg.schedule),
+            // A stealth model trained before stealth paced the table is not reused.
+            "stealth": match (cfg.stealth, cfg.cover_only_mlp) {
+                (false, _) => json!(false),
+                (true, false) => json!("paced"),
+                (true, true) => json!("paced, cover-only MLP"),
+            }}),
             || {
                 let t = train_scenes(
                     cfg,

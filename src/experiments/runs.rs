@@ -115,6 +115,8 @@ pub struct ExpConfig {
     pub schedule: Schedule,
     /// Stealth training: hidden scenes confined to the cover's reachable entries.
     pub stealth: bool,
+    /// With `stealth`: the MLP learns from the cover alone.
+    pub cover_only_mlp: bool,
     /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
     pub lpips: bool,
     /// Progress lines on stderr.
@@ -202,7 +204,7 @@ pub(super) fn train_scenes(
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
-        cover_only_mlp: cfg.stealth,
+        cover_only_mlp: cfg.stealth && cfg.cover_only_mlp,
         ..Default::default()
     };
     let mut t = cfg.device.trainer(config, specs, tc)?;
@@ -320,7 +322,8 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
-        "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth, "lpips": cfg.lpips,
+        "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
+        "cover_only_mlp": cfg.stealth && cfg.cover_only_mlp, "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(), "device": cfg.device.report(),
     })
 }

@@ -32,9 +32,10 @@
 //! [`TrainConfig::cover_paced_table`](crate::ngp::train::TrainConfig::cover_paced_table):
 //! an entry moves only in steps where the cover's gradient reaches it. With the table paced,
 //! the shared MLP gave the models away next (the spread of its first density layer: AUC
-//! 0.98), so stealth training also sets
-//! [`TrainConfig::cover_only_mlp`](crate::ngp::train::TrainConfig::cover_only_mlp): the
-//! hidden scenes train their keyed entries only, and are decoded by the cover's own MLP.
+//! 0.98). [`TrainConfig::cover_only_mlp`](crate::ngp::train::TrainConfig::cover_only_mlp)
+//! (`train --stealth --cover-only-mlp`) lets the hidden scenes train their keyed entries
+//! only, decoded by the cover's own MLP: fewer statistics separate the arms, at a price in
+//! hidden fidelity that keeps it optional (BENCHMARKS.md).
 
 use super::keys::Key;
 use crate::ngp::encoding::reach::{EntrySet, reachable_entries};

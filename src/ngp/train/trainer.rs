@@ -69,7 +69,7 @@ pub struct TrainConfig {
     /// table only, and a step without the cover gives the MLP a zero gradient. A plain
     /// model's MLP is what its cover made it; one that also decodes hidden scenes drifts
     /// measurably from it (its first density layer's spread gave the paced stealth models
-    /// away, BENCHMARKS.md). Stealth training sets this.
+    /// away, BENCHMARKS.md). `train --stealth --cover-only-mlp` sets this.
     pub cover_only_mlp: bool,
     pub optimizer: OptimizerConfig,
     /// Worker count (gradient partitions); 0 = one per core.
