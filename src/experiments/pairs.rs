@@ -414,7 +414,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             cover_dir.display(),
             hidden_dir.display()
         ));
-        let key = experiment_key(cfg.scheme, 1, cfg.seed, which)?;
+        let key = experiment_key(cfg.scheme, 1, cfg.seed, which, &hidden)?;
         let stego = models.get(
             &format!("stego-{cl}-{hl}"),
             json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,

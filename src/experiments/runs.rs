@@ -84,12 +84,20 @@ impl std::str::FromStr for Experiment {
     }
 }
 
-/// An experiment's key number `which` of `kind` for `m` groups: drawn from the run's seed, so
-/// a report can be reproduced exactly (these keys protect nothing).
-pub(super) fn experiment_key(kind: SchemeKind, m: usize, seed: u64, which: u64) -> Result<Key> {
+/// An experiment's key number `which` of `kind` for `m` groups, for `hidden`: drawn from the
+/// run's seed, so a report can be reproduced exactly (these keys protect nothing). Like
+/// `keygen --aabb-scale`, the key names the hidden scene's own box, so that a key holder's
+/// grid (and a wrong key's) is cut to it inside a larger cover's box.
+pub(super) fn experiment_key(
+    kind: SchemeKind,
+    m: usize,
+    seed: u64,
+    which: u64,
+    hidden: &Scene,
+) -> Result<Key> {
     let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
     let next = move || Ok(((rng.next_u32() as u64) << 32) | rng.next_u32() as u64);
-    generate_with(kind, m, next)
+    generate_with(kind, m, next)?.with_scene_box(Some(hidden.own_box))
 }
 
 /// What every experiment shares.
@@ -129,6 +137,8 @@ pub(super) struct Scene {
     pub train: Arc<Dataset>,
     pub test: Dataset,
     pub name: String,
+    /// The scene's own box (its aabb_scale as loaded, before it took the cover's).
+    pub own_box: u32,
 }
 
 /// Loads a scene's splits, placed in the box of `aabb_scale` when given (hidden scenes take
@@ -140,6 +150,7 @@ pub(super) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) ->
     };
     let mut train = Dataset::load(dir, Split::Train, &opts)?;
     let mut test = Dataset::load(dir, Split::Test, &opts)?;
+    let own_box = train.aabb_scale;
     if let Some(a) = aabb_scale {
         train.fit_into_box(a, None)?;
         test.fit_into_box(a, None)?;
@@ -151,6 +162,7 @@ pub(super) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) ->
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_else(|| dir.display().to_string()),
+        own_box,
     })
 }
 
@@ -396,8 +408,8 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
 
 fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
-    let key = experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, 0)?;
     let h = ctx.hidden(0);
+    let key = experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, 0, h)?;
     ctx.log("fidelity: plain cover, plain hidden, stego (cover + hidden)");
     let plain_c = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi)], "plain cover")?;
     let plain_h = ctx.train(ctx.cfg.grid, &[(h, &pi)], "plain hidden")?;
@@ -446,7 +458,7 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
     for scheme in [SchemeKind::Primes, SchemeKind::Prf] {
-        let key = experiment_key(scheme, 1, ctx.cfg.seed, 0)?;
+        let key = experiment_key(scheme, 1, ctx.cfg.seed, 0, h)?;
         ctx.log(&format!("key-sensitivity ({}): stego model", scheme.name()));
         let stego = ctx.train(ctx.cfg.grid, &[(&ctx.cover, &pi), (h, &key)], scheme.name())?;
         let variants = [
@@ -514,7 +526,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
             if m > ctx.cfg.grid.n_levels as usize {
                 continue;
             }
-            let key = experiment_key(scheme, m, ctx.cfg.seed, 0)?;
+            let key = experiment_key(scheme, m, ctx.cfg.seed, 0, h)?;
             ctx.log(&format!("partial-keys: {} m = {m}", scheme.name()));
             let stego = ctx.train(
                 ctx.cfg.grid,
@@ -577,7 +589,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let mut tiles = vec![];
     for phi in 1..=4usize {
         let keys: Vec<Key> = (0..phi)
-            .map(|i| experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, i as u64))
+            .map(|i| experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, i as u64, ctx.hidden(i)))
             .collect::<Result<_>>()?;
         let mut scenes: Vec<(&Scene, &Key)> = vec![(&ctx.cover, &pi)];
         for (i, k) in keys.iter().enumerate() {
@@ -623,7 +635,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
 fn table_size(ctx: &Ctx, report: &mut Report) -> Result<()> {
     let pi = Key::reference();
     let h = ctx.hidden(0);
-    let key = experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, 0)?;
+    let key = experiment_key(ctx.cfg.scheme, 1, ctx.cfg.seed, 0, h)?;
     let mut t = Table::new("Hash table size T");
     for log2_t in 18..=21u32 {
         let grid = GridConfig {
@@ -777,7 +789,7 @@ pub(super) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Resu
     let ctx = Ctx { cfg, cover, hidden };
     let pi = Key::reference();
     let key = key
-        .map(|which| experiment_key(cfg.scheme, 1, cfg.seed, which))
+        .map(|which| experiment_key(cfg.scheme, 1, cfg.seed, which, &ctx.hidden[0]))
         .transpose()?;
     let mut scenes = vec![(&ctx.cover, &pi)];
     if let Some(k) = &key {
@@ -801,7 +813,41 @@ pub(super) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Resu
 
 #[cfg(test)]
 mod tests {
-    use super::Experiment;
+    use super::{Experiment, experiment_key, load_scene};
+    use crate::stego::SchemeKind;
+    use crate::synth::{SceneKind, SynthOptions, generate};
+
+    #[test]
+    fn experiment_keys_name_the_hidden_scenes_own_box() {
+        let d = tempfile::tempdir().unwrap();
+        for (name, aabb_scale) in [("one", 1), ("four", 4)] {
+            generate(
+                &SynthOptions {
+                    scene: SceneKind::Object,
+                    resolution: 8,
+                    n_train: 2,
+                    n_val: 0,
+                    n_test: 1,
+                    seed: 1,
+                    aabb_scale,
+                },
+                &d.path().join(name),
+            )
+            .unwrap();
+        }
+        // In a cover's box of 8, each scene keeps its own box in its key (as `keygen
+        // --aabb-scale` would write it) and the same index as a key of the same number.
+        let one = load_scene(&d.path().join("one"), 1, Some(8)).unwrap();
+        let four = load_scene(&d.path().join("four"), 1, Some(8)).unwrap();
+        assert_eq!((one.train.aabb_scale, four.test.aabb_scale), (8, 8));
+        for scheme in [SchemeKind::Prf, SchemeKind::Primes] {
+            let k1 = experiment_key(scheme, 4, 3, 0, &one).unwrap();
+            let k4 = experiment_key(scheme, 4, 3, 0, &four).unwrap();
+            assert_eq!((k1.scene_box(), k4.scene_box()), (Some(1), Some(4)));
+            assert!(k1.same_index(&k4));
+            assert!(!k1.same_index(&experiment_key(scheme, 4, 3, 1, &one).unwrap()));
+        }
+    }
 
     #[test]
     fn experiment_names_read_back_and_name_the_report_folders() {
