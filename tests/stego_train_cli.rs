@@ -17,17 +17,24 @@ fn ok(out: Output) -> String {
     err
 }
 
-#[test]
-fn cover_downscale_leaves_hidden_scenes_at_their_resolution() {
-    let d = tempfile::tempdir().unwrap();
-    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+/// In `d`: a generated object cover and text scene at `res` px (4 train views, 1 test), a
+/// `prf` key, and where a model goes: (cover, text, key, model).
+fn cover_text_key(d: &std::path::Path, res: &str) -> (String, String, String, String) {
+    let p = |n: &str| d.join(n).to_str().unwrap().to_string();
     let (cover, text, key, model) = (p("cover"), p("text"), p("k.json"), p("m.ingp"));
     for (scene, dir) in [("object", &cover), ("text", &text)] {
         ok(stegongp(&[
-            "synth", "--scene", scene, "--res", "32", "--train", "4", "--test", "1", "--out", dir,
+            "synth", "--scene", scene, "--res", res, "--train", "4", "--test", "1", "--out", dir,
         ]));
     }
     ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    (cover, text, key, model)
+}
+
+#[test]
+fn cover_downscale_leaves_hidden_scenes_at_their_resolution() {
+    let d = tempfile::tempdir().unwrap();
+    let (cover, text, key, model) = cover_text_key(d.path(), "32");
     let log = ok(stegongp(&[
         "train",
         &cover,
@@ -168,14 +175,7 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
 #[test]
 fn cover_only_mlp_trains_with_stealth_and_only_with_it() {
     let d = tempfile::tempdir().unwrap();
-    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
-    let (cover, text, key, model) = (p("cover"), p("text"), p("k.json"), p("m.ingp"));
-    for (scene, dir) in [("object", &cover), ("text", &text)] {
-        ok(stegongp(&[
-            "synth", "--scene", scene, "--res", "16", "--train", "4", "--test", "1", "--out", dir,
-        ]));
-    }
-    ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    let (cover, text, key, model) = cover_text_key(d.path(), "16");
     let train = |extra: &[&str]| {
         let mut args = vec![
             "train", &cover, "--hidden", &text, "--key", &key, "--steps", "3", "--batch", "2048",

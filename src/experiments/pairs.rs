@@ -421,7 +421,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             "steps": steps, "scheme": cfg.scheme.name(), "key": which,
             "schedule": format!("{:?}", cfg.schedule),
             // A stealth model trained before stealth paced the table is not reused.
-            "stealth": match (cfg.stealth, cfg.cover_only_mlp) {
+            "stealth": match (cfg.stealth, cfg.trains_cover_only_mlp()) {
                 (false, _) => json!(false),
                 (true, false) => json!("paced"),
                 (true, true) => json!("paced, cover-only MLP"),

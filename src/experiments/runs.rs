@@ -123,7 +123,8 @@ pub struct ExpConfig {
     pub schedule: Schedule,
     /// Stealth training: hidden scenes confined to the cover's reachable entries.
     pub stealth: bool,
-    /// With `stealth`: the MLP learns from the cover alone.
+    /// With `stealth`: the MLP learns from the cover alone (see
+    /// [`ExpConfig::trains_cover_only_mlp`]).
     pub cover_only_mlp: bool,
     /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
     pub lpips: bool,
@@ -131,6 +132,14 @@ pub struct ExpConfig {
     pub verbose: bool,
     /// Where every model trains and renders (shared: one device for the whole run).
     pub device: Arc<Device>,
+}
+
+impl ExpConfig {
+    /// Whether this configuration's models learn their MLP from the cover alone: only
+    /// stealth training does.
+    pub fn trains_cover_only_mlp(&self) -> bool {
+        self.stealth && self.cover_only_mlp
+    }
 }
 
 pub(super) struct Scene {
@@ -216,7 +225,7 @@ pub(super) fn train_scenes(
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
-        cover_only_mlp: cfg.stealth && cfg.cover_only_mlp,
+        cover_only_mlp: cfg.trains_cover_only_mlp(),
         ..Default::default()
     };
     let mut t = cfg.device.trainer(config, specs, tc)?;
@@ -335,7 +344,7 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
         "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
-        "cover_only_mlp": cfg.stealth && cfg.cover_only_mlp, "lpips": cfg.lpips,
+        "cover_only_mlp": cfg.trains_cover_only_mlp(), "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(), "device": cfg.device.report(),
     })
 }

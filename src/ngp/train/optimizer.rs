@@ -125,9 +125,11 @@ impl Touched {
         set_bits(self.bits.iter().copied())
     }
     /// The groups any of `ts` marked, each once, in increasing order.
-    pub fn groups_of_any<'a>(ts: &'a [&'a Touched]) -> impl Iterator<Item = usize> + 'a {
-        let words = ts.first().map_or(0, |t| t.bits.len());
-        set_bits((0..words).map(move |k| ts.iter().fold(0, |a, t| a | t.bits[k])))
+    pub fn groups_of_any<'a>(
+        ts: impl Iterator<Item = &'a Touched> + Clone + 'a,
+    ) -> impl Iterator<Item = usize> + 'a {
+        let words = ts.clone().next().map_or(0, |t| t.bits.len());
+        set_bits((0..words).map(move |k| ts.clone().fold(0, |a, t| a | t.bits[k])))
     }
     pub fn clear(&mut self) {
         self.bits.fill(0);

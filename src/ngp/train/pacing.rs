@@ -36,9 +36,8 @@ impl Pacing {
     /// After the cover's rays: every table parameter the cover's gradient reached, i.e.
     /// whose summed gradient is not zero (the optimizer's own rule, and the GPU's).
     pub(super) fn open_gate(&mut self, workers: &[Worker]) {
-        let touched: Vec<&Touched> = workers.iter().map(|w| &w.touched).collect();
         let n = self.pending.len();
-        for group in Touched::groups_of_any(&touched) {
+        for group in Touched::groups_of_any(workers.iter().map(|w| &w.touched)) {
             for i in (group * GROUP).max(self.n_matrix)..((group + 1) * GROUP).min(n) {
                 if workers.iter().map(|w| w.grad[i]).sum::<f32>() != 0.0 {
                     self.gate[i / 64] |= 1 << (i % 64);
