@@ -10,7 +10,7 @@
 //! gradient lines while it writes the current one.
 //! Encodings are feature-major: feature `l·F + f` of sample `s` lives at `enc[(l·F+f)·ld + s]`.
 
-use super::index::{Kernel, LevelIndices, WithKernel};
+use super::index::{Kernel, LevelIndices, WithKernel, table_lookup};
 use super::layout::{GridLayout, LevelInfo};
 
 const CORNERS: usize = 8;
@@ -24,7 +24,7 @@ const PREFETCH_IN_CORNERS: bool = true;
 const PREFETCH_NEXT_LEVEL: bool = true;
 
 #[inline(always)]
-fn prefetch(p: *const f32) {
+fn prefetch<T>(p: *const T) {
     #[cfg(target_arch = "x86_64")]
     // SAFETY: prefetch is a hint; it never faults, even on an invalid address.
     unsafe {
@@ -107,7 +107,22 @@ impl WithKernel for LevelCorners<'_> {
             offs,
             weights,
         } = self;
-        level_corners(index, table, level, n_features, pos, offs, weights);
+        level_corners::<K, false>(index, &[], table, level, n_features, pos, offs, weights);
+    }
+
+    /// Every base entry first (prefetching its line of the map), then the map: looking each
+    /// corner up as it is made stalled the corner pass on a miss per corner (stealth's
+    /// occupancy updates ran at a third of a keyed index's speed).
+    fn run_tabled<K: Kernel>(self, base: K, map: &[u32]) {
+        let LevelCorners {
+            table,
+            level,
+            n_features,
+            pos,
+            offs,
+            weights,
+        } = self;
+        level_corners::<K, true>(base, map, table, level, n_features, pos, offs, weights);
     }
 }
 
@@ -125,8 +140,12 @@ fn corners_apart<K: Kernel>(index: &K, cell: [u32; 3], out: &mut [u32; CORNERS])
 /// reference arguments do not alias, but not references inside a struct, and without that it
 /// reloads the level's size and offset after every store and stops vectorising the corner
 /// pass (+10 % instructions in `forward`, callgrind).
-fn level_corners<K: Kernel>(
+/// With `MAPPED`, `index` is a level's base arithmetic and `map` the table after it: the
+/// first pass keeps the base entries (and prefetches their map lines), a second maps them.
+#[allow(clippy::too_many_arguments)]
+fn level_corners<K: Kernel, const MAPPED: bool>(
     index: K,
+    map: &[u32],
     table: *const f32,
     level: &LevelInfo,
     n_features: u32,
@@ -140,13 +159,20 @@ fn level_corners<K: Kernel>(
         let mut e = [0u32; CORNERS];
         corners_apart(&index, cell, &mut e);
         let o = &mut offs[s * CORNERS..(s + 1) * CORNERS];
-        for c in 0..CORNERS {
-            bad |= e[c] >= level.size;
-            o[c] = level.offset.wrapping_add(e[c]).wrapping_mul(n_features);
-        }
-        if PREFETCH_IN_CORNERS {
-            for &oc in o.iter() {
-                prefetch(table.wrapping_add(oc as usize));
+        if MAPPED {
+            o.copy_from_slice(&e);
+            for &ec in &e {
+                prefetch(map.as_ptr().wrapping_add(ec as usize));
+            }
+        } else {
+            for c in 0..CORNERS {
+                bad |= e[c] >= level.size;
+                o[c] = level.offset.wrapping_add(e[c]).wrapping_mul(n_features);
+            }
+            if PREFETCH_IN_CORNERS {
+                for &oc in o.iter() {
+                    prefetch(table.wrapping_add(oc as usize));
+                }
             }
         }
         let wx = [1.0 - frac[0], frac[0]];
@@ -155,6 +181,14 @@ fn level_corners<K: Kernel>(
         let w = &mut weights[s * CORNERS..(s + 1) * CORNERS];
         for c in 0..CORNERS {
             w[c] = wx[c & 1] * wy[(c >> 1) & 1] * wz[c >> 2];
+        }
+    }
+    if MAPPED {
+        for o in offs.iter_mut() {
+            let e = table_lookup(map, *o);
+            bad |= e >= level.size;
+            *o = level.offset.wrapping_add(e).wrapping_mul(n_features);
+            prefetch(table.wrapping_add(*o as usize));
         }
     }
     // An index outside its level would read another level's (or no) entry: refuse, since
@@ -349,7 +383,7 @@ pub(crate) fn naive_encode(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ngp::encoding::index::reference_indices;
+    use crate::ngp::encoding::index::{IndexFn, LevelIndex, reference_indices};
     use crate::ngp::encoding::layout::GridConfig;
     use crate::rng::Pcg32;
 
@@ -402,7 +436,6 @@ mod tests {
         ] {
             let g = GridLayout::new(cfg, 1).unwrap();
             let table = random_table(&g, 1);
-            let idx = reference_indices(&g);
             // Include the faces of the cube, where the upper corner wraps.
             let mut pos = random_pos(61, 2);
             pos.push([0.0, 0.0, 0.0]);
@@ -411,21 +444,45 @@ mod tests {
             let n = pos.len();
             let ld = 70;
             let width = g.config.n_output_dims();
-            let mut enc = vec![0f32; width * ld];
-            let mut cache = GridCache::new(&g, 80);
-            forward(&g, &table, &idx, &pos, &mut cache, &mut enc, ld);
-            for s in 0..n {
-                let want = naive_encode(&g, &table, &idx, pos[s]);
-                for j in 0..width {
-                    let got = enc[j * ld + s];
-                    assert!(
-                        (got - want[j]).abs() <= 1e-5 * (1.0 + want[j].abs()),
-                        "cfg {cfg:?} s {s} j {j}: {got} vs {}",
-                        want[j]
-                    );
+            // The reference index, and indices with a table after them (the corner pass
+            // that maps every base entry after the fact, `WithKernel::run_tabled`).
+            for (name, idx) in [
+                ("reference", reference_indices(&g)),
+                ("reference + map", mapped_indices(&g, IndexFn::Reference, 3)),
+                (
+                    "primes + map",
+                    mapped_indices(&g, IndexFn::Primes([7, 11, 13]), 4),
+                ),
+            ] {
+                let mut enc = vec![0f32; width * ld];
+                let mut cache = GridCache::new(&g, 80);
+                forward(&g, &table, &idx, &pos, &mut cache, &mut enc, ld);
+                for s in 0..n {
+                    let want = naive_encode(&g, &table, &idx, pos[s]);
+                    for j in 0..width {
+                        let got = enc[j * ld + s];
+                        assert!(
+                            (got - want[j]).abs() <= 1e-5 * (1.0 + want[j].abs()),
+                            "{name}, cfg {cfg:?} s {s} j {j}: {got} vs {}",
+                            want[j]
+                        );
+                    }
                 }
             }
         }
+    }
+
+    /// `base` on every level, followed by a random map into the level (not a permutation:
+    /// several entries share a target, as a stealth confinement map's do).
+    fn mapped_indices(g: &GridLayout, base: IndexFn, seed: u64) -> LevelIndices {
+        let mut r = Pcg32::new(seed, 5);
+        g.levels
+            .iter()
+            .map(|lv| {
+                let map: Vec<u32> = (0..lv.size).map(|_| r.next_u32() % lv.size).collect();
+                LevelIndex::new(lv, base).with_table(map)
+            })
+            .collect()
     }
 
     /// The encoding is linear in the table, so central differences have no truncation error;
