@@ -158,10 +158,15 @@ pub fn confinement_maps(
 
 /// `key`'s index functions confined by `maps`.
 pub fn confine(key: &Key, layout: &GridLayout, maps: &[Arc<[u32]>]) -> LevelIndices {
-    key.level_indices(layout)
-        .into_iter()
+    confine_indices(&key.level_indices(layout), maps)
+}
+
+/// Index functions (a key's) confined by `maps`.
+fn confine_indices(inner: &[LevelIndex], maps: &[Arc<[u32]>]) -> LevelIndices {
+    inner
+        .iter()
         .zip(maps)
-        .map(|(inner, map)| confined(inner, map))
+        .map(|(inner, map)| confined(inner.clone(), map))
         .collect()
 }
 
@@ -190,23 +195,26 @@ pub fn hidden_indices(
 /// scenes (scenes 1..) get their keys' indices confined to the cover's entries anew.
 pub struct StealthRefresh {
     layout: NerfLayout,
-    keys: Vec<Key>,
+    /// The keys' own index functions, made once: a dense level's keyed permutation costs a
+    /// SipHash a slot, and early in training the grid is refreshed at every step.
+    keyed: Vec<LevelIndices>,
 }
 
 impl StealthRefresh {
     /// `keys[i]` is the key of scene `i + 1`.
     pub fn new(layout: NerfLayout, keys: Vec<Key>) -> Self {
-        StealthRefresh { layout, keys }
+        let keyed = keys.iter().map(|k| k.level_indices(&layout.grid)).collect();
+        StealthRefresh { layout, keyed }
     }
 }
 
 impl IndexRefresh for StealthRefresh {
     fn refresh(&self, cover_grid: &OccupancyGrid, params: &[f32]) -> Vec<(usize, LevelIndices)> {
         let maps = confinement_maps(&self.layout, cover_grid, params);
-        self.keys
+        self.keyed
             .iter()
             .enumerate()
-            .map(|(i, k)| (i + 1, confine(k, &self.layout.grid, &maps)))
+            .map(|(i, k)| (i + 1, confine_indices(k, &maps)))
             .collect()
     }
 }
