@@ -95,10 +95,8 @@ struct LevelCorners<'a> {
     weights: &'a mut [f32],
 }
 
-impl WithKernel for LevelCorners<'_> {
-    type Output = ();
-
-    fn run<K: Kernel>(self, index: K) {
+impl LevelCorners<'_> {
+    fn fill<K: Kernel, const MAPPED: bool>(self, index: K, map: &[u32]) {
         let LevelCorners {
             table,
             level,
@@ -107,22 +105,22 @@ impl WithKernel for LevelCorners<'_> {
             offs,
             weights,
         } = self;
-        level_corners::<K, false>(index, &[], table, level, n_features, pos, offs, weights);
+        level_corners::<K, MAPPED>(index, map, table, level, n_features, pos, offs, weights);
+    }
+}
+
+impl WithKernel for LevelCorners<'_> {
+    type Output = ();
+
+    fn run<K: Kernel>(self, index: K) {
+        self.fill::<K, false>(index, &[])
     }
 
     /// Every base entry first (prefetching its line of the map), then the map: looking each
     /// corner up as it is made stalled the corner pass on a miss per corner (stealth's
     /// occupancy updates ran at a third of a keyed index's speed).
     fn run_tabled<K: Kernel>(self, base: K, map: &[u32]) {
-        let LevelCorners {
-            table,
-            level,
-            n_features,
-            pos,
-            offs,
-            weights,
-        } = self;
-        level_corners::<K, true>(base, map, table, level, n_features, pos, offs, weights);
+        self.fill::<K, true>(base, map)
     }
 }
 
