@@ -48,6 +48,8 @@ fn full_size_16x2_files_and_inspect() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["n_params"], 12_206_480);
     assert_eq!(v["format"], "ingp (gzip msgpack)");
+    // No cell above the threshold (every density ≤ 0), one cascade at aabb_scale 1.
+    assert_eq!(v["occupied_per_cascade"], serde_json::json!([0.0]));
     let text = std::process::Command::new(exe)
         .args(["inspect", mp.to_str().unwrap()])
         .output()
@@ -55,6 +57,7 @@ fn full_size_16x2_files_and_inspect() {
     let t = String::from_utf8_lossy(&text.stdout);
     println!("{t}");
     assert!(t.contains("L=16 levels × F=2 features, T=2^19"));
+    assert!(t.contains("occupied      0.0 % (per cascade)"));
     let bad = dir.path().join("x.ingp");
     std::fs::write(&bad, b"\x1f\x8bgarbage").unwrap();
     let e = std::process::Command::new(exe)

@@ -65,6 +65,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         "density grid  {} cascade(s) of 128³, {} cells, {} bytes fp16",
         info.density_grid_cascades, info.density_grid_cells, info.density_grid_bytes
     );
+    let occupied: Vec<String> = info
+        .occupied_per_cascade
+        .iter()
+        .map(|f| format!("{:.1} %", 100.0 * f))
+        .collect();
+    println!("occupied      {} (per cascade)", occupied.join(", "));
     println!(
         "aabb          scale {}, [{:?} .. {:?}]",
         info.aabb_scale, info.aabb_min, info.aabb_max

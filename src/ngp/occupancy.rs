@@ -526,10 +526,17 @@ impl OccupancyGrid {
 
     /// Fraction of cascade-0 cells that are occupied.
     pub fn occupied_fraction(&self) -> f64 {
-        let n: u32 = self.bitfield[..N_CELLS / 8]
-            .iter()
-            .map(|b| b.count_ones())
-            .sum();
+        self.occupied_fraction_in(0)
+    }
+
+    /// Fraction of the cells of `cascade` whose bit is set (a cascade above 0 includes the
+    /// pooled bits of the finer one at its centre); 0 for a cascade the grid does not have.
+    pub fn occupied_fraction_in(&self, cascade: usize) -> f64 {
+        let per = N_CELLS / 8;
+        let Some(bytes) = self.bitfield.get(cascade * per..(cascade + 1) * per) else {
+            return 0.0;
+        };
+        let n: u32 = bytes.iter().map(|b| b.count_ones()).sum();
         n as f64 / N_CELLS as f64
     }
 }
@@ -554,6 +561,27 @@ fn projects_inside(cam: &Camera, p: [f32; 3]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn occupied_fractions_per_cascade() {
+        // Cascade 0 empty (nothing pooled into cascade 1), 5 cells of cascade 1 set.
+        let mut d = vec![0.0f32; 2 * N_CELLS];
+        for x in 0..5 {
+            d[N_CELLS + morton3d(x, 3, 7) as usize] = 1.0;
+        }
+        let g = OccupancyGrid::from_density(d).unwrap();
+        assert_eq!(g.occupied_fraction_in(0), 0.0);
+        assert_eq!(g.occupied_fraction_in(1), 5.0 / N_CELLS as f64);
+        assert_eq!(g.occupied_fraction_in(2), 0.0, "a cascade the grid lacks");
+        // One cascade, 12 cells above the threshold (the mean of their densities).
+        let mut d = vec![0.0f32; N_CELLS];
+        for x in 0..12 {
+            d[morton3d(x, 100, 9) as usize] = 0.5;
+        }
+        let g = OccupancyGrid::from_density(d).unwrap();
+        assert_eq!(g.occupied_fraction(), 12.0 / N_CELLS as f64);
+        assert_eq!(g.occupied_fraction_in(0), g.occupied_fraction());
+    }
 
     #[test]
     fn morton_by_hand() {

@@ -5,6 +5,7 @@ use super::n_cascades;
 use super::read::{Framing, from_msgpack, unframe};
 use crate::error::{Error, Result};
 use crate::ngp::network::NerfLayout;
+use crate::ngp::occupancy::OccupancyGrid;
 use std::path::Path;
 
 #[derive(Clone, Debug, serde::Serialize)]
@@ -40,6 +41,10 @@ pub struct SnapshotInfo {
     pub density_grid_cascades: usize,
     pub density_grid_cells: usize,
     pub density_grid_bytes: usize,
+    /// Per cascade, the fraction of its cells occupied (above instant-ngp's threshold,
+    /// `min(0.01, mean density of cascade 0)`): how much of the box the model fills, the
+    /// background of a capture in the outer cascades.
+    pub occupied_per_cascade: Vec<f64>,
     pub aabb_scale: u32,
     pub aabb_min: [f32; 3],
     pub aabb_max: [f32; 3],
@@ -114,6 +119,13 @@ pub fn inspect(path: &Path) -> Result<SnapshotInfo> {
         density_grid_cascades: cascades,
         density_grid_cells: snap.density_grid.len(),
         density_grid_bytes: snap.density_grid.len() * 2,
+        occupied_per_cascade: OccupancyGrid::from_density(snap.density_grid.clone())
+            .map(|grid| {
+                (0..grid.n_cascades)
+                    .map(|c| grid.occupied_fraction_in(c))
+                    .collect()
+            })
+            .unwrap_or_default(),
         aabb_scale: snap.config.aabb_scale,
         aabb_min: snap.view.aabb.min,
         aabb_max: snap.view.aabb.max,
