@@ -417,6 +417,79 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
     );
 }
 
+/// Before `hidden_from_step` a stego model trains exactly as the cover alone would (every
+/// parameter, not only the MLP), on either backend; the default stego step does not.
+#[test]
+fn hidden_from_step_trains_the_cover_alone_first() {
+    let dir = tempfile::tempdir().unwrap();
+    let (ctrain, _) = scene(&dir.path().join("cover"), SceneKind::Object, 3);
+    let (htrain, _) = scene(&dir.path().join("hidden"), SceneKind::Text("HI".into()), 4);
+    let key = key();
+    let cfg = model_config();
+    let warm = 3;
+    let arms = || {
+        let mut later = config(Schedule::Mixed);
+        later.hidden_from_step = warm;
+        let mut plain = specs(&ctrain, &htrain, &key);
+        plain.truncate(1);
+        [
+            (plain, config(Schedule::Mixed)),
+            (specs(&ctrain, &htrain, &key), later),
+            (specs(&ctrain, &htrain, &key), config(Schedule::Mixed)),
+        ]
+    };
+    let differ = |a: &[f32], b: &[f32]| a.iter().zip(b).filter(|(u, v)| u != v).count();
+    let [plain, later, stego] = arms().map(|(s, tc)| {
+        let mut t = Trainer::new(cfg, s, tc).unwrap();
+        (0..warm).for_each(|_| {
+            t.train_step();
+        });
+        let before = t.params.clone();
+        t.train_step();
+        (before, t.params.clone())
+    });
+    eprintln!(
+        "CPU: parameters off the cover-only model's after {warm} steps: warm-up {}, stego {}",
+        differ(&plain.0, &later.0),
+        differ(&plain.0, &stego.0)
+    );
+    assert_eq!(
+        differ(&plain.0, &later.0),
+        0,
+        "CPU: the hidden scene trained early"
+    );
+    assert!(differ(&plain.0, &stego.0) > 0);
+    // The step after the warm-up trains the hidden scene too.
+    assert!(
+        differ(&plain.1, &later.1) > 0,
+        "CPU: the hidden scene never joined"
+    );
+
+    let Some(ctx) = test_context() else { return };
+    let [plain, later, stego] = arms().map(|(s, tc)| {
+        let mut t = GpuTrainer::new(ctx, cfg, s, tc).unwrap();
+        t.train_step().unwrap();
+        t.params().unwrap()
+    });
+    // As in `cover_only_mlp_moves_the_mlp_as_the_cover_alone_would`: a rounding's bound.
+    let off = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(u, v)| (u - v).abs())
+            .fold(0f32, f32::max)
+    };
+    let (same, other) = (off(&plain, &later), off(&plain, &stego));
+    eprintln!("GPU: largest distance from the cover-only model: warm-up {same:e}, stego {other:e}");
+    assert!(
+        same <= 1e-6,
+        "GPU: the hidden scene trained early ({same:e})"
+    );
+    assert!(
+        other > 1e-3,
+        "GPU: the default stego step left the model as the cover's"
+    );
+}
+
 /// Fraction of each level's table entries two index functions share.
 fn same_tables(a: &LevelIndices, b: &LevelIndices) -> Vec<f64> {
     a.iter()

@@ -208,3 +208,44 @@ fn cover_only_mlp_trains_with_stealth_and_only_with_it() {
         "--no-lpips",
     ]));
 }
+
+/// `--hidden-from` must leave the hidden scenes steps to train and needs a hidden scene.
+#[test]
+fn hidden_from_is_checked_before_anything_is_written() {
+    let d = tempfile::tempdir().unwrap();
+    let (cover, text, key, model) = cover_text_key(d.path(), "16");
+    let common = [
+        "--steps", "3", "--batch", "2048", "--log2-t", "12", "--out", &model,
+    ];
+    let train = |extra: &[&str]| {
+        let mut args = vec!["train", cover.as_str()];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&common);
+        stegongp(&args)
+    };
+    for (extra, says) in [
+        (
+            &["--hidden", &text, "--key", &key, "--hidden-from", "3"][..],
+            "--hidden-from 3",
+        ),
+        (&["--hidden-from", "1"][..], "--hidden"),
+    ] {
+        let out = train(extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{extra:?} was accepted");
+        assert!(err.contains(says), "{err}");
+        assert!(
+            !d.path().join("m.ingp").exists(),
+            "a refused run wrote a model"
+        );
+    }
+    ok(train(&[
+        "--hidden",
+        &text,
+        "--key",
+        &key,
+        "--hidden-from",
+        "2",
+    ]));
+    assert!(d.path().join("m.ingp").exists());
+}

@@ -431,12 +431,7 @@ impl<'c> GpuTrainer<'c> {
             step,
             ..Default::default()
         };
-        let ids = step_scenes(
-            self.config.schedule,
-            self.config.seed,
-            step,
-            self.scenes.len(),
-        );
+        let ids = step_scenes(&self.config, step, self.scenes.len());
         for si in ids {
             self.train_scene(si, &mut stats)?;
             if si == 0 && (self.pacing.is_some() || self.cover_mlp.is_some()) {
