@@ -4,8 +4,10 @@
 //!
 //! Work is done level by level over a whole chunk: a first pass computes every sample's
 //! corner offsets and weights (kept in a [`GridCache`] for the backward pass) and prefetches
-//! each corner as soon as it is known, so the misses overlap the index arithmetic; a second
-//! pass gathers from (by then) cached lines. A level of a 512-sample chunk touches at most
+//! each corner as soon as it is known, so the misses overlap the index arithmetic (a level
+//! whose index ends in a table keeps the chunk's base entries first, prefetching their
+//! lines of the table, and maps them after); a second pass gathers from (by then) cached
+//! lines. A level of a 512-sample chunk touches at most
 //! 4096 lines (256 KB), which fits in L2. The backward scatter prefetches the next level's
 //! gradient lines while it writes the current one.
 //! Encodings are feature-major: feature `l·F + f` of sample `s` lives at `enc[(l·F+f)·ld + s]`.
