@@ -239,6 +239,27 @@ fn hidden_from_is_checked_before_anything_is_written() {
             "a refused run wrote a model"
         );
     }
+    // A time budget that ends inside the warm-up: refused after training, nothing written.
+    let mut short = vec!["train", cover.as_str(), "--hidden", &text, "--key", &key];
+    short.extend_from_slice(&[
+        "--hidden-from",
+        "100000",
+        "--minutes",
+        "0.001",
+        "--batch",
+        "2048",
+        "--log2-t",
+        "12",
+        "--out",
+        &model,
+    ]);
+    let out = stegongp(&short);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("never"), "{err}");
+    assert!(
+        !d.path().join("m.ingp").exists(),
+        "a cover-only model was written"
+    );
     ok(train(&[
         "--hidden",
         &text,

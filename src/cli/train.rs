@@ -336,6 +336,15 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     pb.finish_and_clear();
+    // A --minutes budget can end before --hidden-from: the file would hold the cover alone.
+    if trainer.n_scenes() > 1 && trainer.step() <= a.hidden_from {
+        bail!(
+            "training stopped at step {} with --hidden-from {}: the hidden scenes never \
+             trained; nothing written (give more --minutes or a smaller --hidden-from)",
+            trainer.step(),
+            a.hidden_from
+        );
+    }
     let model = trainer.model(cover_ema.unwrap_or(0.0))?;
     model.save(&a.out)?;
     let summary = Summary {
