@@ -316,8 +316,7 @@ fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
             "step {step}"
         );
         let (c1, g1) = (&cpu.params[table..], &gpu.params().unwrap()[table..]);
-        let changed = |x: &[f32], y: &[f32]| x.iter().zip(y).filter(|(u, v)| u != v).count();
-        let (nc, ng) = (changed(&c0, c1), changed(&g0, g1));
+        let (nc, ng) = (n_different(&c0, c1), n_different(&g0, g1));
         if a.cover_loss.is_none() {
             assert_eq!(
                 (nc, ng),
@@ -373,13 +372,12 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
             (specs(&ctrain, &htrain, &key), config(Schedule::Mixed)),
         ]
     };
-    let differ = |a: &[f32], b: &[f32]| a.iter().zip(b).filter(|(u, v)| u != v).count();
     let [plain, stealth, stego] = arms().map(|(s, tc)| {
         let mut t = Trainer::new(cfg, s, tc).unwrap();
         t.train_step();
         t.params[..mlp].to_vec()
     });
-    let (same, other) = (differ(&plain, &stealth), differ(&plain, &stego));
+    let (same, other) = (n_different(&plain, &stealth), n_different(&plain, &stego));
     eprintln!(
         "CPU: MLP parameters off the cover-only model's: stealth {same}, stego {other} of {mlp}"
     );
@@ -397,13 +395,10 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
     });
     // The device sums gradients in no fixed order (two plain runs differ by float rounding,
     // ~1e-8): the GPU's bound is a rounding's, far under one Adam step (learning rate 1e-2).
-    let off = |a: &[f32], b: &[f32]| {
-        a.iter()
-            .zip(b)
-            .map(|(u, v)| (u - v).abs())
-            .fold(0f32, f32::max)
-    };
-    let (same, other) = (off(&plain, &stealth), off(&plain, &stego));
+    let (same, other) = (
+        largest_distance(&plain, &stealth),
+        largest_distance(&plain, &stego),
+    );
     eprintln!(
         "GPU: MLP's largest distance from the cover-only model's: stealth {same:e}, stego {other:e}"
     );
@@ -438,7 +433,6 @@ fn hidden_from_step_trains_the_cover_alone_first() {
             (specs(&ctrain, &htrain, &key), config(Schedule::Mixed)),
         ]
     };
-    let differ = |a: &[f32], b: &[f32]| a.iter().zip(b).filter(|(u, v)| u != v).count();
     let [plain, later, stego] = arms().map(|(s, tc)| {
         let mut t = Trainer::new(cfg, s, tc).unwrap();
         (0..warm).for_each(|_| {
@@ -450,18 +444,18 @@ fn hidden_from_step_trains_the_cover_alone_first() {
     });
     eprintln!(
         "CPU: parameters off the cover-only model's after {warm} steps: warm-up {}, stego {}",
-        differ(&plain.0, &later.0),
-        differ(&plain.0, &stego.0)
+        n_different(&plain.0, &later.0),
+        n_different(&plain.0, &stego.0)
     );
     assert_eq!(
-        differ(&plain.0, &later.0),
+        n_different(&plain.0, &later.0),
         0,
         "CPU: the hidden scene trained early"
     );
-    assert!(differ(&plain.0, &stego.0) > 0);
+    assert!(n_different(&plain.0, &stego.0) > 0);
     // The step after the warm-up trains the hidden scene too.
     assert!(
-        differ(&plain.1, &later.1) > 0,
+        n_different(&plain.1, &later.1) > 0,
         "CPU: the hidden scene never joined"
     );
 
@@ -472,13 +466,10 @@ fn hidden_from_step_trains_the_cover_alone_first() {
         t.params().unwrap()
     });
     // As in `cover_only_mlp_moves_the_mlp_as_the_cover_alone_would`: a rounding's bound.
-    let off = |a: &[f32], b: &[f32]| {
-        a.iter()
-            .zip(b)
-            .map(|(u, v)| (u - v).abs())
-            .fold(0f32, f32::max)
-    };
-    let (same, other) = (off(&plain, &later), off(&plain, &stego));
+    let (same, other) = (
+        largest_distance(&plain, &later),
+        largest_distance(&plain, &stego),
+    );
     eprintln!("GPU: largest distance from the cover-only model: warm-up {same:e}, stego {other:e}");
     assert!(
         same <= 1e-6,
@@ -488,6 +479,19 @@ fn hidden_from_step_trains_the_cover_alone_first() {
         other > 1e-3,
         "GPU: the default stego step left the model as the cover's"
     );
+}
+
+/// How many parameters two models hold differently.
+fn n_different(a: &[f32], b: &[f32]) -> usize {
+    a.iter().zip(b).filter(|(u, v)| u != v).count()
+}
+
+/// The largest distance between two models' parameters.
+fn largest_distance(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(u, v)| (u - v).abs())
+        .fold(0f32, f32::max)
 }
 
 /// Fraction of each level's table entries two index functions share.

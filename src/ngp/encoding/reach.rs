@@ -14,7 +14,7 @@
 //! key holder, which is what lets hidden scenes be confined to the cover's entries.
 
 use super::index::{Kernel, LevelIndices, WithKernel};
-use super::layout::GridLayout;
+use super::layout::{GridLayout, LevelInfo};
 use crate::ngp::occupancy::{GRID_SIZE, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
 use rayon::prelude::*;
@@ -86,23 +86,24 @@ impl EntrySet {
 /// Network-space (`[0,1]³`) boxes of the coarsest cascade's occupied cells, clipped to the
 /// box; empty when no cell is occupied.
 pub fn occupied_boxes(grid: &OccupancyGrid, aabb_scale: u32) -> Vec<([f32; 3], [f32; 3])> {
-    let marcher = Marcher::new(aabb_scale);
-    let mip = grid.max_cascade();
-    let s = (mip as f32).exp2();
-    let g = GRID_SIZE as f32;
-    grid.occupied_cells(mip)
+    let bounds = axis_bounds(grid, aabb_scale);
+    grid.occupied_cells(grid.max_cascade())
         .into_iter()
         .map(|cell| {
-            let mut lo = [0.0f32; 3];
-            let mut hi = [0.0f32; 3];
-            for d in 0..3 {
-                lo[d] = (cell[d] as f32 / g - 0.5) * s + 0.5;
-                hi[d] = ((cell[d] + 1) as f32 / g - 0.5) * s + 0.5;
-            }
-            let (lo, hi) = (marcher.warp(lo), marcher.warp(hi));
-            (lo.map(|v| v.clamp(0.0, 1.0)), hi.map(|v| v.clamp(0.0, 1.0)))
+            let lo = [0, 1, 2].map(|d| bounds[d][cell[d] as usize].0);
+            let hi = [0, 1, 2].map(|d| bounds[d][cell[d] as usize].1);
+            (lo, hi)
         })
         .collect()
+}
+
+/// The vertices of `level` (first and last, inclusive) along one axis of a network-space
+/// span: exactly as the encoding takes cells (`fma(scale, x, 0.5)`, floor), plus the far
+/// corner.
+fn vertex_range(level: &LevelInfo, (lo, hi): (f32, f32)) -> (u32, u32) {
+    let a = level.scale.mul_add(lo, 0.5).floor() as i32 as u32;
+    let b = level.scale.mul_add(hi, 0.5).floor() as i32 as u32 + 1;
+    (a, b)
 }
 
 /// The entries of every level of `layout` that training can reach through `indices` given
@@ -127,15 +128,9 @@ pub fn reachable_entries(
         .par_iter()
         .zip(indices.par_iter())
         .map(|(level, index)| {
-            // Vertex ranges exactly as the encoding takes cells (`fma(scale, x, 0.5)`, floor),
-            // plus the far corner.
-            let range = |(lo, hi): (f32, f32)| {
-                let a = level.scale.mul_add(lo, 0.5).floor() as i32 as u32;
-                let b = level.scale.mul_add(hi, 0.5).floor() as i32 as u32 + 1;
-                (a, b)
-            };
-            let axes: [AxisClasses; 3] =
-                std::array::from_fn(|d| AxisClasses::new(bounds[d].iter().map(|&lh| range(lh))));
+            let axes: [AxisClasses; 3] = std::array::from_fn(|d| {
+                AxisClasses::new(bounds[d].iter().map(|&span| vertex_range(level, span)))
+            });
             let n = [0, 1, 2].map(|d| axes[d].ranges.len());
             let mut marked = vec![false; n[0] * n[1] * n[2]];
             for c in &cells {
@@ -152,7 +147,7 @@ pub fn reachable_entries(
 }
 
 /// Network-space `(lo, hi)` of every cell coordinate of the coarsest cascade, per axis,
-/// clipped to the box: the boxes of [`occupied_boxes`], one axis at a time.
+/// clipped to the box: a cell's box is its three coordinates' spans ([`occupied_boxes`]).
 fn axis_bounds(grid: &OccupancyGrid, aabb_scale: u32) -> [Vec<(f32, f32)>; 3] {
     let marcher = Marcher::new(aabb_scale);
     let s = (grid.max_cascade() as f32).exp2();
@@ -207,27 +202,29 @@ impl WithKernel for InsertBlocks<'_> {
             marked,
         } = self;
         let [ax, ay, az] = axes;
-        let mut k = 0;
-        'blocks: for &(z0, z1) in &az.ranges {
-            for &(y0, y1) in &ay.ranges {
-                for &(x0, x1) in &ax.ranges {
-                    if marked[k] {
-                        for z in z0..=z1 {
-                            for y in y0..=y1 {
-                                for x in x0..=x1 {
-                                    set.insert(index.index(x, y, z));
-                                }
-                            }
-                        }
-                        if set.is_full() {
-                            break 'blocks;
-                        }
-                    }
-                    k += 1;
-                }
+        let blocks = az.ranges.iter().flat_map(|&z| {
+            ay.ranges
+                .iter()
+                .flat_map(move |&y| ax.ranges.iter().map(move |&x| [x, y, z]))
+        });
+        for (block, _) in blocks.zip(marked).filter(|(_, m)| **m) {
+            insert_block(&mut set, &index, block);
+            if set.is_full() {
+                break;
             }
         }
         set
+    }
+}
+
+/// Every vertex of a block given by its (first, last) vertex per axis.
+fn insert_block<K: Kernel>(set: &mut EntrySet, index: &K, [x, y, z]: [(u32, u32); 3]) {
+    for vz in z.0..=z.1 {
+        for vy in y.0..=y.1 {
+            for vx in x.0..=x.1 {
+                set.insert(index.index(vx, vy, vz));
+            }
+        }
     }
 }
 
@@ -333,23 +330,23 @@ mod tests {
             .zip(indices)
             .map(|(level, index)| {
                 let mut set = EntrySet::new(level.size);
-                let range = |lo: f32, hi: f32| {
-                    let a = level.scale.mul_add(lo, 0.5).floor() as i32 as u32;
-                    let b = level.scale.mul_add(hi, 0.5).floor() as i32 as u32 + 1;
-                    a..=b
-                };
                 for (lo, hi) in &boxes {
-                    for z in range(lo[2], hi[2]) {
-                        for y in range(lo[1], hi[1]) {
-                            for x in range(lo[0], hi[0]) {
-                                set.insert(index.index(x, y, z));
-                            }
-                        }
-                    }
+                    let block = [0, 1, 2].map(|d| vertex_range(level, (lo[d], hi[d])));
+                    index.with_kernel(InsertBlock(&mut set, block));
                 }
                 set
             })
             .collect()
+    }
+
+    /// One block through [`insert_block`], the level's kernel taken per block.
+    struct InsertBlock<'a>(&'a mut EntrySet, [(u32, u32); 3]);
+
+    impl WithKernel for InsertBlock<'_> {
+        type Output = ();
+        fn run<K: Kernel>(self, index: K) {
+            insert_block(self.0, &index, self.1)
+        }
     }
 
     #[test]
