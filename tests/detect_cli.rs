@@ -84,6 +84,7 @@ fn detect_reports_a_trained_model_and_refuses_what_is_not_one() {
         "density 0",
         "color 2",
         "loss",
+        "optical thickness mean",
         "gzip header mtime 0",
         "score",
         "detector fitted on",
@@ -121,6 +122,15 @@ fn detect_reports_a_trained_model_and_refuses_what_is_not_one() {
     let ratio = v["compression"]["ratio"].as_f64().unwrap();
     assert!(ratio > 0.1 && ratio < 1.0, "{ratio}");
     assert!(v["features"]["init_frac_l7"].is_number());
+    let (mean, max) = (
+        v["grid_mean"].as_f64().unwrap(),
+        v["grid_max"].as_f64().unwrap(),
+    );
+    assert!(mean > 0.0 && mean < max, "grid mean {mean}, max {max}");
+    assert_eq!(
+        v["features"]["grid_log10_max"].as_f64().unwrap(),
+        max.log10()
+    );
     let score = v["score"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&score));
     assert!(v["detector_fitted_on"].as_str().unwrap().len() > 3);

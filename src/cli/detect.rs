@@ -82,8 +82,12 @@ fn print_report(a: &Analysis) {
     );
     if a.density_grid_stored {
         println!(
-            "occupancy     {}% of cascade-0 cells occupied (stored grid)",
-            pct(a.occupied_frac)
+            "occupancy     {}% of cascade-0 cells occupied (stored grid); optical thickness \
+             mean {:.3e} (threshold {:.3e}), max {:.3e}",
+            pct(a.occupied_frac),
+            a.grid_mean,
+            a.grid_mean.min(0.01),
+            a.grid_max
         );
     } else {
         println!("occupancy     no grid stored: every entry counts as reachable");

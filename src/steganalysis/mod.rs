@@ -37,6 +37,12 @@
 //! intrinsics but no pixels, so the loss cannot be recomputed from the file alone; only its
 //! value (against what models of the same size and step count usually report) is evidence.
 //!
+//! **Occupancy grid**: the occupied fraction of cascade 0, and its cells' mean and largest
+//! optical thickness. instant-ngp marks a cell occupied above `min(0.01, mean)`, and in our
+//! small scenes the mean is the smaller: a cover whose density field changed (a hidden scene
+//! pushing on the entries it shares, inside objects where no cover ray constrains the
+//! density) moves the threshold and with it the cells the grid keeps.
+//!
 //! **Compression** ([`Compression`]): the ratio of compressed to uncompressed bytes. A hidden
 //! scene replaces initial noise and frozen values with trained ones, which changes the
 //! entropy of the parameter bytes. For an `.ingp` it is the file's own ratio (and its gzip
@@ -56,7 +62,7 @@ use crate::error::{Error, Result};
 use crate::ngp::encoding::reach::reachable_entries;
 use crate::ngp::encoding::reference_indices;
 use crate::ngp::network::NerfLayout;
-use crate::ngp::occupancy::OccupancyGrid;
+use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
 use crate::ngp::snapshot::{self, Snapshot};
 use serde::Serialize;
 use std::io::{Read, Write};
@@ -107,6 +113,13 @@ pub struct Analysis {
     pub density_grid_stored: bool,
     /// Fraction of cascade-0 cells the stored grid marks occupied.
     pub occupied_frac: f64,
+    /// Mean optical thickness of the stored grid's cascade-0 cells: below 0.01 it is the
+    /// occupancy threshold itself (`min(0.01, mean)`), so a few very dense cells (the inside
+    /// of an object whose density no training ray constrains) raise it and empty the cells
+    /// near it: a stealth model's giveaway (BENCHMARKS.md).
+    pub grid_mean: f64,
+    /// Largest optical thickness of a cascade-0 cell.
+    pub grid_max: f64,
     /// Magnitude at or below which an entry counts as at initialisation.
     pub init_bound: f32,
     pub levels: Vec<LevelStats>,
@@ -181,6 +194,18 @@ pub fn analyse_snapshot(snap: &Snapshot) -> Result<Analysis> {
         aabb_scale: snap.config.aabb_scale,
         density_grid_stored: grid.is_some(),
         occupied_frac: grid.as_ref().map_or(0.0, |g| g.occupied_fraction()),
+        grid_mean: grid.as_ref().map_or(0.0, |g| {
+            g.density[..N_CELLS]
+                .iter()
+                .map(|&v| v.max(0.0) as f64)
+                .sum::<f64>()
+                / N_CELLS as f64
+        }),
+        grid_max: grid.as_ref().map_or(0.0, |g| {
+            g.density[..N_CELLS]
+                .iter()
+                .fold(0.0f64, |m, &v| m.max(v as f64))
+        }),
         init_bound: INIT_BOUND,
         levels: level_stats(
             &layout.grid,
@@ -280,11 +305,12 @@ impl Analysis {
     ///   `reach_frac_{dense,hashed}`, and the mean over hashed levels of
     ///   `{reach,unreach}_log10_mag_median_hashed`;
     /// - per MLP matrix: `mlp_{density,color}{layer}_std` and `…_kurt`;
-    /// - `log10_loss` (when the loss is positive), `gzip_ratio`, `occupied_frac`.
+    /// - `log10_loss` (when the loss is positive), `gzip_ratio`, `occupied_frac`, and with a
+    ///   stored grid `grid_log10_mean` and `grid_log10_max` (cascade 0's optical thickness).
     ///
     /// Fractions and ratios rather than counts, so a detector fitted on small tables applies
     /// to 2^19 ones. Models with other level counts give other names; a detector treats a
-    /// name it lacks as missing. At most 3·L + 21 features (69 for 16 levels).
+    /// name it lacks as missing. At most 3·L + 23 features (71 for 16 levels).
     pub fn features(&self) -> Vec<(String, f64)> {
         let mut f: Vec<(String, f64)> = Vec::new();
         for l in &self.levels {
@@ -347,6 +373,10 @@ impl Analysis {
         }
         f.push(("gzip_ratio".into(), self.compression.ratio));
         f.push(("occupied_frac".into(), self.occupied_frac));
+        if self.density_grid_stored {
+            f.push(("grid_log10_mean".into(), log10_floor(self.grid_mean)));
+            f.push(("grid_log10_max".into(), log10_floor(self.grid_max)));
+        }
         f.retain(|(_, v)| v.is_finite());
         f
     }

@@ -160,11 +160,20 @@ fn one_occupied_cell_splits_each_level_into_reachable_and_not() {
         reach1.len()
     );
     assert_eq!(a.occupied_frac, 1.0 / N_CELLS as f64);
+    // One cell at optical thickness 1, the rest 0.
+    assert_eq!(a.grid_max, 1.0);
+    assert!(
+        (a.grid_mean * N_CELLS as f64 - 1.0).abs() < 1e-9,
+        "{}",
+        a.grid_mean
+    );
     // Features exist for both levels and carry these numbers.
     let f: std::collections::HashMap<String, f64> = a.features().into_iter().collect();
     assert_eq!(f["unreach_init_frac_l0"], 4086.0 / 4088.0);
     assert_eq!(f["reach_frac_dense"], 8.0 / 4096.0);
     assert!(f["unreach_log10_mag_median_l0"] < -3.9);
+    assert_eq!(f["grid_log10_max"], 0.0);
+    assert!((f["grid_log10_mean"] + (N_CELLS as f64).log10()).abs() < 1e-9);
 }
 
 #[test]
@@ -201,11 +210,13 @@ fn features_have_unique_stable_names_and_stay_few() {
         "mlp_color2_std",
         "gzip_ratio",
         "occupied_frac",
+        "grid_log10_mean",
+        "grid_log10_max",
     ] {
         assert!(names.contains(&want), "{want} missing from {names:?}");
     }
     assert!((f.iter().find(|(n, _)| n == "log10_loss").unwrap().1 + 2.0).abs() < 1e-6);
-    assert!(f.len() <= 3 * 2 + 21);
+    assert!(f.len() <= 3 * 2 + 23);
     assert!(f.iter().all(|(_, v)| v.is_finite()));
     names.sort();
     names.dedup();
