@@ -40,6 +40,13 @@ enum Cmd {
 }
 
 fn main() {
+    // Rust ignores SIGPIPE, which turns a closed pipe (`stegongp detect M | head`) into a
+    // panic in println!; a command-line tool should end quietly, as others do.
+    #[cfg(unix)]
+    // SAFETY: setting a signal's disposition to its default, before any thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let result = match cli.cmd {
         Cmd::Synth(a) => cli::synth::run(a),

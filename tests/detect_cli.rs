@@ -186,3 +186,24 @@ fn detect_reports_a_trained_model_and_refuses_what_is_not_one() {
         &["missing.ingp"],
     );
 }
+
+/// A reader that stops early (`stegongp detect M | head`) ends the program quietly: no
+/// panic from println! on the closed pipe. The read end is closed before the program has
+/// loaded the model, so its first line already meets a closed pipe.
+#[test]
+fn a_closed_pipe_ends_detect_without_a_panic() {
+    use std::process::Stdio;
+    let d = tempfile::tempdir().unwrap();
+    let model = tiny_model(d.path());
+    let mut child = Command::new(env!("CARGO_BIN_EXE_stegongp"))
+        .args(["detect", model.to_str().unwrap()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run stegongp");
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!err.contains("panicked"), "panic on a closed pipe: {err}");
+    assert!(!out.status.success(), "the report cannot have been written");
+}
