@@ -119,3 +119,55 @@ fn cover_only_mlp_without_stealth_is_refused() {
         assert!(!out_dir.exists(), "{args:?} wrote {out}");
     }
 }
+
+/// `--hidden-from` must leave the hidden scenes steps to train, and means nothing to an
+/// experiment that trains no model: refused before anything is written.
+#[test]
+fn hidden_from_is_checked_before_anything_is_written() {
+    let d = tempfile::tempdir().unwrap();
+    let out_dir = d.path().join("out");
+    let out = out_dir.to_str().unwrap();
+    for (args, says) in [
+        (
+            vec![
+                "experiment",
+                "fidelity",
+                "--hidden-from",
+                "300",
+                "--out",
+                out,
+            ],
+            "300 training steps",
+        ),
+        (
+            vec![
+                "experiment",
+                "multi-hidden",
+                "--steps",
+                "20",
+                "--hidden-from",
+                "25",
+                "--out",
+                out,
+            ],
+            "--hidden-from 25",
+        ),
+        (
+            vec![
+                "experiment",
+                "key-strength",
+                "--hidden-from",
+                "5",
+                "--out",
+                out,
+            ],
+            "key-strength",
+        ),
+    ] {
+        let r = stegongp(&args);
+        let err = String::from_utf8_lossy(&r.stderr);
+        assert!(!r.status.success(), "{args:?}");
+        assert!(err.contains(says), "{args:?}: {err}");
+        assert!(!out_dir.exists(), "{args:?} wrote {out}");
+    }
+}

@@ -166,4 +166,29 @@ fn tiny_population_report_reproducible_and_resumable() {
     assert_eq!(err.matches("reusing").count(), 5, "{err}");
     assert!(err.contains("trained plain_00"), "{err}");
     assert_eq!(json["tables"], report(d.path())["tables"]);
+
+    // A cover warm-up changes the models with a hidden scene, not the plain ones.
+    let mut warm = args.to_vec();
+    warm.extend(["--hidden-from", "3"]);
+    let err = run_ok(&warm);
+    assert_eq!(err.matches("reusing").count(), 2, "{err}");
+    for m in ["stego_00", "stego_01", "stealth_00", "stealth_01"] {
+        assert!(err.contains(&format!("trained {m}")), "{m}: {err}");
+    }
+    let warmed = report(d.path());
+    assert_eq!(warmed["setup"]["hidden_from_step"], 3);
+    assert_ne!(
+        table(&warmed, "Fidelity")[1],
+        table(&json, "Fidelity")[1],
+        "the warm-up changed nothing"
+    );
+    // It must leave the hidden scenes steps to train.
+    let mut all = args.to_vec();
+    all.extend(["--hidden-from", "8"]);
+    let r = stegongp(&all);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(
+        !r.status.success() && err.contains("--hidden-from 8"),
+        "{err}"
+    );
 }

@@ -67,6 +67,10 @@ pub struct Args {
     /// with --stealth, or for detectability's stealth arm.
     #[arg(long)]
     pub cover_only_mlp: bool,
+    /// Models with hidden scenes train the cover alone for their first N steps, then every
+    /// scene (see `train --hidden-from`); below --steps.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub hidden_from: u32,
     /// Use the paper's one-scene-per-step schedule instead of mixed batches.
     #[arg(long)]
     pub random_scene: bool,
@@ -138,6 +142,17 @@ pub fn run(a: Args) -> Result<()> {
     if a.cover_only_mlp && detect && a.no_stealth_arm {
         bail!("--cover-only-mlp changes the stealth arm, which --no-stealth-arm leaves out");
     }
+    let steps = a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 });
+    if a.hidden_from > 0 && a.name == Experiment::KeyStrength {
+        bail!("--hidden-from changes training, and key-strength trains no model");
+    }
+    if a.hidden_from > 0 && a.minutes.is_none() && a.hidden_from >= steps {
+        bail!(
+            "--hidden-from {} is not below the {steps} training steps: the hidden scenes \
+             would never train",
+            a.hidden_from
+        );
+    }
     let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
     std::fs::create_dir_all(&a.out)?;
     let data = a.out.join("data");
@@ -192,7 +207,7 @@ pub fn run(a: Args) -> Result<()> {
         hidden,
         downscale: a.downscale,
         hidden_downscale: a.hidden_downscale,
-        steps: a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 }),
+        steps,
         batch: a
             .batch
             .unwrap_or(if detect { DETECT_BATCH } else { 1 << 15 }),
@@ -217,6 +232,7 @@ pub fn run(a: Args) -> Result<()> {
         },
         stealth: a.stealth,
         cover_only_mlp: a.cover_only_mlp,
+        hidden_from_step: a.hidden_from,
         lpips: !a.no_lpips,
         verbose: true,
         device: std::sync::Arc::new(device),

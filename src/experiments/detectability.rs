@@ -334,6 +334,10 @@ fn model_config(
         "base_resolution": g.base_resolution, "eval_views": cfg.eval_views,
         "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
     });
+    if arm != Arm::Plain && cfg.hidden_from_step > 0 {
+        // Only when set, so that models trained before the option still reuse.
+        v["hidden_from_step"] = json!(cfg.hidden_from_step);
+    }
     if arm == Arm::Stealth {
         // Only this arm's key, so that plain and default stego files stay reusable.
         v["stealth"] = json!(STEALTH_FORMAT);
@@ -683,7 +687,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let mut report = Report {
         name: Experiment::Detectability.to_string(),
         setup: json!({
-            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
+            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.hidden_from_step, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
             "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
             "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
             "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,

@@ -425,7 +425,9 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
                 (false, _) => json!(false),
                 (true, false) => json!("paced"),
                 (true, true) => json!("paced, cover-only MLP"),
-            }}),
+            },
+            // Only when set, so that models trained before the option still reuse.
+            "hidden_from_step": (cfg.hidden_from_step > 0).then_some(cfg.hidden_from_step)}),
             || {
                 let t = train_scenes(
                     cfg,
@@ -501,7 +503,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         "occupancy_fraction": cfg.occupancy_fraction, "levels": cfg.grid.n_levels,
         "features": cfg.grid.n_features, "log2_hashmap_size": cfg.grid.log2_hashmap_size,
         "scheme": cfg.scheme.name(), "schedule": format!("{:?}", cfg.schedule),
-        "stealth": cfg.stealth, "lpips": opts.lpips,
+        "stealth": cfg.stealth, "hidden_from_step": cfg.hidden_from_step, "lpips": opts.lpips,
         "models_trained": models.trained, "models_reused": models.reused,
         "seconds": round(t_all.elapsed().as_secs_f64(), 1),
         "threads": rayon::current_num_threads(),

@@ -126,6 +126,10 @@ pub struct ExpConfig {
     /// With `stealth`: the MLP learns from the cover alone (see
     /// [`ExpConfig::trains_cover_only_mlp`]).
     pub cover_only_mlp: bool,
+    /// Cover-only warm-up: a model with hidden scenes trains the cover alone for this many
+    /// trainer steps first ([`TrainConfig::hidden_from_step`]); 0 trains every scene from
+    /// the start.
+    pub hidden_from_step: u32,
     /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
     pub lpips: bool,
     /// Progress lines on stderr.
@@ -226,6 +230,7 @@ pub(super) fn train_scenes(
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
         cover_only_mlp: cfg.trains_cover_only_mlp(),
+        hidden_from_step: warm_up_steps(cfg, scenes.len()),
         ..Default::default()
     };
     let mut t = cfg.device.trainer(config, specs, tc)?;
@@ -238,6 +243,16 @@ pub(super) fn train_scenes(
         Schedule::Mixed => 1,
         Schedule::RandomScene => scenes.len() as u32,
     };
+    let warm_up = warm_up_steps(cfg, scenes.len());
+    if let Budget::Steps(n) = budget
+        && warm_up >= n * per_step
+    {
+        return Err(Error::Config(format!(
+            "{label}: the cover-only warm-up ({warm_up} steps) is not shorter than the \
+             training ({} steps): the hidden scenes would never train",
+            n * per_step
+        )));
+    }
     let (mut secs, mut samples, mut loss, mut steps) = (0.0, 0u64, 0.0f32, 0u32);
     loop {
         let done = match budget {
@@ -253,6 +268,12 @@ pub(super) fn train_scenes(
         loss = st.cover_loss.unwrap_or(loss);
         steps += 1;
     }
+    if steps <= warm_up {
+        return Err(Error::Config(format!(
+            "{label}: the time budget ended at step {steps}, inside the cover-only warm-up \
+             ({warm_up} steps): the hidden scenes never trained"
+        )));
+    }
     if cfg.verbose {
         eprintln!(
             "  trained {label}: {steps} steps in {secs:.1} s ({:.0} k samples/s), loss {loss:.5}",
@@ -265,6 +286,15 @@ pub(super) fn train_scenes(
         samples_per_s: samples as f64 / secs.max(1e-9),
         steps: steps / per_step,
     })
+}
+
+/// The trainer steps a model of `n_scenes` scenes trains its cover alone.
+fn warm_up_steps(cfg: &ExpConfig, n_scenes: usize) -> u32 {
+    if n_scenes > 1 {
+        cfg.hidden_from_step
+    } else {
+        0
+    }
 }
 
 impl Ctx<'_> {
@@ -344,7 +374,8 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
         "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
-        "cover_only_mlp": cfg.trains_cover_only_mlp(), "lpips": cfg.lpips,
+        "cover_only_mlp": cfg.trains_cover_only_mlp(), "hidden_from_step": cfg.hidden_from_step,
+        "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(), "device": cfg.device.report(),
     })
 }
