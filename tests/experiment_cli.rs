@@ -121,7 +121,8 @@ fn cover_only_mlp_without_stealth_is_refused() {
 }
 
 /// `--hidden-from` must leave the hidden scenes steps to train, and means nothing to an
-/// experiment that trains no model: refused before anything is written.
+/// experiment that trains no model; `--hidden-weight` must be positive: refused before
+/// anything is written.
 #[test]
 fn hidden_from_is_checked_before_anything_is_written() {
     let d = tempfile::tempdir().unwrap();
@@ -162,6 +163,17 @@ fn hidden_from_is_checked_before_anything_is_written() {
                 out,
             ],
             "key-strength",
+        ),
+        (
+            vec![
+                "experiment",
+                "fidelity",
+                "--hidden-weight",
+                "0",
+                "--out",
+                out,
+            ],
+            "--hidden-weight",
         ),
     ] {
         let r = stegongp(&args);

@@ -71,6 +71,11 @@ pub struct Args {
     /// scene (see `train --hidden-from`); below --steps.
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub hidden_from: u32,
+    /// Loss weight of the hidden scenes relative to the cover's 1 (see `train
+    /// --hidden-weight`): where the scenes share weights, less moves quality back to the
+    /// cover, and the model closer to a plain one.
+    #[arg(long, default_value_t = 1.0)]
+    pub hidden_weight: f32,
     /// Use the paper's one-scene-per-step schedule instead of mixed batches.
     #[arg(long)]
     pub random_scene: bool,
@@ -145,6 +150,9 @@ pub fn run(a: Args) -> Result<()> {
     let steps = a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 });
     if a.hidden_from > 0 && a.name == Experiment::KeyStrength {
         bail!("--hidden-from changes training, and key-strength trains no model");
+    }
+    if !(a.hidden_weight.is_finite() && a.hidden_weight > 0.0) {
+        bail!("--hidden-weight must be a positive number");
     }
     if a.hidden_from > 0 && a.minutes.is_none() && a.hidden_from >= steps {
         bail!(
@@ -233,6 +241,7 @@ pub fn run(a: Args) -> Result<()> {
         stealth: a.stealth,
         cover_only_mlp: a.cover_only_mlp,
         hidden_from_step: a.hidden_from,
+        hidden_loss_weight: a.hidden_weight,
         lpips: !a.no_lpips,
         verbose: true,
         device: std::sync::Arc::new(device),

@@ -338,6 +338,9 @@ fn model_config(
         // Only when set, so that models trained before the option still reuse.
         v["hidden_from_step"] = json!(cfg.hidden_from_step);
     }
+    if arm != Arm::Plain && cfg.hidden_loss_weight != 1.0 {
+        v["hidden_loss_weight"] = json!(cfg.hidden_loss_weight.to_string());
+    }
     if arm == Arm::Stealth {
         // Only this arm's key, so that plain and default stego files stay reusable.
         v["stealth"] = json!(STEALTH_FORMAT);
@@ -687,7 +690,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let mut report = Report {
         name: Experiment::Detectability.to_string(),
         setup: json!({
-            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.hidden_from_step, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
+            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.hidden_from_step, "hidden_loss_weight": cfg.hidden_loss_weight, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
             "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
             "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
             "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
@@ -951,6 +954,63 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::Device;
+    use crate::ngp::encoding::GridConfig;
+
+    fn exp_config(hidden_from_step: u32, hidden_loss_weight: f32) -> ExpConfig {
+        ExpConfig {
+            out: "out".into(),
+            cover: PathBuf::new(),
+            hidden: Vec::new(),
+            downscale: 1,
+            hidden_downscale: 1,
+            steps: 200,
+            batch: 4096,
+            seed: 0,
+            eval_views: 8,
+            occupancy_fraction: 0.03,
+            grid: GridConfig {
+                n_levels: 16,
+                n_features: 2,
+                log2_hashmap_size: 14,
+                base_resolution: 16,
+            },
+            scheme: SchemeKind::Prf,
+            schedule: Schedule::Mixed,
+            stealth: false,
+            cover_only_mlp: false,
+            hidden_from_step,
+            hidden_loss_weight,
+            lpips: false,
+            verbose: false,
+            device: std::sync::Arc::new(Device::default()),
+        }
+    }
+
+    /// A model's sidecar changes with what changes its training, and only then: the
+    /// warm-up and the hidden weight change the models with a hidden scene, not the plain
+    /// ones, and at their defaults they leave every sidecar as it was before they existed.
+    #[test]
+    fn sidecars_record_the_warm_up_and_the_hidden_weight_where_they_apply() {
+        let scenes = (Path::new("out/scenes/c"), Path::new("out/scenes/h"));
+        let combo = combination(0);
+        let config = |c: &ExpConfig, arm| model_config(c, arm, scenes, 7, combo);
+        let base = exp_config(0, 1.0);
+        for arm in [Arm::Plain, Arm::Stego, Arm::Stealth] {
+            let v = config(&base, arm);
+            assert!(v.get("hidden_from_step").is_none() && v.get("hidden_loss_weight").is_none());
+        }
+        for changed in [exp_config(50, 1.0), exp_config(0, 0.25)] {
+            assert_eq!(config(&changed, Arm::Plain), config(&base, Arm::Plain));
+            for arm in [Arm::Stego, Arm::Stealth] {
+                assert_ne!(config(&changed, arm), config(&base, arm), "{arm:?}");
+            }
+        }
+        assert_eq!(
+            config(&exp_config(0, 0.25), Arm::Stego)["hidden_loss_weight"],
+            "0.25"
+        );
+    }
 
     #[test]
     fn roc_points_by_hand() {

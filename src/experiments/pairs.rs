@@ -427,7 +427,9 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
                 (true, true) => json!("paced, cover-only MLP"),
             },
             // Only when set, so that models trained before the option still reuse.
-            "hidden_from_step": (cfg.hidden_from_step > 0).then_some(cfg.hidden_from_step)}),
+            "hidden_from_step": (cfg.hidden_from_step > 0).then_some(cfg.hidden_from_step),
+            // A string, as the sidecars keep floats (exact round trip).
+            "hidden_loss_weight": (cfg.hidden_loss_weight != 1.0).then(|| cfg.hidden_loss_weight.to_string())}),
             || {
                 let t = train_scenes(
                     cfg,
@@ -503,7 +505,8 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         "occupancy_fraction": cfg.occupancy_fraction, "levels": cfg.grid.n_levels,
         "features": cfg.grid.n_features, "log2_hashmap_size": cfg.grid.log2_hashmap_size,
         "scheme": cfg.scheme.name(), "schedule": format!("{:?}", cfg.schedule),
-        "stealth": cfg.stealth, "hidden_from_step": cfg.hidden_from_step, "lpips": opts.lpips,
+        "stealth": cfg.stealth, "hidden_from_step": cfg.hidden_from_step,
+        "hidden_loss_weight": cfg.hidden_loss_weight, "lpips": opts.lpips,
         "models_trained": models.trained, "models_reused": models.reused,
         "seconds": round(t_all.elapsed().as_secs_f64(), 1),
         "threads": rayon::current_num_threads(),

@@ -130,6 +130,9 @@ pub struct ExpConfig {
     /// trainer steps first ([`TrainConfig::hidden_from_step`]); 0 trains every scene from
     /// the start.
     pub hidden_from_step: u32,
+    /// Loss weight of the hidden scenes relative to the cover's 1
+    /// ([`TrainConfig::hidden_loss_weight`]).
+    pub hidden_loss_weight: f32,
     /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
     pub lpips: bool,
     /// Progress lines on stderr.
@@ -231,6 +234,7 @@ pub(super) fn train_scenes(
         cover_paced_table: cfg.stealth,
         cover_only_mlp: cfg.trains_cover_only_mlp(),
         hidden_from_step: warm_up_steps(cfg, scenes.len()),
+        hidden_loss_weight: cfg.hidden_loss_weight,
         ..Default::default()
     };
     let mut t = cfg.device.trainer(config, specs, tc)?;
@@ -375,7 +379,7 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
         "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
         "cover_only_mlp": cfg.trains_cover_only_mlp(), "hidden_from_step": cfg.hidden_from_step,
-        "lpips": cfg.lpips,
+        "hidden_loss_weight": cfg.hidden_loss_weight, "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(), "device": cfg.device.report(),
     })
 }
