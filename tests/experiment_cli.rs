@@ -88,6 +88,15 @@ fn partial_keys_report_and_figures() {
     assert_eq!(json["tables"], json2["tables"]);
 }
 
+/// `stegongp ARGS` fails, says `says`, and leaves `out_dir` uncreated.
+fn refused_before_writing(args: &[&str], says: &str, out_dir: &std::path::Path) {
+    let r = stegongp(args);
+    let err = String::from_utf8_lossy(&r.stderr);
+    assert!(!r.status.success(), "{args:?}");
+    assert!(err.contains(says), "{args:?}: {err}");
+    assert!(!out_dir.exists(), "{args:?} wrote {}", out_dir.display());
+}
+
 /// `--cover-only-mlp` changes stealth training: without `--stealth` (outside detectability)
 /// or with detectability's stealth arm left out, it is refused before anything is written.
 #[test]
@@ -112,11 +121,7 @@ fn cover_only_mlp_without_stealth_is_refused() {
             "--no-stealth-arm",
         ),
     ] {
-        let r = stegongp(&args);
-        let err = String::from_utf8_lossy(&r.stderr);
-        assert!(!r.status.success(), "{args:?}");
-        assert!(err.contains(says), "{args:?}: {err}");
-        assert!(!out_dir.exists(), "{args:?} wrote {out}");
+        refused_before_writing(&args, says, &out_dir);
     }
 }
 
@@ -176,10 +181,6 @@ fn hidden_from_is_checked_before_anything_is_written() {
             "--hidden-weight",
         ),
     ] {
-        let r = stegongp(&args);
-        let err = String::from_utf8_lossy(&r.stderr);
-        assert!(!r.status.success(), "{args:?}");
-        assert!(err.contains(says), "{args:?}: {err}");
-        assert!(!out_dir.exists(), "{args:?} wrote {out}");
+        refused_before_writing(&args, says, &out_dir);
     }
 }
