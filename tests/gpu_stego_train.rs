@@ -286,8 +286,9 @@ fn random_scene_trains_the_cpus_scenes() {
 }
 
 /// The cover-paced table (stealth training's) on the device: a random-scene step that
-/// trains only the hidden scene leaves every table entry where it was, on the GPU as on the
-/// CPU, and the next cover steps take what waited: the losses stay the CPU's.
+/// trains only the hidden scene leaves every weight where it was (the optimizer steps on
+/// the cover's clock), on the GPU as on the CPU, and the next cover steps take what waited:
+/// the losses and the MLP stay the CPU's, with the MLP shared or the cover's alone.
 #[test]
 fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
     let Some(ctx) = test_context() else { return };
@@ -297,17 +298,36 @@ fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
     let key = key();
     let cfg = model_config();
     let table = NerfLayout::new(cfg).unwrap().grid_offset;
+    for cover_only_mlp in [true, false] {
+        paced_steps_like_the_cpu(ctx, cfg, &ctrain, &htrain, &key, table, cover_only_mlp);
+    }
+}
+
+fn paced_steps_like_the_cpu(
+    ctx: &'static stegongp::gpu::GpuContext,
+    cfg: ModelConfig,
+    ctrain: &Arc<Dataset>,
+    htrain: &Arc<Dataset>,
+    key: &Key,
+    table: usize,
+    cover_only_mlp: bool,
+) {
     let mut tc = config(Schedule::RandomScene);
-    // Stealth's whole configuration: a hidden-only step also leaves the MLP's gradient zero.
+    // With the cover-only MLP (stealth's option) a hidden-only step leaves the MLP's
+    // gradient zero; without it the hidden scene's MLP gradient waits for the cover's step.
     tc.cover_paced_table = true;
-    tc.cover_only_mlp = true;
-    let mut cpu = Trainer::new(cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
-    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).unwrap();
-    let (mut held, mut moved) = (0, 0);
-    for step in 0..5 {
+    tc.cover_only_mlp = cover_only_mlp;
+    let mut cpu = Trainer::new(cfg, specs(ctrain, htrain, key), tc.clone()).unwrap();
+    let mut gpu = GpuTrainer::new(ctx, cfg, specs(ctrain, htrain, key), tc).unwrap();
+    let (mut held, mut moved, mut waited) = (0, 0, 0);
+    for step in 0..10 {
         let (c0, g0) = (
             cpu.params[table..].to_vec(),
             gpu.params().unwrap()[table..].to_vec(),
+        );
+        let m0 = (
+            cpu.params[..table].to_vec(),
+            gpu.params().unwrap()[..table].to_vec(),
         );
         let (a, b) = (cpu.train_step(), gpu.train_step().unwrap());
         assert_eq!(
@@ -323,6 +343,26 @@ fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
                 (0, 0),
                 "step {step}: a hidden-only step moved the table"
             );
+            // Nor the MLP: the optimizer waits for the cover (momentum, L2, EMA).
+            assert_eq!(
+                (
+                    n_different(&m0.0, &cpu.params[..table]),
+                    n_different(&m0.1, &gpu.params().unwrap()[..table])
+                ),
+                (0, 0),
+                "step {step}: a hidden-only step moved the MLP"
+            );
+            // The hidden scene's MLP gradient waits in the buffer for the cover's step
+            // (the CPU's is checked in the trainer's unit test); the cover-only MLP drops it.
+            let waiting = n_different(&gpu.gradient().unwrap()[..table], &vec![0.0; table]);
+            if moved > 0 {
+                assert_eq!(
+                    waiting > 0,
+                    !cover_only_mlp,
+                    "step {step}: {waiting} MLP gradients waiting"
+                );
+                waited += 1;
+            }
             held += 1;
         } else {
             assert!(
@@ -345,9 +385,12 @@ fn cover_paced_table_holds_the_hidden_gradients_like_the_cpu() {
         );
     }
     assert!(
-        held > 0 && moved > 0,
-        "{held} hidden-only and {moved} cover steps"
+        held > 0 && moved > 0 && waited > 0,
+        "{held} hidden-only and {moved} cover steps, {waited} hidden-only after a cover step"
     );
+    // The optimizer's clock is the cover's, and so is the step count a file records.
+    assert_eq!((cpu.cover_steps, gpu.cover_steps), (moved, moved));
+    assert_eq!(gpu.model(0.0).unwrap().training_step, moved);
 }
 
 /// Stealth's cover-only MLP on both backends: after a mixed step the MLP is exactly where a

@@ -420,11 +420,12 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
             "steps": steps, "scheme": cfg.scheme.name(), "key": which,
             "schedule": format!("{:?}", cfg.schedule),
-            // A stealth model trained before stealth paced the table is not reused.
+            // A stealth model trained before stealth paced the table, or before its
+            // optimizer kept the cover's clock, is not reused.
             "stealth": match (cfg.stealth, cfg.trains_cover_only_mlp()) {
                 (false, _) => json!(false),
-                (true, false) => json!("paced"),
-                (true, true) => json!("paced, cover-only MLP"),
+                (true, false) => json!("paced on the cover's clock"),
+                (true, true) => json!("paced on the cover's clock, cover-only MLP"),
             },
             // Only when set, so that models trained before the option still reuse.
             "hidden_from_step": (cfg.hidden_from_step > 0).then_some(cfg.hidden_from_step),

@@ -130,8 +130,11 @@ pub struct GpuTrainer<'c> {
     ray_out: wgpu::Buffer,
     dirs_pipeline: wgpu::ComputePipeline,
     dirs_uniform: wgpu::Buffer,
-    /// Steps taken.
+    /// Steps taken, the cover's or not: the schedule's and the rays' clock.
     pub step: u32,
+    /// Steps that updated the weights (the CPU trainer's `cover_steps`): the optimizer's and
+    /// the occupancy grids' clock, and the step count a model file records.
+    pub cover_steps: u32,
 }
 
 fn input<T>(msg: String) -> GpuResult<T> {
@@ -290,6 +293,7 @@ impl<'c> GpuTrainer<'c> {
             dirs_pipeline,
             dirs_uniform,
             step: 0,
+            cover_steps: 0,
         })
     }
 
@@ -378,7 +382,7 @@ impl<'c> GpuTrainer<'c> {
     /// `step / 16` steps up to every 16th; every scene's grid updates on the current
     /// weights under its own indices, the index refresh right after the cover's.
     fn update_occupancy(&mut self) -> GpuResult<()> {
-        let step = self.step;
+        let step = self.cover_steps;
         let interval = (step / 16).clamp(1, 16);
         if !step.is_multiple_of(interval) {
             return Ok(());
@@ -424,14 +428,18 @@ impl<'c> GpuTrainer<'c> {
     /// (every scene's work has finished before: each scene's losses are read back).
     pub fn train_step(&mut self) -> GpuResult<StepStats> {
         let t0 = Instant::now();
-        self.update_occupancy()?;
-        let t_occ = t0.elapsed().as_secs_f64();
         let step = self.step;
+        let ids = step_scenes(&self.config, step, self.scenes.len());
+        // Under pacing a step without the cover updates nothing (the CPU's rule).
+        let update = !self.config.cover_paced_table || ids.contains(&0);
+        if update {
+            self.update_occupancy()?;
+        }
+        let t_occ = t0.elapsed().as_secs_f64();
         let mut stats = StepStats {
             step,
             ..Default::default()
         };
-        let ids = step_scenes(&self.config, step, self.scenes.len());
         for si in ids {
             self.train_scene(si, &mut stats)?;
             if si == 0 && (self.pacing.is_some() || self.cover_mlp.is_some()) {
@@ -458,8 +466,13 @@ impl<'c> GpuTrainer<'c> {
         if let Some(m) = &mut self.cover_mlp {
             m.encode_restore(&mut encoder, &self.grad)?;
         }
-        self.optimizer
-            .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
+        if update {
+            self.optimizer
+                .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
+            self.cover_steps += 1;
+        }
+        // Without the update the gradient buffer keeps what the hold-back left in it (the
+        // MLP's) for the next step that trains the cover.
         ctx.scoped("optimizer", || ctx.queue.submit([encoder.finish()]))?;
         ctx.wait()?;
         self.step += 1;
@@ -655,6 +668,13 @@ impl<'c> GpuTrainer<'c> {
             .read_buffer(&self.field.params, 4 * self.field.layout().n_params as u64)
     }
 
+    /// The gradient buffer, read back (for tests: between steps it holds what waits for
+    /// the cover's next step, zero otherwise).
+    pub fn gradient(&self) -> GpuResult<Vec<f32>> {
+        self.ctx
+            .read_buffer(&self.grad, 4 * self.field.layout().n_params as u64)
+    }
+
     /// The model as published (what [`Model::from_trainer`] makes of a CPU trainer): the
     /// EMA weights with the cover's grid, dataset and counters.
     pub fn model(&self, loss: f32) -> GpuResult<Model> {
@@ -662,7 +682,7 @@ impl<'c> GpuTrainer<'c> {
             self.model,
             self.inference_params()?,
             self.grid(0)?,
-            self.step,
+            self.cover_steps,
             loss,
             &self.scenes[0].dataset,
             self.batch_counters(0),

@@ -34,7 +34,7 @@ impl Model {
             t.net.layout.config,
             t.inference_params(),
             t.grid(0).clone(),
-            t.step,
+            t.cover_steps,
             loss,
             t.dataset(0),
             t.batch_counters(0),
