@@ -30,7 +30,10 @@
 //! reachable hashed entries, AUC 1.0 between plain and confined-only stealth models).
 //! Stealth training therefore also sets
 //! [`TrainConfig::cover_paced_table`](crate::ngp::train::TrainConfig::cover_paced_table):
-//! an entry moves only in steps where the cover's gradient reaches it. With the table paced,
+//! an entry moves only in steps where the cover's gradient reaches it, and the optimizer
+//! steps only when the cover trains (under the random-scene schedule, the hidden scenes'
+//! steps wait for the cover's: extra Adam, L2 and EMA steps gave the cover's MLP away
+//! whatever the hidden scene's weight). With the table paced,
 //! the shared MLP gave the models away next (the spread of its first density layer: AUC
 //! 0.98). [`TrainConfig::cover_only_mlp`](crate::ngp::train::TrainConfig::cover_only_mlp)
 //! (`train --stealth --cover-only-mlp`) lets the hidden scenes train their keyed entries
