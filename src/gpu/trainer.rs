@@ -60,7 +60,7 @@ use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
 use crate::ngp::train::loss::DENSITY_PULL_UP;
 use crate::ngp::train::trainer::{
-    initial_rays_per_batch, mix, next_rays_per_batch, starting_grid, step_scenes,
+    initial_rays_per_batch, mix, next_rays_per_batch, starting_grid, step_scenes, updates_weights,
 };
 use crate::ngp::train::{IndexRefresh, SceneSpec, StepStats, TrainConfig};
 use std::sync::Arc;
@@ -430,8 +430,7 @@ impl<'c> GpuTrainer<'c> {
         let t0 = Instant::now();
         let step = self.step;
         let ids = step_scenes(&self.config, step, self.scenes.len());
-        // Under pacing a step without the cover updates nothing (the CPU's rule).
-        let update = !self.config.cover_paced_table || ids.contains(&0);
+        let update = updates_weights(&self.config, &ids);
         if update {
             self.update_occupancy()?;
         }

@@ -293,6 +293,13 @@ pub(crate) fn step_scenes(config: &TrainConfig, step: u32, n_scenes: usize) -> V
     }
 }
 
+/// Whether a step that trains `scene_ids` updates the weights and the grids: always, or
+/// under [`TrainConfig::cover_paced_table`] only when it trains the cover (see
+/// [`Trainer::cover_steps`]). Also the GPU trainer's rule.
+pub(crate) fn updates_weights(config: &TrainConfig, scene_ids: &[usize]) -> bool {
+    !config.cover_paced_table || scene_ids.contains(&0)
+}
+
 impl Trainer {
     pub fn new(model: ModelConfig, scenes: Vec<SceneSpec>, config: TrainConfig) -> Result<Self> {
         if scenes.is_empty() {
@@ -423,11 +430,6 @@ impl Trainer {
         self.optimizer.ema_params(&self.params)
     }
 
-    /// Whether step `step`'s scenes update the weights (see [`Trainer::cover_steps`]).
-    fn updates_weights(&self, scene_ids: &[usize]) -> bool {
-        !self.config.cover_paced_table || scene_ids.contains(&0)
-    }
-
     fn update_occupancy(&mut self) {
         let step = self.cover_steps;
         let interval = (step / 16).clamp(1, 16);
@@ -461,7 +463,7 @@ impl Trainer {
         let t0 = std::time::Instant::now();
         let step = self.step;
         let scene_ids = step_scenes(&self.config, step, self.scenes.len());
-        let update = self.updates_weights(&scene_ids);
+        let update = updates_weights(&self.config, &scene_ids);
         if update {
             self.update_occupancy();
         }
