@@ -334,12 +334,8 @@ fn model_config(
         "base_resolution": g.base_resolution, "eval_views": cfg.eval_views,
         "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
     });
-    if arm != Arm::Plain && cfg.hidden_from_step > 0 {
-        // Only when set, so that models trained before the option still reuse.
-        v["hidden_from_step"] = json!(cfg.hidden_from_step);
-    }
-    if arm != Arm::Plain && cfg.hidden_loss_weight != 1.0 {
-        v["hidden_loss_weight"] = json!(cfg.hidden_loss_weight.to_string());
+    if arm != Arm::Plain {
+        cfg.record_hidden_options(&mut v);
     }
     if arm == Arm::Stealth {
         // Only this arm's key, so that plain and default stego files stay reusable.

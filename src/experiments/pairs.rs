@@ -415,33 +415,27 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             hidden_dir.display()
         ));
         let key = experiment_key(cfg.scheme, 1, cfg.seed, which, &hidden)?;
-        let stego = models.get(
-            &format!("stego-{cl}-{hl}"),
-            json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
-            "steps": steps, "scheme": cfg.scheme.name(), "key": which,
-            "schedule": format!("{:?}", cfg.schedule),
-            // A stealth model trained before stealth paced the table, or before its
-            // optimizer kept the cover's clock, is not reused.
-            "stealth": match (cfg.stealth, cfg.trains_cover_only_mlp()) {
-                (false, _) => json!(false),
-                (true, false) => json!("paced on the cover's clock"),
-                (true, true) => json!("paced on the cover's clock, cover-only MLP"),
-            },
-            // Only when set, so that models trained before the option still reuse.
-            "hidden_from_step": (cfg.hidden_from_step > 0).then_some(cfg.hidden_from_step),
-            // A string, as the sidecars keep floats (exact round trip).
-            "hidden_loss_weight": (cfg.hidden_loss_weight != 1.0).then(|| cfg.hidden_loss_weight.to_string())}),
-            || {
-                let t = train_scenes(
-                    cfg,
-                    config,
-                    &[(&cover, &pi), (&hidden, &key)],
-                    Budget::Steps(steps),
-                    &format!("stego {cl} + {hl}"),
-                )?;
-                Ok((t.model, t.steps, t.seconds))
-            },
-        )?;
+        let mut stego_config = json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
+        "steps": steps, "scheme": cfg.scheme.name(), "key": which,
+        "schedule": format!("{:?}", cfg.schedule),
+        // A stealth model trained before stealth paced the table, or before its
+        // optimizer kept the cover's clock, is not reused.
+        "stealth": match (cfg.stealth, cfg.trains_cover_only_mlp()) {
+            (false, _) => json!(false),
+            (true, false) => json!("paced on the cover's clock"),
+            (true, true) => json!("paced on the cover's clock, cover-only MLP"),
+        }});
+        cfg.record_hidden_options(&mut stego_config);
+        let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, || {
+            let t = train_scenes(
+                cfg,
+                config,
+                &[(&cover, &pi), (&hidden, &key)],
+                Budget::Steps(steps),
+                &format!("stego {cl} + {hl}"),
+            )?;
+            Ok((t.model, t.steps, t.seconds))
+        })?;
         let t_eval = std::time::Instant::now();
         let sc = score_scene(cfg, &cover, &plain_c.model, &stego.model, &pi, lp)?;
         let sh = score_scene(cfg, &hidden, &plain_h.model, &stego.model, &key, lp)?;

@@ -147,6 +147,19 @@ impl ExpConfig {
     pub fn trains_cover_only_mlp(&self) -> bool {
         self.stealth && self.cover_only_mlp
     }
+
+    /// Adds to a model-with-hidden-scenes sidecar config the training options that are not
+    /// at their defaults (warm-up, hidden weight), and nothing else: a model trained before
+    /// an option existed keeps a sidecar that still matches, and is reused.
+    pub(super) fn record_hidden_options(&self, config: &mut serde_json::Value) {
+        if self.hidden_from_step > 0 {
+            config["hidden_from_step"] = json!(self.hidden_from_step);
+        }
+        if self.hidden_loss_weight != 1.0 {
+            // A string: serde_json's float parsing does not round-trip every f64 exactly.
+            config["hidden_loss_weight"] = json!(self.hidden_loss_weight.to_string());
+        }
+    }
 }
 
 pub(super) struct Scene {
