@@ -407,13 +407,7 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
     let arms = || {
         let mut stealth = config(Schedule::Mixed);
         stealth.cover_only_mlp = true;
-        let mut plain = specs(&ctrain, &htrain, &key);
-        plain.truncate(1);
-        [
-            (plain, config(Schedule::Mixed)),
-            (specs(&ctrain, &htrain, &key), stealth),
-            (specs(&ctrain, &htrain, &key), config(Schedule::Mixed)),
-        ]
+        plain_variant_stego(&ctrain, &htrain, &key, stealth)
     };
     let [plain, stealth, stego] = arms().map(|(s, tc)| {
         let mut t = Trainer::new(cfg, s, tc).unwrap();
@@ -468,13 +462,7 @@ fn hidden_from_step_trains_the_cover_alone_first() {
     let arms = || {
         let mut later = config(Schedule::Mixed);
         later.hidden_from_step = warm;
-        let mut plain = specs(&ctrain, &htrain, &key);
-        plain.truncate(1);
-        [
-            (plain, config(Schedule::Mixed)),
-            (specs(&ctrain, &htrain, &key), later),
-            (specs(&ctrain, &htrain, &key), config(Schedule::Mixed)),
-        ]
+        plain_variant_stego(&ctrain, &htrain, &key, later)
     };
     let [plain, later, stego] = arms().map(|(s, tc)| {
         let mut t = Trainer::new(cfg, s, tc).unwrap();
@@ -525,6 +513,23 @@ fn hidden_from_step_trains_the_cover_alone_first() {
 }
 
 /// How many parameters two models hold differently.
+/// Three trainers' scenes and configurations, mixed batches: the cover alone, cover and
+/// hidden scene under `variant`, and both under the default stego configuration.
+fn plain_variant_stego(
+    cover: &Arc<Dataset>,
+    hidden: &Arc<Dataset>,
+    key: &Key,
+    variant: TrainConfig,
+) -> [(Vec<SceneSpec>, TrainConfig); 3] {
+    let mut plain = specs(cover, hidden, key);
+    plain.truncate(1);
+    [
+        (plain, config(Schedule::Mixed)),
+        (specs(cover, hidden, key), variant),
+        (specs(cover, hidden, key), config(Schedule::Mixed)),
+    ]
+}
+
 fn n_different(a: &[f32], b: &[f32]) -> usize {
     a.iter().zip(b).filter(|(u, v)| u != v).count()
 }

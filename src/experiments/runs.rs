@@ -229,6 +229,7 @@ pub(super) fn train_scenes(
     label: &str,
 ) -> Result<Trained> {
     let layout = NerfLayout::new(config)?;
+    let warm_up = warm_up_steps(cfg, scenes.len());
     let specs = scenes
         .iter()
         .map(|(s, k)| {
@@ -246,7 +247,7 @@ pub(super) fn train_scenes(
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
         cover_only_mlp: cfg.trains_cover_only_mlp(),
-        hidden_from_step: warm_up_steps(cfg, scenes.len()),
+        hidden_from_step: warm_up,
         hidden_loss_weight: cfg.hidden_loss_weight,
         ..Default::default()
     };
@@ -260,7 +261,6 @@ pub(super) fn train_scenes(
         Schedule::Mixed => 1,
         Schedule::RandomScene => scenes.len() as u32,
     };
-    let warm_up = warm_up_steps(cfg, scenes.len());
     if let Budget::Steps(n) = budget
         && warm_up >= n * per_step
     {

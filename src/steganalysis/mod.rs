@@ -194,13 +194,8 @@ pub fn analyse_snapshot(snap: &Snapshot) -> Result<Analysis> {
         aabb_scale: snap.config.aabb_scale,
         density_grid_stored: grid.is_some(),
         occupied_frac: grid.as_ref().map_or(0.0, |g| g.occupied_fraction()),
-        grid_mean: grid.as_ref().map_or(0.0, |g| {
-            g.density[..N_CELLS]
-                .iter()
-                .map(|&v| v.max(0.0) as f64)
-                .sum::<f64>()
-                / N_CELLS as f64
-        }),
+        // The mean the grid's own threshold was computed from.
+        grid_mean: grid.as_ref().map_or(0.0, |g| g.mean as f64),
         grid_max: grid.as_ref().map_or(0.0, |g| {
             g.density[..N_CELLS]
                 .iter()

@@ -528,16 +528,23 @@ impl Trainer {
             m.restore(&mut self.workers);
         }
         let t_rays = t0.elapsed().as_secs_f64();
-        self.step += 1;
-        if !update {
-            // The gradients the hold-back left in the workers' buffers (the MLP's) wait
-            // there for the next step that trains the cover; the table's wait in `pending`.
-            stats.seconds = t0.elapsed().as_secs_f64();
-            stats.occupancy_seconds = t_occ;
-            stats.rays_seconds = t_rays - t_occ;
-            return stats;
+        // Without the update, the gradients the hold-back left in the workers' buffers (the
+        // MLP's) wait there for the next step that trains the cover; the table's wait in
+        // `pending`.
+        if update {
+            self.update_weights();
+            self.cover_steps += 1;
         }
-        self.cover_steps += 1;
+        self.step += 1;
+        stats.seconds = t0.elapsed().as_secs_f64();
+        stats.occupancy_seconds = t_occ;
+        stats.rays_seconds = t_rays - t_occ;
+        stats.optimizer_seconds = stats.seconds - t_rays;
+        stats
+    }
+
+    /// One optimizer step on the summed gradients of the workers, which it leaves zeroed.
+    fn update_weights(&mut self) {
         let mut grads: Vec<Vec<f32>> = self
             .workers
             .iter_mut()
@@ -555,11 +562,6 @@ impl Trainer {
             t.clear();
             w.touched = t;
         }
-        stats.seconds = t0.elapsed().as_secs_f64();
-        stats.occupancy_seconds = t_occ;
-        stats.rays_seconds = t_rays - t_occ;
-        stats.optimizer_seconds = stats.seconds - t_rays;
-        stats
     }
 }
 
