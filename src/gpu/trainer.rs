@@ -58,6 +58,7 @@ use crate::ngp::network::ModelConfig;
 use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
+use crate::ngp::train::density_cap::cap_gradient;
 use crate::ngp::train::loss::DENSITY_PULL_UP;
 use crate::ngp::train::trainer::{
     initial_rays_per_batch, mix, next_rays_per_batch, starting_grid, step_scenes, updates_weights,
@@ -120,6 +121,10 @@ pub struct GpuTrainer<'c> {
     pacing: Option<GpuPacing>,
     /// `config.cover_only_mlp`'s state.
     cover_mlp: Option<GpuCoverMlp>,
+    /// `config.density_cap`'s cells and the cover's grid they were read from, as of its
+    /// last update (read back from the device).
+    cap_cells: Vec<u32>,
+    cap_grid: Option<OccupancyGrid>,
     ws: MlpWorkspace,
     dirs: wgpu::Buffer,
     raw: wgpu::Buffer,
@@ -282,6 +287,8 @@ impl<'c> GpuTrainer<'c> {
             optimizer,
             pacing,
             cover_mlp,
+            cap_cells: Vec::new(),
+            cap_grid: None,
             ws,
             dirs,
             raw,
@@ -349,15 +356,23 @@ impl<'c> GpuTrainer<'c> {
     /// The refresh's new indices for the scenes it names, checked all before any is used
     /// (an error changes nothing), then uploaded.
     fn apply_refresh(&mut self) -> GpuResult<()> {
+        if self.refresh.is_none() {
+            return Ok(());
+        }
+        let cover_grid = self.scenes[0].occupancy.download(self.ctx)?;
+        self.apply_refresh_on(&cover_grid)
+    }
+
+    /// [`Self::apply_refresh`] on the cover's grid already read back.
+    fn apply_refresh_on(&mut self, cover_grid: &OccupancyGrid) -> GpuResult<()> {
         let Some(r) = &self.refresh else {
             return Ok(());
         };
         let ctx = self.ctx;
-        let cover_grid = self.scenes[0].occupancy.download(ctx)?;
         let published = self.optimizer.ema_params(ctx, &self.field.params)?;
         let layout = self.field.layout();
         let n_levels = layout.grid.levels.len();
-        let fresh = r.refresh(&cover_grid, &published);
+        let fresh = r.refresh(cover_grid, &published);
         let mut uploaded = Vec::with_capacity(fresh.len());
         for (i, indices) in fresh {
             if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
@@ -414,9 +429,16 @@ impl<'c> GpuTrainer<'c> {
             )?;
             ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
             scene.grid_mean = scene.occupancy.read_mean(ctx)?;
-            if si == 0 {
+            if si == 0 && (self.refresh.is_some() || self.config.density_cap.is_some()) {
+                let cover_grid = self.scenes[0].occupancy.download(ctx)?;
+                if let Some(cap) = &self.config.density_cap {
+                    self.cap_cells = cap.cells(&cover_grid);
+                }
                 // Refreshed indices take effect before the other scenes' grids update.
-                self.apply_refresh()?;
+                self.apply_refresh_on(&cover_grid)?;
+                if self.config.density_cap.is_some() {
+                    self.cap_grid = Some(cover_grid);
+                }
             }
         }
         Ok(())
@@ -441,6 +463,9 @@ impl<'c> GpuTrainer<'c> {
         };
         for si in ids {
             self.train_scene(si, &mut stats)?;
+            if si == 0 {
+                stats.capped = self.cap_density()?;
+            }
             if si == 0 && (self.pacing.is_some() || self.cover_mlp.is_some()) {
                 let mut encoder = self.ctx.device.create_command_encoder(&Default::default());
                 if let Some(p) = &self.pacing {
@@ -554,15 +579,11 @@ impl<'c> GpuTrainer<'c> {
         pull_up: f32,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
-        let layout = self.field.layout();
-        let width = layout.grid.config.n_output_dims() as u64;
-        let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
         let ld = n
             .div_ceil(LD_GRANULE)
             .saturating_mul(LD_GRANULE)
             .min(self.batch.sample_budget());
         let shape = GridShape { n_samples: n, ld };
-        let (pos_bytes, enc_bytes) = (12 * ld as u64, 4 * width * ld as u64);
 
         // Per-sample directions.
         let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
@@ -592,31 +613,7 @@ impl<'c> GpuTrainer<'c> {
             pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
         })?;
 
-        // Grid forward, under the scene's index.
-        let grid = self.field.grid();
-        let index = &self.scenes[si].index;
-        let forward = grid.bind_forward(
-            ctx,
-            index,
-            self.batch.pos.slice(..pos_bytes),
-            self.field.params.slice(g0..g1),
-            self.enc.slice(..enc_bytes),
-            shape,
-        )?;
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            forward.record(&mut pass);
-        }
-
-        // Network forward, keeping activations for the backward.
-        let eb = EncodedBatch {
-            params: &self.field.params,
-            enc: &self.enc,
-            ld,
-            n,
-        };
-        let mlp = self.field.mlp();
-        mlp.encode_forward(ctx, encoder, &eb, &self.dirs, &self.raw, Some(&self.ws))?;
+        self.encode_network_forward(encoder, si, shape)?;
 
         // Loss and its gradient to the raw outputs.
         let bufs = LossBuffers {
@@ -631,8 +628,69 @@ impl<'c> GpuTrainer<'c> {
         let cfg = LossConfig::new(&self.marcher, loss_norm, pull_up);
         self.loss.encode(ctx, encoder, &bufs, n_rays, n, &cfg)?;
 
-        // Network backward: MLP weight gradients added into `grad`, dL/d(enc) into `d_enc`.
-        mlp.encode_backward(
+        self.encode_network_backward(encoder, si, shape)
+    }
+
+    /// Grid forward under scene `si`'s index and network forward over the first
+    /// `shape.n_samples` positions of the batch and of `dirs`, into `raw`, keeping the
+    /// activations for [`Self::encode_network_backward`].
+    fn encode_network_forward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        shape: GridShape,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let layout = self.field.layout();
+        let width = layout.grid.config.n_output_dims() as u64;
+        let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
+        let (pos_bytes, enc_bytes) = (12 * shape.ld as u64, 4 * width * shape.ld as u64);
+        let grid = self.field.grid();
+        let index = &self.scenes[si].index;
+        let forward = grid.bind_forward(
+            ctx,
+            index,
+            self.batch.pos.slice(..pos_bytes),
+            self.field.params.slice(g0..g1),
+            self.enc.slice(..enc_bytes),
+            shape,
+        )?;
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            forward.record(&mut pass);
+        }
+        let eb = EncodedBatch {
+            params: &self.field.params,
+            enc: &self.enc,
+            ld: shape.ld,
+            n: shape.n_samples,
+        };
+        self.field
+            .mlp()
+            .encode_forward(ctx, encoder, &eb, &self.dirs, &self.raw, Some(&self.ws))
+    }
+
+    /// Backward of the last [`Self::encode_network_forward`] from `d_raw`: MLP weight
+    /// gradients added into `grad`, dL/d(enc) into `d_enc`, then the grid's gradient added
+    /// into the grid block of `grad`.
+    fn encode_network_backward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        shape: GridShape,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let layout = self.field.layout();
+        let width = layout.grid.config.n_output_dims() as u64;
+        let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
+        let (pos_bytes, enc_bytes) = (12 * shape.ld as u64, 4 * width * shape.ld as u64);
+        let eb = EncodedBatch {
+            params: &self.field.params,
+            enc: &self.enc,
+            ld: shape.ld,
+            n: shape.n_samples,
+        };
+        self.field.mlp().encode_backward(
             ctx,
             encoder,
             &eb,
@@ -641,11 +699,9 @@ impl<'c> GpuTrainer<'c> {
             &self.grad,
             &self.d_enc,
         )?;
-
-        // Grid backward, added into the grid block of `grad`.
-        let backward = grid.bind_backward(
+        let backward = self.field.grid().bind_backward(
             ctx,
-            index,
+            &self.scenes[si].index,
             self.batch.pos.slice(..pos_bytes),
             self.d_enc.slice(..enc_bytes),
             self.grad.slice(g0..g1),
@@ -654,6 +710,65 @@ impl<'c> GpuTrainer<'c> {
         let mut pass = encoder.begin_compute_pass(&Default::default());
         backward.record(&mut pass);
         Ok(())
+    }
+
+    /// The cover's [`DensityCap`](crate::ngp::train::DensityCap) term (the CPU trainer's), added into the gradient as part
+    /// of the cover's: the step's points, drawn on the host from the cover's grid as of its
+    /// last update, go through the network in the batch's buffers (the cover's rays are
+    /// done with them) in chunks of the sample budget; the hinge's gradient is taken on the
+    /// host from the raw outputs read back. Returns the points above the cap.
+    fn cap_density(&mut self) -> GpuResult<u32> {
+        let (Some(cap), Some(grid)) = (self.config.density_cap, &self.cap_grid) else {
+            return Ok(0);
+        };
+        let ctx = self.ctx;
+        let pos: Vec<[f32; 3]> = cap
+            .points(grid, &self.cap_cells, self.config.seed, self.cover_steps)
+            .into_iter()
+            .map(|p| self.marcher.warp(p))
+            .collect();
+        let n = pos.len();
+        let mut above = 0;
+        for chunk in pos.chunks(self.batch.sample_budget() as usize) {
+            let m = chunk.len() as u32;
+            let ld = m
+                .div_ceil(LD_GRANULE)
+                .saturating_mul(LD_GRANULE)
+                .min(self.batch.sample_budget());
+            let shape = GridShape { n_samples: m, ld };
+            // The colour's gradient is zero: any direction does.
+            let dirs = vec![[0.0f32, 0.0, 1.0]; chunk.len()];
+            ctx.scoped("density cap points", || {
+                ctx.queue
+                    .write_buffer(&self.batch.pos, 0, bytemuck::cast_slice(chunk));
+                ctx.queue
+                    .write_buffer(&self.dirs, 0, bytemuck::cast_slice(&dirs));
+            })?;
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.encode_network_forward(&mut encoder, 0, shape)?;
+            ctx.scoped("density cap forward", || {
+                ctx.queue.submit([encoder.finish()])
+            })?;
+            let raw: Vec<[f32; 4]> = ctx.read_buffer(&self.raw, 16 * m as u64)?;
+            let d_raw: Vec<[f32; 4]> = raw
+                .iter()
+                .map(|r| {
+                    let (g, _) = cap_gradient(&cap, r[3], n);
+                    above += (g > 0.0) as u32;
+                    [0.0, 0.0, 0.0, g]
+                })
+                .collect();
+            ctx.scoped("density cap gradient", || {
+                ctx.queue
+                    .write_buffer(&self.d_raw, 0, bytemuck::cast_slice(&d_raw));
+            })?;
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.encode_network_backward(&mut encoder, 0, shape)?;
+            ctx.scoped("density cap backward", || {
+                ctx.queue.submit([encoder.finish()])
+            })?;
+        }
+        Ok(above)
     }
 
     /// Weights to render with and to publish: the debiased EMA, read back.
