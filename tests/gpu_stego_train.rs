@@ -14,7 +14,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::occupancy::OccupancyGrid;
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::ngp::train::{IndexRefresh, SceneSpec, Schedule, TrainConfig, Trainer};
+use stegongp::ngp::train::{DensityCap, IndexRefresh, SceneSpec, Schedule, TrainConfig, Trainer};
 use stegongp::rng::Pcg32;
 use stegongp::stego::stealth::StealthRefresh;
 use stegongp::stego::{Key, SchemeKind, generate_with, open_scene};
@@ -620,4 +620,75 @@ fn stealth_refresh_confines_the_hidden_indices_like_the_cpu() {
     assert!(gpu.set_index_refresh(bad).is_err());
     assert!(*gpu.indices(1) == before);
     assert!(gpu.train_step().is_err());
+}
+
+/// The cover's density cap on the device, against the CPU's: the same points above the cap
+/// each step, the same losses, the same parameters moved by the cap, and the cover's grid
+/// held down on both. The cap sits below the untrained field's optical thickness (≈ 0.0017
+/// per finest step), so that it works from the first steps.
+#[test]
+fn density_cap_holds_the_cover_down_like_the_cpu() {
+    let Some(ctx) = test_context() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (ctrain, _) = scene(&dir.path().join("cover"), SceneKind::Object, 3);
+    let (htrain, _) = scene(&dir.path().join("hidden"), SceneKind::Text("HI".into()), 4);
+    let key = key();
+    let cfg = model_config();
+    let cover = || {
+        let mut s = specs(&ctrain, &htrain, &key);
+        s.truncate(1);
+        s
+    };
+    let mut capped_cfg = config(Schedule::Mixed);
+    capped_cfg.density_cap = Some(DensityCap {
+        max_optical_thickness: 0.0015,
+        weight: 1.0,
+        samples: 2048,
+    });
+    let mut cpu = Trainer::new(cfg, cover(), capped_cfg.clone()).unwrap();
+    let mut gpu = GpuTrainer::new(ctx, cfg, cover(), capped_cfg).unwrap();
+    let mut cpu_free = Trainer::new(cfg, cover(), config(Schedule::Mixed)).unwrap();
+    let mut gpu_free = GpuTrainer::new(ctx, cfg, cover(), config(Schedule::Mixed)).unwrap();
+    let (mut sum_c, mut sum_g) = (0u64, 0u64);
+    for step in 0..8 {
+        let (a, b) = (cpu.train_step(), gpu.train_step().unwrap());
+        cpu_free.train_step();
+        gpu_free.train_step().unwrap();
+        assert!(a.capped > 0, "step {step}: no point above the cap");
+        assert!(
+            a.capped.abs_diff(b.capped) <= a.capped / 50 + 5,
+            "step {step}: {} points above the cap on the CPU, {} on the GPU",
+            a.capped,
+            b.capped
+        );
+        assert!(
+            (a.loss - b.loss).abs() <= 1e-3 * a.loss,
+            "step {step}: CPU loss {} vs GPU {}",
+            a.loss,
+            b.loss
+        );
+        sum_c += a.capped as u64;
+        sum_g += b.capped as u64;
+    }
+    // What the cap changed, on each backend.
+    let gp = gpu.params().unwrap();
+    let gf = gpu_free.params().unwrap();
+    let (nc, ng) = (
+        n_different(&cpu.params, &cpu_free.params),
+        n_different(&gp, &gf),
+    );
+    assert!(nc > 0, "the cap changed nothing");
+    assert!(
+        nc.abs_diff(ng) <= nc / 50 + 2,
+        "the cap changed {nc} parameters on the CPU, {ng} on the GPU"
+    );
+    let max = |g: &OccupancyGrid| g.density.iter().copied().fold(0f32, f32::max);
+    let (c, cf) = (max(cpu.grid(0)), max(cpu_free.grid(0)));
+    let (g, gf) = (max(&gpu.grid(0).unwrap()), max(&gpu_free.grid(0).unwrap()));
+    eprintln!(
+        "density cap: {sum_c} / {sum_g} points above it (CPU / GPU); largest optical \
+         thickness {c} / {g} capped, {cf} / {gf} free"
+    );
+    assert!(c < cf && g < gf, "capped {c} / {g}, free {cf} / {gf}");
+    assert!((c - g).abs() <= 0.02 * c, "capped: CPU {c}, GPU {g}");
 }

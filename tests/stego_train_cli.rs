@@ -270,3 +270,47 @@ fn hidden_from_is_checked_before_anything_is_written() {
     ]));
     assert!(d.path().join("m.ingp").exists());
 }
+
+/// `--density-cap` (stealth's cap on the cover's optical thickness): reported in the log,
+/// 0 turns it off, a negative or non-number cap and the option without `--stealth` are
+/// refused before anything is written.
+#[test]
+fn density_cap_is_stealths_and_checked_before_anything_is_written() {
+    let d = tempfile::tempdir().unwrap();
+    let (cover, text, key, model) = cover_text_key(d.path(), "16");
+    let train = |extra: &[&str]| {
+        let mut args = vec![
+            "train", &cover, "--hidden", &text, "--key", &key, "--steps", "3", "--batch", "2048",
+            "--log2-t", "12", "--out", &model,
+        ];
+        args.extend_from_slice(extra);
+        stegongp(&args)
+    };
+    for (extra, says) in [
+        (&["--density-cap", "2"][..], "--stealth"),
+        (&["--stealth", "--density-cap=-1"][..], "--density-cap"),
+        (&["--stealth", "--density-cap", "NaN"][..], "--density-cap"),
+        (&["--stealth", "--density-cap", "lots"][..], "--density-cap"),
+    ] {
+        let out = train(extra);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{extra:?} was accepted");
+        assert!(err.contains(says), "{extra:?}: {err}");
+        assert!(
+            !d.path().join("m.ingp").exists(),
+            "a refused run wrote a model"
+        );
+    }
+    let log = ok(train(&["--stealth"]));
+    assert!(
+        log.contains("the cover's optical thickness capped at 2"),
+        "{log}"
+    );
+    let log = ok(train(&["--stealth", "--density-cap", "0.5"]));
+    assert!(
+        log.contains("the cover's optical thickness capped at 0.5"),
+        "{log}"
+    );
+    let log = ok(train(&["--stealth", "--density-cap", "0"]));
+    assert!(log.contains("the cover's density uncapped"), "{log}");
+}

@@ -10,7 +10,7 @@ use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::{Background, RenderOptions};
-use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig};
+use stegongp::ngp::train::{DensityCap, SceneSpec, Schedule, TrainConfig};
 use stegongp::stego::stealth::StealthRefresh;
 
 #[derive(clap::Args, Debug)]
@@ -93,6 +93,13 @@ pub struct Args {
     /// lose more (BENCHMARKS.md, "Stealth with the cover's own MLP").
     #[arg(long, requires = "stealth")]
     pub cover_only_mlp: bool,
+    /// With --stealth: the cap on the cover's optical thickness per finest marching step
+    /// (the occupancy grid's unit), 0 for none. Hidden scenes sharing the cover's entries
+    /// make its network decode dense cells inside opaque objects, where no cover ray looks,
+    /// and the stored grid shows them; a penalty pulls the cover's density above the cap
+    /// back down (BENCHMARKS.md, "Capping the cover's density"). [default: 2]
+    #[arg(long, requires = "stealth")]
+    pub density_cap: Option<f32>,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
     #[arg(long, value_delimiter = ',')]
     pub checkpoints: Vec<f64>,
@@ -147,6 +154,11 @@ pub fn run(a: Args) -> Result<()> {
     }
     if !(a.hidden_weight.is_finite() && a.hidden_weight > 0.0) {
         bail!("--hidden-weight must be a positive number");
+    }
+    if let Some(c) = a.density_cap
+        && !(c.is_finite() && c >= 0.0)
+    {
+        bail!("--density-cap must be a number ≥ 0 (0: no cap)");
     }
     if let Some(steps) = a.steps
         && a.hidden_from >= steps
@@ -206,6 +218,7 @@ pub fn run(a: Args) -> Result<()> {
         hidden_loss_weight: a.hidden_weight,
         cover_paced_table: a.stealth,
         cover_only_mlp: a.cover_only_mlp,
+        density_cap: stealth_density_cap(&a),
         hidden_from_step: a.hidden_from,
         workers: a.workers,
         ..Default::default()
@@ -230,11 +243,18 @@ pub fn run(a: Args) -> Result<()> {
         if a.stealth {
             eprintln!(
                 "stealth: hidden scenes confined to the cover's entries, the table paced on \
-                 the cover, the MLP {}",
+                 the cover, the MLP {}, {}",
                 if a.cover_only_mlp {
                     "learnt from the cover alone"
                 } else {
                     "shared"
+                },
+                match stealth_density_cap(&a) {
+                    Some(c) => format!(
+                        "the cover's optical thickness capped at {}",
+                        c.max_optical_thickness
+                    ),
+                    None => "the cover's density uncapped".into(),
                 }
             );
         }
@@ -376,4 +396,19 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The cover's density cap: stealth's, at `--density-cap` if given (0: none).
+fn stealth_density_cap(a: &Args) -> Option<DensityCap> {
+    if !a.stealth {
+        return None;
+    }
+    match a.density_cap {
+        None => Some(DensityCap::STEALTH),
+        Some(c) if c <= 0.0 => None,
+        Some(c) => Some(DensityCap {
+            max_optical_thickness: c,
+            ..DensityCap::STEALTH
+        }),
+    }
 }

@@ -418,12 +418,12 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         let mut stego_config = json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
         "steps": steps, "scheme": cfg.scheme.name(), "key": which,
         "schedule": format!("{:?}", cfg.schedule),
-        // A stealth model trained before stealth paced the table, or before its
-        // optimizer kept the cover's clock, is not reused.
+        // A stealth model trained before stealth paced the table, before its optimizer
+        // kept the cover's clock, or before the cover's density was capped, is not reused.
         "stealth": match (cfg.stealth, cfg.trains_cover_only_mlp()) {
             (false, _) => json!(false),
-            (true, false) => json!("paced on the cover's clock"),
-            (true, true) => json!("paced on the cover's clock, cover-only MLP"),
+            (true, false) => json!("paced on the cover's clock, density capped"),
+            (true, true) => json!("paced on the cover's clock, density capped, cover-only MLP"),
         }});
         cfg.record_hidden_options(&mut stego_config);
         let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, || {

@@ -10,7 +10,7 @@ use crate::ngp::lpips::Lpips;
 use crate::ngp::model::Model;
 use crate::ngp::network::{ModelConfig, NerfLayout};
 use crate::ngp::render::image::RenderOptions;
-use crate::ngp::train::{SceneSpec, Schedule, TrainConfig};
+use crate::ngp::train::{DensityCap, SceneSpec, Schedule, TrainConfig};
 use crate::rng::Pcg32;
 use crate::stego::stealth::StealthRefresh;
 use crate::stego::{
@@ -246,6 +246,7 @@ pub(super) fn train_scenes(
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
+        density_cap: cfg.stealth.then_some(DensityCap::STEALTH),
         cover_only_mlp: cfg.trains_cover_only_mlp(),
         hidden_from_step: warm_up,
         hidden_loss_weight: cfg.hidden_loss_weight,

@@ -39,6 +39,18 @@
 //! (`train --stealth --cover-only-mlp`) lets the hidden scenes train their keyed entries
 //! only, decoded by the cover's own MLP: fewer statistics separate the arms, at a price in
 //! hidden fidelity that keeps it optional (BENCHMARKS.md).
+//!
+//! Sharing its entries with hidden scenes also changes what the cover's network decodes
+//! where no cover ray looks: inside its opaque objects, whose density a plain model leaves
+//! near its surfaces' and a stealth model drove to 10–100× that. The stored grid showed it
+//! (its largest cells and its mean, hence its occupancy threshold and occupied fraction).
+//! Stealth training therefore also sets
+//! [`TrainConfig::density_cap`](crate::ngp::train::TrainConfig::density_cap) to
+//! [`DensityCap::STEALTH`](crate::ngp::train::DensityCap::STEALTH): the cover's loss gains a
+//! penalty on its optical thickness above 2 per finest step in the cells its grid holds
+//! above 1, which brings those statistics back to a plain model's and, the cover no
+//! longer spending its entries on invisible density, both scenes gain fidelity
+//! (BENCHMARKS.md, "Capping the cover's density").
 
 use super::keys::Key;
 use crate::ngp::encoding::reach::{EntrySet, reachable_entries};
