@@ -22,10 +22,30 @@ pub struct GpuField {
 /// Scratch of a density evaluation, grown to the largest batch asked for.
 #[derive(Default)]
 pub struct DensityScratch {
+    /// One chunk's encoding.
     enc: Option<wgpu::Buffer>,
+    /// One chunk's log-densities, copied into `out` (when there is more than one chunk).
+    part: Option<wgpu::Buffer>,
     /// One log-density per sample of the last evaluation.
     pub out: Option<wgpu::Buffer>,
     capacity: u32,
+    chunk: u32,
+    /// Most samples a chunk may hold, below what the device's bindings allow (tests).
+    pub chunk_limit: Option<u32>,
+}
+
+/// Positions per chunk of a density evaluation: chunks start on a storage-aligned byte of
+/// the positions (12 bytes each, so on a multiple of 64 positions for any alignment up to
+/// 256) and their encoding fits one binding. An occupancy update of a 128³ cascade asks
+/// for 2^21 positions, whose 16×2 encoding (256 MiB) is past many devices' 128 MiB.
+fn density_chunk(ctx: &GpuContext, width: u64, limit: Option<u32>) -> u32 {
+    let limits = ctx.device.limits();
+    let max = limits
+        .max_storage_buffer_binding_size
+        .min(limits.max_buffer_size);
+    let fits = (max / (4 * width)).min(u32::MAX as u64) as u32;
+    let chunk = limit.map_or(fits, |l| l.min(fits));
+    (chunk / 64 * 64).max(64)
 }
 
 impl GpuField {
@@ -126,17 +146,22 @@ impl GpuField {
             return Ok(());
         }
         let width = self.layout.grid.config.n_output_dims() as u64;
-        if n > scratch.capacity || scratch.enc.is_none() {
-            let (enc, out) = ctx.scoped("field scratch", || {
+        let chunk = density_chunk(ctx, width, scratch.chunk_limit).min(n);
+        if n > scratch.capacity || chunk > scratch.chunk || scratch.out.is_none() {
+            let (enc, out, part) = ctx.scoped("field scratch", || {
                 (
-                    storage(ctx, "field encoding", 4 * width * n as u64),
+                    storage(ctx, "field encoding", 4 * width * chunk as u64),
                     storage(ctx, "field log-density", 4 * n as u64),
+                    (chunk < n).then(|| storage(ctx, "field log-density chunk", 4 * chunk as u64)),
                 )
             })?;
             *scratch = DensityScratch {
                 enc: Some(enc),
+                part,
                 out: Some(out),
                 capacity: n,
+                chunk,
+                chunk_limit: scratch.chunk_limit,
             };
         }
         let (Some(enc), Some(out)) = (&scratch.enc, &scratch.out) else {
@@ -144,24 +169,36 @@ impl GpuField {
         };
         let g0 = 4 * self.layout.grid_offset as u64;
         let g1 = 4 * self.layout.n_params as u64;
-        let dispatch = self.grid.bind_forward(
-            ctx,
-            index,
-            positions.slice(..),
-            self.params.slice(g0..g1),
-            enc.slice(..),
-            GridShape::new(n),
-        )?;
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            dispatch.record(&mut pass);
+        for c0 in (0..n).step_by(chunk as usize) {
+            let m = chunk.min(n - c0);
+            let dispatch = self.grid.bind_forward(
+                ctx,
+                index,
+                positions.slice(12 * c0 as u64..12 * (c0 + m) as u64),
+                self.params.slice(g0..g1),
+                enc.slice(..4 * width * m as u64),
+                GridShape::new(m),
+            )?;
+            {
+                let mut pass = encoder.begin_compute_pass(&Default::default());
+                dispatch.record(&mut pass);
+            }
+            let batch = EncodedBatch {
+                params: &self.params,
+                enc,
+                ld: m,
+                n: m,
+            };
+            if m == n {
+                return self.mlp.encode_density(ctx, encoder, &batch, out);
+            }
+            let Some(part) = &scratch.part else {
+                // A scratch sized for this n in one chunk never gets here.
+                return Err(GpuError::Input("density: chunk scratch missing".into()));
+            };
+            self.mlp.encode_density(ctx, encoder, &batch, part)?;
+            encoder.copy_buffer_to_buffer(part, 0, out, 4 * c0 as u64, 4 * m as u64);
         }
-        let batch = EncodedBatch {
-            params: &self.params,
-            enc,
-            ld: n,
-            n,
-        };
-        self.mlp.encode_density(ctx, encoder, &batch, out)
+        Ok(())
     }
 }

@@ -766,6 +766,44 @@ mod tests {
         }
     }
 
+    /// An update whose densities are evaluated in chunks (as on a device whose bindings do
+    /// not hold a whole update's encoding) gives the grid the one-pass evaluation gives, bit
+    /// for bit; the scratch then serves a smaller update in one pass.
+    #[test]
+    fn an_update_in_chunks_equals_one_pass() {
+        use crate::ngp::encoding::reference_indices;
+        use crate::ngp::network::ModelConfig;
+        use crate::ngp::network::nerf::NerfNetwork;
+        let Some(ctx) = test_context() else { return };
+        let net = NerfNetwork::new(ModelConfig::default()).unwrap();
+        let layout = &net.layout;
+        let mut params = net.init_params(4);
+        let mut r = Pcg32::new(9, 9);
+        for (i, p) in params.iter_mut().enumerate() {
+            *p += (r.next_f32() - 0.5) * if i < layout.grid_offset { 0.2 } else { 2.0 };
+        }
+        let indices = reference_indices(&layout.grid);
+        let field = GpuField::new(ctx, layout, &params, &indices).unwrap();
+        let marcher = Marcher::new(1);
+        let start = OccupancyGrid::new(1);
+        let update = |scratch: &mut DensityScratch, nu: u32, nn: u32| {
+            let mut gpu = GpuOccupancy::upload(ctx, &start, &marcher).unwrap();
+            run(ctx, |e| {
+                gpu.encode_update(ctx, e, &field, scratch, nu, nn, 5)
+                    .unwrap()
+            });
+            gpu.download(ctx).unwrap()
+        };
+        let whole = update(&mut DensityScratch::default(), 20_000, 4_000);
+        let mut chunked = DensityScratch::default();
+        chunked.chunk_limit = Some(4_100);
+        // 24 000 samples in chunks of 4 096 (the limit rounded down to 64): the last 3 520.
+        assert!(update(&mut chunked, 20_000, 4_000) == whole);
+        assert!(whole.density.iter().filter(|&&d| d > 0.0).count() > 10_000);
+        let small = update(&mut DensityScratch::default(), 3_000, 0);
+        assert!(update(&mut chunked, 3_000, 0) == small);
+    }
+
     /// A rebuild's rounds on the device against the CPU's: the points of chunks of cells
     /// (one straddling two cascades) bit for bit `points_in_cell_octant` warped, for two
     /// octants and seeds; then `splat_max` of given log-densities (culled cells stay
