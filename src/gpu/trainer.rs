@@ -631,6 +631,28 @@ impl<'c> GpuTrainer<'c> {
         self.encode_network_backward(encoder, si, shape)
     }
 
+    /// Byte ranges of a batch of `shape`: the grid block of the parameters (and of the
+    /// gradient), the positions, the encoding.
+    fn batch_bytes(&self, shape: GridShape) -> (std::ops::Range<u64>, u64, u64) {
+        let layout = self.field.layout();
+        let width = layout.grid.config.n_output_dims() as u64;
+        (
+            4 * layout.grid_offset as u64..4 * layout.n_params as u64,
+            12 * shape.ld as u64,
+            4 * width * shape.ld as u64,
+        )
+    }
+
+    /// The trainer's encoding buffer as a batch of `shape`.
+    fn encoded_batch(&self, shape: GridShape) -> EncodedBatch<'_> {
+        EncodedBatch {
+            params: &self.field.params,
+            enc: &self.enc,
+            ld: shape.ld,
+            n: shape.n_samples,
+        }
+    }
+
     /// Grid forward under scene `si`'s index and network forward over the first
     /// `shape.n_samples` positions of the batch and of `dirs`, into `raw`, keeping the
     /// activations for [`Self::encode_network_backward`].
@@ -641,17 +663,14 @@ impl<'c> GpuTrainer<'c> {
         shape: GridShape,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
-        let layout = self.field.layout();
-        let width = layout.grid.config.n_output_dims() as u64;
-        let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
-        let (pos_bytes, enc_bytes) = (12 * shape.ld as u64, 4 * width * shape.ld as u64);
+        let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
         let grid = self.field.grid();
         let index = &self.scenes[si].index;
         let forward = grid.bind_forward(
             ctx,
             index,
             self.batch.pos.slice(..pos_bytes),
-            self.field.params.slice(g0..g1),
+            self.field.params.slice(grid_bytes),
             self.enc.slice(..enc_bytes),
             shape,
         )?;
@@ -659,12 +678,7 @@ impl<'c> GpuTrainer<'c> {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             forward.record(&mut pass);
         }
-        let eb = EncodedBatch {
-            params: &self.field.params,
-            enc: &self.enc,
-            ld: shape.ld,
-            n: shape.n_samples,
-        };
+        let eb = self.encoded_batch(shape);
         self.field
             .mlp()
             .encode_forward(ctx, encoder, &eb, &self.dirs, &self.raw, Some(&self.ws))
@@ -680,16 +694,8 @@ impl<'c> GpuTrainer<'c> {
         shape: GridShape,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
-        let layout = self.field.layout();
-        let width = layout.grid.config.n_output_dims() as u64;
-        let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
-        let (pos_bytes, enc_bytes) = (12 * shape.ld as u64, 4 * width * shape.ld as u64);
-        let eb = EncodedBatch {
-            params: &self.field.params,
-            enc: &self.enc,
-            ld: shape.ld,
-            n: shape.n_samples,
-        };
+        let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
+        let eb = self.encoded_batch(shape);
         self.field.mlp().encode_backward(
             ctx,
             encoder,
@@ -704,7 +710,7 @@ impl<'c> GpuTrainer<'c> {
             &self.scenes[si].index,
             self.batch.pos.slice(..pos_bytes),
             self.d_enc.slice(..enc_bytes),
-            self.grad.slice(g0..g1),
+            self.grad.slice(grid_bytes),
             shape,
         )?;
         let mut pass = encoder.begin_compute_pass(&Default::default());
