@@ -184,3 +184,50 @@ fn hidden_from_is_checked_before_anything_is_written() {
         refused_before_writing(&args, says, &out_dir);
     }
 }
+
+/// `--density-cap` changes stealth training only: refused without stealth models to train
+/// and when not a number ≥ 0, before anything is written.
+#[test]
+fn density_cap_is_checked_before_anything_is_written() {
+    let d = tempfile::tempdir().unwrap();
+    let out_dir = d.path().join("out");
+    let out = out_dir.to_str().unwrap();
+    for (args, says) in [
+        (
+            vec![
+                "experiment",
+                "fidelity",
+                "--density-cap",
+                "10",
+                "--out",
+                out,
+            ],
+            "--stealth",
+        ),
+        (
+            vec![
+                "experiment",
+                "detectability",
+                "--no-stealth-arm",
+                "--density-cap",
+                "10",
+                "--out",
+                out,
+            ],
+            "--no-stealth-arm",
+        ),
+        (
+            vec![
+                "experiment",
+                "fidelity",
+                "--stealth",
+                "--density-cap=-2",
+                "--out",
+                out,
+            ],
+            "≥ 0",
+        ),
+    ] {
+        refused_before_writing(&args, says, &out_dir);
+    }
+}

@@ -182,6 +182,16 @@ fn tiny_population_report_reproducible_and_resumable() {
         table(&json, "Fidelity")[1],
         "the warm-up changed nothing"
     );
+    // Another density cap changes the stealth models alone (the warm-up's stego and
+    // plain models are reused); the setup records it.
+    let mut capped = warm.clone();
+    capped.extend(["--density-cap", "0"]);
+    let err = run_ok(&capped);
+    assert_eq!(err.matches("reusing").count(), 4, "{err}");
+    for m in ["stealth_00", "stealth_01"] {
+        assert!(err.contains(&format!("trained {m}")), "{m}: {err}");
+    }
+    assert_eq!(report(d.path())["setup"]["density_cap"], 0.0);
     // It must leave the hidden scenes steps to train.
     let mut all = args.to_vec();
     all.extend(["--hidden-from", "8"]);

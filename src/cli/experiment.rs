@@ -76,6 +76,10 @@ pub struct Args {
     /// cover, and the model closer to a plain one.
     #[arg(long, default_value_t = 1.0)]
     pub hidden_weight: f32,
+    /// Stealth models' cap on the cover's optical thickness (see `train --density-cap`; 0:
+    /// none): with --stealth, or for detectability's stealth arm. [default: 2]
+    #[arg(long, value_name = "T")]
+    pub density_cap: Option<f32>,
     /// Use the paper's one-scene-per-step schedule instead of mixed batches.
     #[arg(long)]
     pub random_scene: bool,
@@ -146,6 +150,17 @@ pub fn run(a: Args) -> Result<()> {
     }
     if a.cover_only_mlp && detect && a.no_stealth_arm {
         bail!("--cover-only-mlp changes the stealth arm, which --no-stealth-arm leaves out");
+    }
+    if a.density_cap.is_some() && (if detect { a.no_stealth_arm } else { !a.stealth }) {
+        bail!(
+            "--density-cap changes stealth training: give it with --stealth (detectability: \
+             without --no-stealth-arm)"
+        );
+    }
+    if let Some(c) = a.density_cap
+        && !(c.is_finite() && c >= 0.0)
+    {
+        bail!("--density-cap must be a number ≥ 0 (0: no cap)");
     }
     let steps = a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 });
     if a.hidden_from > 0 && a.name == Experiment::KeyStrength {
@@ -242,6 +257,7 @@ pub fn run(a: Args) -> Result<()> {
         cover_only_mlp: a.cover_only_mlp,
         hidden_from_step: a.hidden_from,
         hidden_loss_weight: a.hidden_weight,
+        density_cap: a.density_cap,
         lpips: !a.no_lpips,
         verbose: true,
         device: std::sync::Arc::new(device),

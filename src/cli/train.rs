@@ -403,12 +403,5 @@ fn stealth_density_cap(a: &Args) -> Option<DensityCap> {
     if !a.stealth {
         return None;
     }
-    match a.density_cap {
-        None => Some(DensityCap::STEALTH),
-        Some(c) if c <= 0.0 => None,
-        Some(c) => Some(DensityCap {
-            max_optical_thickness: c,
-            ..DensityCap::STEALTH
-        }),
-    }
+    DensityCap::stealth(a.density_cap)
 }

@@ -340,6 +340,7 @@ fn model_config(
     if arm == Arm::Stealth {
         // Only this arm's key, so that plain and default stego files stay reusable.
         v["stealth"] = json!(STEALTH_FORMAT);
+        cfg.record_density_cap(&mut v);
         if cfg.cover_only_mlp {
             v["cover_only_mlp"] = json!(true);
         }
@@ -686,7 +687,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let mut report = Report {
         name: Experiment::Detectability.to_string(),
         setup: json!({
-            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.hidden_from_step, "hidden_loss_weight": cfg.hidden_loss_weight, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
+            "models_per_arm": opts.models, "stealth_mlp": if cfg.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.hidden_from_step, "hidden_loss_weight": cfg.hidden_loss_weight, "density_cap": cfg.density_cap, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
             "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
             "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
             "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
@@ -977,6 +978,7 @@ mod tests {
             cover_only_mlp: false,
             hidden_from_step,
             hidden_loss_weight,
+            density_cap: None,
             lpips: false,
             verbose: false,
             device: std::sync::Arc::new(Device::default()),
@@ -1006,6 +1008,25 @@ mod tests {
             config(&exp_config(0, 0.25), Arm::Stego)["hidden_loss_weight"],
             "0.25"
         );
+    }
+
+    /// Stealth's density cap, when not the default, changes the stealth arm's sidecar and
+    /// no other.
+    #[test]
+    fn a_density_cap_changes_the_stealth_sidecar_alone() {
+        let scenes = (Path::new("out/scenes/c"), Path::new("out/scenes/h"));
+        let combo = combination(0);
+        let config = |c: &ExpConfig, arm| model_config(c, arm, scenes, 7, combo);
+        let base = exp_config(0, 1.0);
+        let capped = ExpConfig {
+            density_cap: Some(10.0),
+            ..exp_config(0, 1.0)
+        };
+        assert!(config(&base, Arm::Stealth).get("density_cap").is_none());
+        for arm in [Arm::Plain, Arm::Stego] {
+            assert_eq!(config(&capped, arm), config(&base, arm), "{arm:?}");
+        }
+        assert_eq!(config(&capped, Arm::Stealth)["density_cap"], "10");
     }
 
     #[test]

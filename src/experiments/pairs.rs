@@ -426,6 +426,9 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             (true, true) => json!("paced on the cover's clock, density capped, cover-only MLP"),
         }});
         cfg.record_hidden_options(&mut stego_config);
+        if cfg.stealth {
+            cfg.record_density_cap(&mut stego_config);
+        }
         let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, || {
             let t = train_scenes(
                 cfg,

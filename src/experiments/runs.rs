@@ -133,6 +133,9 @@ pub struct ExpConfig {
     /// Loss weight of the hidden scenes relative to the cover's 1
     /// ([`TrainConfig::hidden_loss_weight`]).
     pub hidden_loss_weight: f32,
+    /// Stealth's cap on the cover's optical thickness when not the default
+    /// ([`DensityCap::stealth`]; 0: none).
+    pub density_cap: Option<f32>,
     /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
     pub lpips: bool,
     /// Progress lines on stderr.
@@ -158,6 +161,14 @@ impl ExpConfig {
         if self.hidden_loss_weight != 1.0 {
             // A string: serde_json's float parsing does not round-trip every f64 exactly.
             config["hidden_loss_weight"] = json!(self.hidden_loss_weight.to_string());
+        }
+    }
+
+    /// Adds a stealth model's cap to its sidecar when not the default (so that models
+    /// trained at the default stay reusable).
+    pub(super) fn record_density_cap(&self, config: &mut serde_json::Value) {
+        if let Some(c) = self.density_cap {
+            config["density_cap"] = json!(c.to_string());
         }
     }
 }
@@ -246,7 +257,11 @@ pub(super) fn train_scenes(
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
-        density_cap: cfg.stealth.then_some(DensityCap::STEALTH),
+        density_cap: if cfg.stealth {
+            DensityCap::stealth(cfg.density_cap)
+        } else {
+            None
+        },
         cover_only_mlp: cfg.trains_cover_only_mlp(),
         hidden_from_step: warm_up,
         hidden_loss_weight: cfg.hidden_loss_weight,
@@ -393,7 +408,7 @@ fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
         "schedule": format!("{:?}", cfg.schedule), "stealth": cfg.stealth,
         "cover_only_mlp": cfg.trains_cover_only_mlp(), "hidden_from_step": cfg.hidden_from_step,
-        "hidden_loss_weight": cfg.hidden_loss_weight, "lpips": cfg.lpips,
+        "hidden_loss_weight": cfg.hidden_loss_weight, "density_cap": cfg.density_cap, "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(), "device": cfg.device.report(),
     })
 }

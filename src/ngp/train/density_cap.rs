@@ -44,6 +44,19 @@ impl DensityCap {
         samples: 4096,
     };
 
+    /// Stealth's cap at `max_optical_thickness` when given (0: none), else
+    /// [`Self::STEALTH`]: what `--density-cap` selects.
+    pub fn stealth(max_optical_thickness: Option<f32>) -> Option<DensityCap> {
+        match max_optical_thickness {
+            None => Some(Self::STEALTH),
+            Some(c) if c <= 0.0 => None,
+            Some(c) => Some(DensityCap {
+                max_optical_thickness: c,
+                ..Self::STEALTH
+            }),
+        }
+    }
+
     /// The cap as a raw log-density (the network's density output).
     pub fn log_density_cap(&self) -> f32 {
         self.max_optical_thickness.ln() - MIN_CONE_STEPSIZE.ln()
