@@ -210,6 +210,7 @@ pub fn run(a: Args) -> Result<()> {
                 .context("loading test views for --checkpoints")?,
         )
     };
+    let density_cap = stealth_density_cap(&a);
     let cfg = TrainConfig {
         seed: a.seed,
         batch_samples: a.batch,
@@ -218,7 +219,7 @@ pub fn run(a: Args) -> Result<()> {
         hidden_loss_weight: a.hidden_weight,
         cover_paced_table: a.stealth,
         cover_only_mlp: a.cover_only_mlp,
-        density_cap: stealth_density_cap(&a),
+        density_cap,
         hidden_from_step: a.hidden_from,
         workers: a.workers,
         ..Default::default()
@@ -249,7 +250,7 @@ pub fn run(a: Args) -> Result<()> {
                 } else {
                     "shared"
                 },
-                match stealth_density_cap(&a) {
+                match density_cap {
                     Some(c) => format!(
                         "the cover's optical thickness capped at {}",
                         c.max_optical_thickness

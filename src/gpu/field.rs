@@ -147,7 +147,11 @@ impl GpuField {
         }
         let width = self.layout.grid.config.n_output_dims() as u64;
         let chunk = density_chunk(ctx, width, scratch.chunk_limit).min(n);
-        if n > scratch.capacity || chunk > scratch.chunk || scratch.out.is_none() {
+        if n > scratch.capacity
+            || chunk > scratch.chunk
+            || scratch.out.is_none()
+            || (chunk < n && scratch.part.is_none())
+        {
             let (enc, out, part) = ctx.scoped("field scratch", || {
                 (
                     storage(ctx, "field encoding", 4 * width * chunk as u64),
@@ -193,8 +197,7 @@ impl GpuField {
                 return self.mlp.encode_density(ctx, encoder, &batch, out);
             }
             let Some(part) = &scratch.part else {
-                // A scratch sized for this n in one chunk never gets here.
-                return Err(GpuError::Input("density: chunk scratch missing".into()));
+                unreachable!("allocated above for an evaluation in chunks")
             };
             self.mlp.encode_density(ctx, encoder, &batch, part)?;
             encoder.copy_buffer_to_buffer(part, 0, out, 4 * c0 as u64, 4 * m as u64);

@@ -121,10 +121,9 @@ pub struct GpuTrainer<'c> {
     pacing: Option<GpuPacing>,
     /// `config.cover_only_mlp`'s state.
     cover_mlp: Option<GpuCoverMlp>,
-    /// `config.density_cap`'s cells and the cover's grid they were read from, as of its
-    /// last update (read back from the device).
+    /// `config.density_cap`'s cells, from the cover's grid as of its last update (read
+    /// back from the device).
     cap_cells: Vec<u32>,
-    cap_grid: Option<OccupancyGrid>,
     ws: MlpWorkspace,
     dirs: wgpu::Buffer,
     raw: wgpu::Buffer,
@@ -288,7 +287,6 @@ impl<'c> GpuTrainer<'c> {
             pacing,
             cover_mlp,
             cap_cells: Vec::new(),
-            cap_grid: None,
             ws,
             dirs,
             raw,
@@ -436,9 +434,6 @@ impl<'c> GpuTrainer<'c> {
                 }
                 // Refreshed indices take effect before the other scenes' grids update.
                 self.apply_refresh_on(&cover_grid)?;
-                if self.config.density_cap.is_some() {
-                    self.cap_grid = Some(cover_grid);
-                }
             }
         }
         Ok(())
@@ -724,12 +719,12 @@ impl<'c> GpuTrainer<'c> {
     /// done with them) in chunks of the sample budget; the hinge's gradient is taken on the
     /// host from the raw outputs read back. Returns the points above the cap.
     fn cap_density(&mut self) -> GpuResult<u32> {
-        let (Some(cap), Some(grid)) = (self.config.density_cap, &self.cap_grid) else {
+        let Some(cap) = self.config.density_cap else {
             return Ok(0);
         };
         let ctx = self.ctx;
         let pos: Vec<[f32; 3]> = cap
-            .points(grid, &self.cap_cells, self.config.seed, self.cover_steps)
+            .points(&self.cap_cells, self.config.seed, self.cover_steps)
             .into_iter()
             .map(|p| self.marcher.warp(p))
             .collect();

@@ -407,8 +407,8 @@ impl OccupancyGrid {
     }
 
     /// A uniformly random point inside each given cell (index including the cascade offset).
-    pub fn points_in_cells(&self, cells: &[u32], seed: u64) -> Vec<[f32; 3]> {
-        self.points_in_sub_boxes(cells, [0.0; 3], 1.0, seed, |i, _| i as u64)
+    pub fn points_in_cells(cells: &[u32], seed: u64) -> Vec<[f32; 3]> {
+        Self::points_in_sub_boxes(cells, [0.0; 3], 1.0, seed, |i, _| i as u64)
     }
 
     /// Like [`Self::points_in_cells`], but each point lies in octant `octant` (bit d set =
@@ -418,13 +418,12 @@ impl OccupancyGrid {
     /// so a rebuild of part of the grid draws what the whole one draws there.
     pub fn points_in_cell_octant(&self, cells: &[u32], octant: u32, seed: u64) -> Vec<[f32; 3]> {
         let lo = std::array::from_fn(|d| 0.5 * ((octant >> d) & 1) as f32);
-        self.points_in_sub_boxes(cells, lo, 0.5, seed, |_, c| c as u64)
+        Self::points_in_sub_boxes(cells, lo, 0.5, seed, |_, c| c as u64)
     }
 
     /// A random point per cell in the sub-box `[lo, lo + extent]³` of the cell (fractions
     /// of the cell's side), the i-th cell `c` drawn from the stream `stream(i, c)`.
     fn points_in_sub_boxes(
-        &self,
         cells: &[u32],
         lo: [f32; 3],
         extent: f32,

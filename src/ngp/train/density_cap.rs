@@ -76,13 +76,7 @@ impl DensityCap {
 
     /// Step `step`'s points in ngp space: `samples` cells drawn at random (with repeats)
     /// from `cells`, a uniform point in each. Empty when there is no cell.
-    pub fn points(
-        &self,
-        grid: &OccupancyGrid,
-        cells: &[u32],
-        seed: u64,
-        step: u32,
-    ) -> Vec<[f32; 3]> {
+    pub fn points(&self, cells: &[u32], seed: u64, step: u32) -> Vec<[f32; 3]> {
         if cells.is_empty() || self.samples == 0 {
             return Vec::new();
         }
@@ -91,7 +85,7 @@ impl DensityCap {
         let pick: Vec<u32> = (0..self.samples)
             .map(|_| cells[r.below(cells.len() as u32) as usize])
             .collect();
-        grid.points_in_cells(&pick, stream)
+        OccupancyGrid::points_in_cells(&pick, stream)
     }
 }
 
@@ -146,7 +140,7 @@ mod tests {
         grid.density[7] = 40.0;
         let cells = cap.cells(&grid);
         assert_eq!(cells, vec![0, 7]);
-        let pts = cap.points(&grid, &cells, 9, 3);
+        let pts = cap.points(&cells, 9, 3);
         assert_eq!(pts.len(), 64);
         let side = 1.0 / 128.0;
         let (mut in0, mut in7) = (0, 0);
@@ -160,8 +154,8 @@ mod tests {
         assert_eq!(in0 + in7, 64, "a point outside both cells");
         assert!(in0 > 10 && in7 > 10, "{in0} / {in7}");
         // The same step draws the same points; another step others.
-        assert_eq!(pts, cap.points(&grid, &cells, 9, 3));
-        assert_ne!(pts, cap.points(&grid, &cells, 9, 4));
-        assert!(cap.points(&grid, &[], 9, 3).is_empty());
+        assert_eq!(pts, cap.points(&cells, 9, 3));
+        assert_ne!(pts, cap.points(&cells, 9, 4));
+        assert!(cap.points(&[], 9, 3).is_empty());
     }
 }

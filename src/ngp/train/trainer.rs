@@ -567,12 +567,7 @@ impl Trainer {
         };
         let cover = &self.scenes[0];
         let pos: Vec<[f32; 3]> = cap
-            .points(
-                &cover.grid,
-                &self.cap_cells,
-                self.config.seed,
-                self.cover_steps,
-            )
+            .points(&self.cap_cells, self.config.seed, self.cover_steps)
             .into_iter()
             .map(|p| cover.marcher.warp(p))
             .collect();
@@ -1036,7 +1031,7 @@ mod tests {
         }
         let cover = &t.scenes[0];
         let pos: Vec<[f32; 3]> = cap
-            .points(&cover.grid, &t.cap_cells, t.config.seed, t.cover_steps)
+            .points(&t.cap_cells, t.config.seed, t.cover_steps)
             .into_iter()
             .map(|p| cover.marcher.warp(p))
             .collect();
