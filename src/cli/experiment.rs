@@ -59,8 +59,8 @@ pub struct Args {
     /// Key scheme of the hidden scenes (key-sensitivity and partial-keys always run both).
     #[arg(long, value_enum, default_value_t = SchemeKind::Prf)]
     pub scheme: SchemeKind,
-    /// Train the stego models with stealth (hidden scenes confined to the cover's reachable
-    /// table entries; see `train --stealth`).
+    /// Train the stego models with stealth (hidden scenes confined to the table entries the
+    /// cover trained; see `train --stealth`).
     #[arg(long)]
     pub stealth: bool,
     /// Stealth models learn their MLP from the cover alone (see `train --cover-only-mlp`):

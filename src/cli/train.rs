@@ -80,11 +80,12 @@ pub struct Args {
     /// otherwise costs it (fox: −0.3 dB against −2.1 dB at 600 steps; BENCHMARKS.md).
     #[arg(long, default_value_t = 0, requires = "hidden")]
     pub hidden_from: u32,
-    /// Stealth: confine the hidden scenes to the table entries the cover itself trains (its
-    /// reachable set under the stored occupancy grid), so that the file's statistics look
-    /// like a plain model's (see `stegongp detect`), and move a table entry only in steps
-    /// where the cover's own gradient reaches it. Render and evaluate the hidden scenes with
-    /// `--stealth` too.
+    /// Stealth: confine the hidden scenes to the table entries the cover itself trained
+    /// (those off their initial value in the file), so that the file's statistics look like
+    /// a plain model's (see `stegongp detect`); an entry the cover's occupancy grid still
+    /// reaches moves only in steps where the cover's own gradient reaches it, one the grid
+    /// has left keeps at most the magnitude it had then. Render and evaluate the hidden
+    /// scenes with `--stealth` too.
     #[arg(long)]
     pub stealth: bool,
     /// With --stealth: the MLP learns from the cover alone, the hidden scenes train their
@@ -218,6 +219,7 @@ pub fn run(a: Args) -> Result<()> {
         schedule: a.schedule,
         hidden_loss_weight: a.hidden_weight,
         cover_paced_table: a.stealth,
+        bounded_left_entries: a.stealth,
         cover_only_mlp: a.cover_only_mlp,
         density_cap,
         hidden_from_step: a.hidden_from,

@@ -64,7 +64,7 @@ impl Default for DetectOptions {
 /// Bump when a change makes earlier model files no longer what this code would train.
 const MODEL_FORMAT: u32 = 1;
 /// Bump when stealth training changes (the stealth arm alone is trained again).
-const STEALTH_FORMAT: u32 = 4;
+const STEALTH_FORMAT: u32 = 5;
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 enum Arm {

@@ -422,8 +422,10 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         // kept the cover's clock, or before the cover's density was capped, is not reused.
         "stealth": match (cfg.stealth, cfg.trains_cover_only_mlp()) {
             (false, _) => json!(false),
-            (true, false) => json!("paced on the cover's clock, density capped"),
-            (true, true) => json!("paced on the cover's clock, density capped, cover-only MLP"),
+            (true, false) => json!("paced on the cover's clock, density capped, left entries bounded"),
+            (true, true) => json!(
+                "paced on the cover's clock, density capped, left entries bounded, cover-only MLP"
+            ),
         }});
         cfg.record_hidden_options(&mut stego_config);
         if cfg.stealth {

@@ -257,6 +257,7 @@ pub(super) fn train_scenes(
         occupancy_fraction: cfg.occupancy_fraction,
         schedule: cfg.schedule,
         cover_paced_table: cfg.stealth,
+        bounded_left_entries: cfg.stealth,
         density_cap: if cfg.stealth {
             DensityCap::stealth(cfg.density_cap)
         } else {

@@ -9,6 +9,8 @@ use super::{
     device_buffer,
 };
 
+use crate::ngp::train::left_entries::{LeftEntries, REACHED};
+
 const PACING_WGSL: &str = include_str!("pacing.wgsl");
 const WORKGROUP: u32 = 256;
 
@@ -18,22 +20,31 @@ struct PacingParams {
     n_table: u32,
     n_matrix: u32,
     row_width: u32,
-    _pad: u32,
+    n_features: u32,
 }
 
 /// The gate and the held-back gradients of the table parameters `n_matrix..n_params`.
 pub struct GpuPacing {
     gate: wgpu::Buffer,
     pending: wgpu::Buffer,
+    /// Per table entry: the bound of an entry the cover has left, or
+    /// [`REACHED`](crate::ngp::train::left_entries::REACHED).
+    bound: wgpu::Buffer,
     uniform: wgpu::Buffer,
     open: wgpu::ComputePipeline,
     hold: wgpu::ComputePipeline,
+    clamp: wgpu::ComputePipeline,
     groups: [u32; 2],
     n_params: u32,
 }
 
 impl GpuPacing {
-    pub fn new(ctx: &GpuContext, n_params: usize, n_matrix: usize) -> GpuResult<GpuPacing> {
+    pub fn new(
+        ctx: &GpuContext,
+        n_params: usize,
+        n_matrix: usize,
+        n_features: usize,
+    ) -> GpuResult<GpuPacing> {
         let n_table = n_params
             .checked_sub(n_matrix)
             .and_then(|n| u32::try_from(n).ok())
@@ -42,6 +53,12 @@ impl GpuPacing {
                 GpuError::Input(format!("{n_matrix} matrix parameters of {n_params}"))
             })?;
         check_binding(ctx, "held-back table gradients", 4 * n_table as u64)?;
+        if n_features == 0 || !(n_table as usize).is_multiple_of(n_features) {
+            return Err(GpuError::Input(format!(
+                "{n_table} table parameters in entries of {n_features}"
+            )));
+        }
+        let n_entries = n_table as usize / n_features;
         let limits = ctx.device.limits();
         let n_groups = n_table.div_ceil(WORKGROUP);
         let gx = n_groups.min(limits.max_compute_workgroups_per_dimension);
@@ -50,11 +67,18 @@ impl GpuPacing {
             n_table,
             n_matrix: n_matrix as u32,
             row_width: gx * WORKGROUP,
-            _pad: 0,
+            n_features: n_features as u32,
         };
         ctx.scoped("pacing kernels", || {
-            let [open, hold] =
-                auto_layout_pipelines(ctx, "pacing.wgsl", PACING_WGSL, ["open_gate", "hold_back"]);
+            let [open, hold, clamp] = auto_layout_pipelines(
+                ctx,
+                "pacing.wgsl",
+                PACING_WGSL,
+                ["open_gate", "hold_back", "clamp_left"],
+            );
+            let bound = device_buffer(ctx, "left entries' bounds", 4 * n_entries as u64);
+            ctx.queue
+                .write_buffer(&bound, 0, bytemuck::cast_slice(&vec![REACHED; n_entries]));
             let uniform = ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("pacing params"),
                 size: std::mem::size_of::<PacingParams>() as u64,
@@ -67,9 +91,11 @@ impl GpuPacing {
                 // Zeroed at creation (wgpu's guarantee): no gate open, nothing held.
                 gate: device_buffer(ctx, "pacing gate", 4 * n_table as u64),
                 pending: device_buffer(ctx, "pacing held-back gradients", 4 * n_table as u64),
+                bound,
                 uniform,
                 open,
                 hold,
+                clamp,
                 groups,
                 n_params: n_params as u32,
             }
@@ -97,6 +123,7 @@ impl GpuPacing {
             let mut entries = vec![entry(0, grad), entry(1, &self.gate)];
             if with_pending {
                 entries.push(entry(2, &self.pending));
+                entries.push(entry(4, &self.bound));
             }
             entries.push(entry(3, &self.uniform));
             let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -131,6 +158,54 @@ impl GpuPacing {
         grad: &wgpu::Buffer,
     ) -> GpuResult<()> {
         self.encode(ctx, encoder, &self.hold, grad, true)
+    }
+
+    /// The bounds of the entries the cover has left ([`LeftEntries::bounds`]), after an
+    /// update of its grid.
+    pub fn upload_bounds(&self, ctx: &GpuContext, left: &LeftEntries) -> GpuResult<()> {
+        let b = left.bounds();
+        if 4 * b.len() as u64 != self.bound.size() {
+            return Err(GpuError::Input(format!(
+                "{} entry bounds for a buffer of {} bytes",
+                b.len(),
+                self.bound.size()
+            )));
+        }
+        ctx.scoped("left entries' bounds", || {
+            ctx.queue
+                .write_buffer(&self.bound, 0, bytemuck::cast_slice(b))
+        })
+    }
+
+    /// After Adam: holds every entry the cover has left within its bound.
+    pub fn encode_clamp(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        weights: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        if weights.size() < 4 * self.n_params as u64 {
+            return Err(GpuError::Input(format!(
+                "weight buffer of {} bytes for {} parameters",
+                weights.size(),
+                self.n_params
+            )));
+        }
+        ctx.scoped("left entries' clamp", || {
+            let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("left entries' clamp"),
+                layout: &self.clamp.get_bind_group_layout(0),
+                entries: &[
+                    entry(3, &self.uniform),
+                    entry(4, &self.bound),
+                    entry(5, weights),
+                ],
+            });
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.clamp);
+            pass.set_bind_group(0, &bind_group, &[]);
+            pass.dispatch_workgroups(self.groups[0], self.groups[1], 1);
+        })
     }
 
     /// The held-back gradients, read back (for tests).
@@ -209,6 +284,7 @@ impl GpuCoverMlp {
 mod tests {
     use super::*;
     use crate::gpu::test_context;
+    use crate::ngp::train::left_entries::LeftEntries;
     use crate::rng::Pcg32;
     use wgpu::util::DeviceExt;
 
@@ -228,8 +304,24 @@ mod tests {
     #[test]
     fn pacing_matches_the_rule_by_hand_over_steps() {
         let Some(ctx) = test_context() else { return };
-        let (n, n_matrix) = (70_001usize, 1_000usize);
-        let pacing = GpuPacing::new(ctx, n, n_matrix).unwrap();
+        paced_steps(ctx, false);
+        // With entries the cover left (2 features an entry): their gate is always open.
+        paced_steps(ctx, true);
+    }
+
+    fn paced_steps(ctx: &GpuContext, with_left: bool) {
+        let (n, n_matrix) = (70_001usize, 1_001usize);
+        let f = if with_left { 2 } else { 1 };
+        let pacing = GpuPacing::new(ctx, n, n_matrix, f).unwrap();
+        let mut brng = Pcg32::new(9, 3);
+        let bounds: Vec<f32> = (0..(n - n_matrix) / f)
+            .map(|_| match brng.next_f32() {
+                r if with_left && r < 0.3 => r,
+                _ => REACHED,
+            })
+            .collect();
+        let left = LeftEntries::from_bounds(bounds, f);
+        pacing.upload_bounds(ctx, &left).unwrap();
         let grad = ctx
             .device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -274,13 +366,14 @@ mod tests {
             ctx.queue.submit([enc.finish()]);
             let got: Vec<f32> = ctx.read_buffer(&grad, 4 * n as u64).unwrap();
             let mut want = summed.clone();
-            for (held, (w, c)) in pending
+            for (j, (held, (w, c))) in pending
                 .iter_mut()
                 .zip(want[n_matrix..].iter_mut().zip(&cover[n_matrix..]))
+                .enumerate()
             {
                 if *c != 0.0 {
                     *w += std::mem::take(held);
-                } else {
+                } else if !left.is_left(j / f) {
                     *held += *w;
                     *w = 0.0;
                 }
@@ -293,12 +386,34 @@ mod tests {
             );
         }
         assert!(pending.iter().any(|&p| p != 0.0), "something was held back");
+
+        // The clamp after Adam: the host's rule on the whole weight buffer.
+        let mut weights: Vec<f32> = (0..n).map(|_| 2.0 * brng.next_f32() - 1.0).collect();
+        let buf = ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("test weights"),
+                contents: bytemuck::cast_slice(&weights),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            });
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        pacing.encode_clamp(ctx, &mut enc, &buf).unwrap();
+        ctx.queue.submit([enc.finish()]);
+        let got: Vec<f32> = ctx.read_buffer(&buf, 4 * n as u64).unwrap();
+        let before = weights.clone();
+        left.clamp(&mut weights[n_matrix..]);
+        assert_eq!(got, weights, "clamped weights");
+        assert_eq!(got != before, with_left, "the clamp moved a weight");
     }
 
     #[test]
     fn a_table_of_nothing_is_an_error() {
         let Some(ctx) = test_context() else { return };
-        assert!(GpuPacing::new(ctx, 10, 10).is_err());
-        assert!(GpuPacing::new(ctx, 10, 11).is_err());
+        assert!(GpuPacing::new(ctx, 10, 10, 1).is_err());
+        assert!(GpuPacing::new(ctx, 10, 11, 1).is_err());
+        assert!(
+            GpuPacing::new(ctx, 11, 2, 2).is_err(),
+            "9 parameters in entries of 2"
+        );
     }
 }

@@ -59,6 +59,7 @@ use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::ngp::render::march::Marcher;
 use crate::ngp::train::density_cap::cap_gradient;
+use crate::ngp::train::left_entries::LeftEntries;
 use crate::ngp::train::loss::DENSITY_PULL_UP;
 use crate::ngp::train::trainer::{
     initial_rays_per_batch, mix, next_rays_per_batch, starting_grid, step_scenes, updates_weights,
@@ -121,6 +122,10 @@ pub struct GpuTrainer<'c> {
     pacing: Option<GpuPacing>,
     /// `config.cover_only_mlp`'s state.
     cover_mlp: Option<GpuCoverMlp>,
+    /// `config.bounded_left_entries`' bounds, kept on the host (made from the cover's grid
+    /// and the published weights, both read back at the cover's grid updates) and uploaded
+    /// to the pacing kernels.
+    left: Option<LeftEntries>,
     /// `config.density_cap`'s cells, from the cover's grid as of its last update (read
     /// back from the device).
     cap_cells: Vec<u32>,
@@ -230,8 +235,19 @@ impl<'c> GpuTrainer<'c> {
             layout.n_params,
             layout.n_mlp_params(),
         )?;
+        if config.bounded_left_entries && !config.cover_paced_table {
+            return input("bounded left entries need the cover-paced table".to_string());
+        }
+        let left = config
+            .bounded_left_entries
+            .then(|| LeftEntries::new(&layout.grid));
         let pacing = if config.cover_paced_table {
-            Some(GpuPacing::new(ctx, layout.n_params, layout.n_mlp_params())?)
+            Some(GpuPacing::new(
+                ctx,
+                layout.n_params,
+                layout.n_mlp_params(),
+                layout.config.grid.n_features as usize,
+            )?)
         } else {
             None
         };
@@ -286,6 +302,7 @@ impl<'c> GpuTrainer<'c> {
             optimizer,
             pacing,
             cover_mlp,
+            left,
             cap_cells: Vec::new(),
             ws,
             dirs,
@@ -363,14 +380,26 @@ impl<'c> GpuTrainer<'c> {
 
     /// [`Self::apply_refresh`] on the cover's grid already read back.
     fn apply_refresh_on(&mut self, cover_grid: &OccupancyGrid) -> GpuResult<()> {
+        if self.refresh.is_none() {
+            return Ok(());
+        }
+        let published = self.optimizer.ema_params(self.ctx, &self.field.params)?;
+        self.apply_refresh_with(cover_grid, &published)
+    }
+
+    /// [`Self::apply_refresh_on`] with the published weights already read back.
+    fn apply_refresh_with(
+        &mut self,
+        cover_grid: &OccupancyGrid,
+        published: &[f32],
+    ) -> GpuResult<()> {
         let Some(r) = &self.refresh else {
             return Ok(());
         };
         let ctx = self.ctx;
-        let published = self.optimizer.ema_params(ctx, &self.field.params)?;
         let layout = self.field.layout();
         let n_levels = layout.grid.levels.len();
-        let fresh = r.refresh(cover_grid, &published);
+        let fresh = r.refresh(cover_grid, published);
         let mut uploaded = Vec::with_capacity(fresh.len());
         for (i, indices) in fresh {
             if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
@@ -389,6 +418,11 @@ impl<'c> GpuTrainer<'c> {
             self.scenes[i].index = index;
         }
         Ok(())
+    }
+
+    /// `config.bounded_left_entries`' bounds, as of the cover's last grid update.
+    pub fn left_entries(&self) -> Option<&LeftEntries> {
+        self.left.as_ref()
     }
 
     /// The CPU trainer's occupancy schedule: every step for the first 16, then every
@@ -427,13 +461,27 @@ impl<'c> GpuTrainer<'c> {
             )?;
             ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
             scene.grid_mean = scene.occupancy.read_mean(ctx)?;
-            if si == 0 && (self.refresh.is_some() || self.config.density_cap.is_some()) {
+            let weights_read = self.refresh.is_some() || self.left.is_some();
+            if si == 0 && (weights_read || self.config.density_cap.is_some()) {
                 let cover_grid = self.scenes[0].occupancy.download(ctx)?;
                 if let Some(cap) = &self.config.density_cap {
                     self.cap_cells = cap.cells(&cover_grid);
                 }
-                // Refreshed indices take effect before the other scenes' grids update.
-                self.apply_refresh_on(&cover_grid)?;
+                if weights_read {
+                    let published = self.optimizer.ema_params(ctx, &self.field.params)?;
+                    if let (Some(l), Some(p)) = (&mut self.left, &self.pacing) {
+                        let layout = self.field.layout();
+                        l.update(
+                            &layout.grid,
+                            &cover_grid,
+                            layout.config.aabb_scale,
+                            &published[layout.grid_offset..],
+                        );
+                        p.upload_bounds(ctx, l)?;
+                    }
+                    // Refreshed indices take effect before the other scenes' grids update.
+                    self.apply_refresh_with(&cover_grid, &published)?;
+                }
             }
         }
         Ok(())
@@ -488,6 +536,9 @@ impl<'c> GpuTrainer<'c> {
         if update {
             self.optimizer
                 .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
+            if let (Some(_), Some(p)) = (&self.left, &self.pacing) {
+                p.encode_clamp(ctx, &mut encoder, &self.field.params)?;
+            }
             self.cover_steps += 1;
         }
         // Without the update the gradient buffer keeps what the hold-back left in it (the

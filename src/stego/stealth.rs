@@ -1,27 +1,36 @@
-//! Stealth: hidden scenes confined to the table entries the cover itself trains.
+//! Stealth: hidden scenes confined to the table entries the cover itself trained.
 //!
 //! A plain model's table records where its training went: entries the cover's samples never
 //! reach stay at their initialisation, entries reached only before the occupancy grid pruned
 //! empty space freeze where Adam left them. A hidden scene indexed across the whole table
 //! trains those entries to the end, and an analyst can count that from the file alone
 //! (`stegongp detect`). Stealth training maps every hidden-scene index into the entries the
-//! cover keeps training: those its occupancy grid lets training reach under the reference
-//! index ([`reachable_entries`]) *and* that have left their initial value. The second
-//! condition matters: the grid also marks cells no training ray ever samples (the inside of
-//! an opaque object), whose entries a plain model leaves at initialisation.
+//! cover moved: those that have left their initial value. Entries the cover never reached
+//! (the slots no vertex hashes to, the inside of an opaque object that no training ray
+//! samples) stay at initialisation, as in a plain model.
 //!
-//! Both conditions are read from what the published file stores (the fp16 occupancy grid and
-//! the fp16 EMA weights), so a key holder recomputes the set and nothing is added to the
-//! file. During training it is recomputed after every update of the cover's grid; hidden
-//! scenes never move an entry outside it, so an entry off its initial value is one the cover
-//! moved. The key holder's set can differ from the last one used in training only by
-//! entries the cover first reached in the last ≤ 16 steps, which late in training are
-//! none or a handful (their slot runs map differently; nothing else does).
+//! Of the entries the cover moved, those its occupancy grid still lets training reach
+//! ([`reachable_entries`](crate::ngp::encoding::reach::reachable_entries)) move at the
+//! cover's pace (below); those it has left — most of the coarse levels, the fog the cover
+//! cleared in its first steps — keep at most the magnitude they had when it left them
+//! ([`TrainConfig::bounded_left_entries`](crate::ngp::train::TrainConfig::bounded_left_entries)),
+//! so that they end as a plain model leaves them. (Confining hidden scenes to the entries
+//! the cover still reaches, as stealth did before, cost them 1.5 dB on the small scenes
+//! and left those entries' magnitudes larger than a plain model's all the same:
+//! BENCHMARKS.md, "Sharing the entries the cover left".)
+//!
+//! The set is read from what the published file stores (the fp16 EMA weights), so a key
+//! holder recomputes it and nothing is added to the file. During training it is recomputed
+//! after every update of the cover's grid; hidden scenes never move an entry outside it, so
+//! an entry off its initial value is one the cover moved. The key holder's set can differ
+//! from the last one used in training only by entries the cover first moved in the last
+//! ≤ 16 steps, which late in training are none or a handful (their slot runs map
+//! differently; nothing else does).
 //!
 //! The mapping (per level, public, keyless): slots are visited in a fixed pseudo-random order
-//! (`i ↦ a·i + c mod size`); a keyed index that lands on an unreachable slot moves to the next
-//! reachable slot in that order. When the grid gains or loses a cell, only the indices whose
-//! slot run crosses a changed slot move, so the hidden scene keeps what it learnt.
+//! (`i ↦ a·i + c mod size`); a keyed index that lands on a slot outside the set moves to the
+//! next slot in it in that order. When the set gains or loses an entry, only the indices
+//! whose slot run crosses a changed slot move, so the hidden scene keeps what it learnt.
 //!
 //! Confinement decides *which* entries a hidden scene may use; it does not decide how often
 //! they move. Adam moves a table entry by about its learning rate at every step its
@@ -30,7 +39,8 @@
 //! reachable hashed entries, AUC 1.0 between plain and confined-only stealth models).
 //! Stealth training therefore also sets
 //! [`TrainConfig::cover_paced_table`](crate::ngp::train::TrainConfig::cover_paced_table):
-//! an entry moves only in steps where the cover's gradient reaches it, and the optimizer
+//! an entry the cover still reaches moves only in steps where the cover's gradient reaches
+//! it, and the optimizer
 //! steps only when the cover trains (under the random-scene schedule, the hidden scenes'
 //! steps wait for the cover's: extra Adam, L2 and EMA steps gave the cover's MLP away
 //! whatever the hidden scene's weight). With the table paced,
@@ -53,8 +63,8 @@
 //! (BENCHMARKS.md, "Capping the cover's density").
 
 use super::keys::Key;
-use crate::ngp::encoding::reach::{EntrySet, reachable_entries};
-use crate::ngp::encoding::{GridLayout, LevelIndex, LevelIndices, reference_indices};
+use crate::ngp::encoding::reach::EntrySet;
+use crate::ngp::encoding::{GridLayout, LevelIndex, LevelIndices};
 use crate::ngp::network::NerfLayout;
 use crate::ngp::occupancy::OccupancyGrid;
 use crate::ngp::train::IndexRefresh;
@@ -92,8 +102,8 @@ fn stride(size: u32) -> u32 {
     a
 }
 
-/// The level map: reachable slots map to themselves, the others to the next reachable slot
-/// in the visiting order. With nothing reachable, the identity (no confinement possible).
+/// The level map: slots in the set map to themselves, the others to the next slot in the set
+/// in the visiting order. With an empty set, the identity (no confinement possible).
 pub fn confinement_map(set: &EntrySet) -> Vec<u32> {
     let size = set.size();
     let mut map: Vec<u32> = (0..size).collect();
@@ -117,55 +127,45 @@ pub fn confinement_map(set: &EntrySet) -> Vec<u32> {
     map
 }
 
-/// The entries the cover trains, as a key holder computes them from the file: reachable from
-/// the stored (fp16) grid and off their initial value in the stored (fp16) weights.
-pub fn cover_entries(layout: &NerfLayout, grid: &OccupancyGrid, params: &[f32]) -> Vec<EntrySet> {
-    let stored: Vec<f32> = grid
-        .density
-        .iter()
-        .map(|&v| half::f16::from_f32(v).to_f32())
-        .collect();
-    let stored = OccupancyGrid::from_density(stored).unwrap_or_else(|| grid.clone());
-    let aabb_scale = layout.config.aabb_scale;
-    let mut sets = reachable_entries(
-        &layout.grid,
-        &stored,
-        aabb_scale,
-        &reference_indices(&layout.grid),
-    );
+/// The entries a hidden scene may share, as a key holder computes them from the file: those
+/// off their initial value in the stored (fp16) weights, i.e. those the cover moved. The
+/// entries the cover still reaches move at its pace; those it has left, within the
+/// magnitude they had when it left them ([`TrainConfig::bounded_left_entries`]).
+///
+/// [`TrainConfig::bounded_left_entries`]: crate::ngp::train::TrainConfig::bounded_left_entries
+pub fn cover_entries(layout: &NerfLayout, params: &[f32]) -> Vec<EntrySet> {
     let f = layout.config.grid.n_features as usize;
-    for (set, lv) in sets.iter_mut().zip(&layout.grid.levels) {
-        let start = layout.grid_offset + lv.offset as usize * f;
-        let table = &params[start..start + lv.size as usize * f];
-        let mut moved = EntrySet::new(lv.size);
-        for (e, feats) in table.chunks_exact(f).enumerate() {
-            let at_init = feats
-                .iter()
-                .all(|&v| half::f16::from_f32(v).to_f32().abs() <= INIT_BOUND);
-            if !at_init && set.contains(e as u32) {
-                moved.insert(e as u32);
+    layout
+        .grid
+        .levels
+        .iter()
+        .map(|lv| {
+            let start = layout.grid_offset + lv.offset as usize * f;
+            let table = &params[start..start + lv.size as usize * f];
+            let mut moved = EntrySet::new(lv.size);
+            for (e, feats) in table.chunks_exact(f).enumerate() {
+                let at_init = feats
+                    .iter()
+                    .all(|&v| half::f16::from_f32(v).to_f32().abs() <= INIT_BOUND);
+                if !at_init {
+                    moved.insert(e as u32);
+                }
             }
-        }
-        // Before the cover has moved anything (the first step), every hidden index of the
-        // level goes to one reachable entry rather than anywhere: at most one entry a level
-        // is touched that the cover might not have.
-        if moved.is_empty()
-            && let Some(first) = (0..lv.size).find(|&e| set.contains(e))
-        {
-            moved.insert(first);
-        }
-        *set = moved;
-    }
-    sets
+            // Before the cover has moved anything (the first step), every hidden index of the
+            // level goes to one entry rather than anywhere: at most one entry a level is
+            // touched that the cover might not have (at the first step its grid reaches every
+            // entry, so the cover's pace holds it).
+            if moved.is_empty() {
+                moved.insert(0);
+            }
+            moved
+        })
+        .collect()
 }
 
 /// The level maps of a cover (shared by every hidden scene).
-pub fn confinement_maps(
-    layout: &NerfLayout,
-    grid: &OccupancyGrid,
-    params: &[f32],
-) -> Vec<Arc<[u32]>> {
-    cover_entries(layout, grid, params)
+pub fn confinement_maps(layout: &NerfLayout, params: &[f32]) -> Vec<Arc<[u32]>> {
+    cover_entries(layout, params)
         .iter()
         .map(|s| Arc::from(confinement_map(s)))
         .collect()
@@ -186,21 +186,16 @@ fn confine_indices(inner: &[LevelIndex], maps: &[Arc<[u32]>]) -> LevelIndices {
 }
 
 /// The index functions a key holder renders a hidden scene with: the key's, confined to the
-/// cover's entries (from the model's stored grid and weights) when the model was trained
-/// with stealth.
+/// cover's entries (from the model's stored weights) when the model was trained with
+/// stealth.
 pub fn hidden_indices(
     key: &Key,
     layout: &NerfLayout,
-    cover_grid: &OccupancyGrid,
     params: &[f32],
     stealth: bool,
 ) -> LevelIndices {
     if stealth && !key.is_reference() {
-        confine(
-            key,
-            &layout.grid,
-            &confinement_maps(layout, cover_grid, params),
-        )
+        confine(key, &layout.grid, &confinement_maps(layout, params))
     } else {
         key.level_indices(&layout.grid)
     }
@@ -224,8 +219,8 @@ impl StealthRefresh {
 }
 
 impl IndexRefresh for StealthRefresh {
-    fn refresh(&self, cover_grid: &OccupancyGrid, params: &[f32]) -> Vec<(usize, LevelIndices)> {
-        let maps = confinement_maps(&self.layout, cover_grid, params);
+    fn refresh(&self, _cover_grid: &OccupancyGrid, params: &[f32]) -> Vec<(usize, LevelIndices)> {
+        let maps = confinement_maps(&self.layout, params);
         self.keyed
             .iter()
             .enumerate()

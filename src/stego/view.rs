@@ -82,7 +82,7 @@ fn open_with<E>(
     let layout = &model.net.layout.grid;
     Ok(match key {
         Some(k) if !k.is_reference() => {
-            let indices = hidden_indices(k, &model.net.layout, &model.grid, &model.params, stealth);
+            let indices = hidden_indices(k, &model.net.layout, &model.params, stealth);
             // Cut to the box the scene was trained in: outside it, its index meets only
             // the cover's entries, whose density would render as haze.
             let rebuilt = rebuild(&indices, k.scene_box())?;

@@ -2,6 +2,7 @@
 //! and compositing together for one or more scenes sharing one set of weights.
 
 pub mod density_cap;
+pub mod left_entries;
 pub mod loss;
 pub mod optimizer;
 mod pacing;

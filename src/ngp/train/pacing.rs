@@ -5,6 +5,7 @@
 //! scenes' backward passes and the update; the engine's rays, network and optimizer are
 //! untouched.
 
+use super::left_entries::LeftEntries;
 use super::optimizer::{GROUP, Touched, set_bits};
 #[cfg(doc)]
 use super::trainer::TrainConfig;
@@ -47,13 +48,25 @@ impl Pacing {
     }
 
     /// Before the update: table gradients the gate holds back go to `pending`; held-back
-    /// gradients of entries the gate lets through join this update.
-    pub(super) fn hold_back(&mut self, workers: &mut [Worker]) {
+    /// gradients of entries the gate lets through join this update. The gate is open at
+    /// every entry the cover has `left` ([`TrainConfig::bounded_left_entries`]): no cover
+    /// gradient will reach it again, and its bound keeps its magnitude.
+    ///
+    /// [`TrainConfig::bounded_left_entries`]: super::TrainConfig::bounded_left_entries
+    pub(super) fn hold_back(
+        &mut self,
+        workers: &mut [Worker],
+        left: Option<(&LeftEntries, usize)>,
+    ) {
+        let open = |i: usize| match left {
+            Some((l, f)) => l.is_left((i - self.n_matrix) / f),
+            None => false,
+        };
         for w in workers.iter_mut() {
             for group in w.touched.groups() {
                 let g0 = (group * GROUP).max(self.n_matrix);
                 for i in g0..((group + 1) * GROUP).min(w.grad.len()) {
-                    if !self.gated(i) && w.grad[i] != 0.0 {
+                    if !self.gated(i) && w.grad[i] != 0.0 && !open(i) {
                         self.pending[i] += w.grad[i];
                         w.grad[i] = 0.0;
                     }
@@ -138,7 +151,7 @@ mod tests {
         add(&mut ws[0], 13, 8.0);
         add(&mut ws[1], 13, 16.0);
         add(&mut ws[0], 2, 3.0);
-        p.hold_back(&mut ws);
+        p.hold_back(&mut ws, None);
         let sum = |ws: &[Worker], i: usize| ws[0].grad[i] + ws[1].grad[i];
         assert_eq!(sum(&ws, 5), 1.25);
         assert_eq!(sum(&ws, 9), 2.0);
@@ -157,7 +170,7 @@ mod tests {
         add(&mut ws[1], 6, -1.0);
         p.open_gate(&ws);
         add(&mut ws[0], 13, 1.0);
-        p.hold_back(&mut ws);
+        p.hold_back(&mut ws, None);
         assert_eq!(sum(&ws, 6), 3.0, "the held gradient joins the cover's");
         assert_eq!(sum(&ws, 13), 0.0);
         assert_eq!((p.pending[6], p.pending[13]), (0.0, 25.0));
@@ -165,6 +178,36 @@ mod tests {
             p.gate.iter().all(|&w| w == 0),
             "the gate closes after each step"
         );
+    }
+
+    #[test]
+    fn entries_the_cover_left_are_not_held() {
+        use crate::ngp::train::left_entries::{LeftEntries, REACHED};
+        // 4 MLP weights, then 10 entries of 2 features; the cover has left entries 1 and 3
+        // (parameters 6, 7 and 10, 11).
+        let mut ws = vec![Worker::new(24)];
+        let mut p = Pacing::new(24, 4);
+        let mut bounds = vec![REACHED; 10];
+        bounds[1] = 0.5;
+        bounds[3] = 0.0;
+        let left = LeftEntries::from_bounds(bounds, 2);
+        // A held gradient from an earlier step on parameter 7, before the cover left it.
+        p.pending[7] = 9.0;
+        p.open_gate(&ws);
+        // Only the hidden scene's rays this step: a reached entry (parameter 8) and both
+        // left ones.
+        for (i, g) in [(8, 1.0), (6, 2.0), (7, 3.0), (11, 4.0)] {
+            add(&mut ws[0], i, g);
+        }
+        p.hold_back(&mut ws, Some((&left, 2)));
+        assert_eq!(ws[0].grad[8], 0.0, "a reached entry waits for the cover");
+        assert_eq!(p.pending[8], 1.0);
+        assert_eq!(
+            [6, 7, 11].map(|i| ws[0].grad[i]),
+            [2.0, 3.0, 4.0],
+            "left entries move at the hidden scene's pace"
+        );
+        assert_eq!(p.pending[7], 9.0, "what waited before stays held");
     }
 
     #[test]

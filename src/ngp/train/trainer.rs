@@ -9,6 +9,7 @@
 //! fixed order: the result is deterministic for a seed and worker count.
 
 use super::density_cap::{DensityCap, cap_gradient};
+use super::left_entries::LeftEntries;
 use super::loss::{DENSITY_PULL_UP, ray_loss};
 use super::optimizer::{Optimizer, OptimizerConfig, Touched};
 use super::pacing::{CoverOnlyMlp, Pacing};
@@ -79,6 +80,13 @@ pub struct TrainConfig {
     /// measurably from it (its first density layer's spread gave the paced stealth models
     /// away, BENCHMARKS.md). `train --stealth --cover-only-mlp` sets this.
     pub cover_only_mlp: bool,
+    /// Table entries the cover's occupancy grid no longer lets training reach keep at most
+    /// the magnitude they had (in the published weights) when it stopped reaching them, and
+    /// with [`Self::cover_paced_table`] the other scenes move them at their own pace (no
+    /// cover gradient will reach them again). Stealth training sets it: a hidden scene then
+    /// shares the entries the cover left, most of the coarse levels, without making them
+    /// larger than a plain model leaves them (see [`LeftEntries`]).
+    pub bounded_left_entries: bool,
     /// Steps the cover (scene 0) trains alone before the other scenes join (0: all from the
     /// start). The first steps decide a capture's occupancy grid (every cell is updated at
     /// every step while step < 256) and where its background settles; a hidden scene moving
@@ -104,6 +112,7 @@ impl Default for TrainConfig {
             hidden_loss_weight: 1.0,
             cover_paced_table: false,
             cover_only_mlp: false,
+            bounded_left_entries: false,
             hidden_from_step: 0,
             density_cap: None,
             optimizer: OptimizerConfig::default(),
@@ -252,6 +261,7 @@ pub struct Trainer {
     refresh: Option<Box<dyn IndexRefresh>>,
     pace: Option<Pacing>,
     cover_mlp: Option<CoverOnlyMlp>,
+    left: Option<LeftEntries>,
     /// The cells the density cap draws from, as of the cover's last grid update.
     cap_cells: Vec<u32>,
     /// Steps taken, the cover's or not: the schedule's and the rays' clock.
@@ -315,6 +325,11 @@ impl Trainer {
         if scenes.is_empty() {
             return Err(Error::Config("no scene to train".into()));
         }
+        if config.bounded_left_entries && !config.cover_paced_table {
+            return Err(Error::Config(
+                "bounded left entries need the cover-paced table".into(),
+            ));
+        }
         let net = NerfNetwork::new(model)?;
         let n_levels = net.layout.grid.levels.len();
         let mut states = Vec::new();
@@ -369,7 +384,11 @@ impl Trainer {
             .cover_only_mlp
             .then(|| CoverOnlyMlp::new(n_workers, net.layout.n_mlp_params()));
         let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
+        let left = config
+            .bounded_left_entries
+            .then(|| LeftEntries::new(&net.layout.grid));
         Ok(Trainer {
+            left,
             net,
             params,
             optimizer,
@@ -405,6 +424,11 @@ impl Trainer {
         (s.rays_per_batch, s.measured_samples, s.measured_marched)
     }
 
+    /// [`TrainConfig::bounded_left_entries`]' bounds, as of the cover's last grid update.
+    pub fn left_entries(&self) -> Option<&LeftEntries> {
+        self.left.as_ref()
+    }
+
     /// Index functions of scene `i` as trained now.
     pub fn indices(&self, i: usize) -> &LevelIndices {
         &self.scenes[i].indices
@@ -417,12 +441,20 @@ impl Trainer {
     }
 
     fn apply_refresh(&mut self) -> Result<()> {
+        if self.refresh.is_none() {
+            return Ok(());
+        }
+        let published = self.optimizer.ema_params(&self.params);
+        self.apply_refresh_with(&published)
+    }
+
+    /// [`Self::apply_refresh`] with the published weights already computed.
+    fn apply_refresh_with(&mut self, published: &[f32]) -> Result<()> {
         let Some(r) = &self.refresh else {
             return Ok(());
         };
         let n_levels = self.net.layout.grid.levels.len();
-        let published = self.optimizer.ema_params(&self.params);
-        for (i, indices) in r.refresh(&self.scenes[0].grid, &published) {
+        for (i, indices) in r.refresh(&self.scenes[0].grid, published) {
             if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
                 return Err(Error::Config(format!(
                     "index refresh for scene {i} with {} levels ({} scenes, {n_levels} levels; scene 0 is never refreshed)",
@@ -465,9 +497,22 @@ impl Trainer {
                 if let Some(cap) = &self.config.density_cap {
                     self.cap_cells = cap.cells(&self.scenes[0].grid);
                 }
+                let published = (self.refresh.is_some() || self.left.is_some())
+                    .then(|| self.optimizer.ema_params(&self.params));
+                if let (Some(l), Some(p)) = (&mut self.left, &published) {
+                    let layout = &self.net.layout;
+                    l.update(
+                        &layout.grid,
+                        &self.scenes[0].grid,
+                        layout.config.aabb_scale,
+                        &p[layout.grid_offset..],
+                    );
+                }
                 // Refreshed indices take effect before the other scenes' grids are updated.
-                self.apply_refresh()
-                    .expect("index refresh was checked when it was installed");
+                if let Some(p) = &published {
+                    self.apply_refresh_with(p)
+                        .expect("index refresh was checked when it was installed");
+                }
             }
         }
     }
@@ -537,7 +582,8 @@ impl Trainer {
             }
         }
         if let Some(p) = &mut self.pace {
-            p.hold_back(&mut self.workers);
+            let f = self.net.layout.config.grid.n_features as usize;
+            p.hold_back(&mut self.workers, self.left.as_ref().map(|l| (l, f)));
         }
         if let Some(m) = &mut self.cover_mlp {
             m.restore(&mut self.workers);
@@ -631,6 +677,9 @@ impl Trainer {
             .collect();
         self.optimizer
             .step(&mut self.params, &mut grads, Some(&touched));
+        if let Some(l) = &self.left {
+            l.clamp(&mut self.params[self.net.layout.grid_offset..]);
+        }
         for ((w, g), mut t) in self.workers.iter_mut().zip(grads).zip(touched) {
             w.grad = g;
             t.clear();
