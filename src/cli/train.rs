@@ -245,8 +245,8 @@ pub fn run(a: Args) -> Result<()> {
         }
         if a.stealth {
             eprintln!(
-                "stealth: hidden scenes confined to the cover's entries, the table paced on \
-                 the cover, the MLP {}, {}",
+                "stealth: hidden scenes confined to the entries the cover moved, those its \
+                 grid reaches paced on the cover, those it left bounded, the MLP {}, {}",
                 if a.cover_only_mlp {
                     "learnt from the cover alone"
                 } else {

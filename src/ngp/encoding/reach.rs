@@ -11,7 +11,8 @@
 //! An entry of a level is *reachable* if some grid vertex of a level cell that intersects
 //! such a position maps to it under the level's index function. An analyst can compute
 //! this from a published file alone (its stored grid, with the reference index); so can a
-//! key holder, which is what lets hidden scenes be confined to the cover's entries.
+//! trainer, which is what tells stealth training which entries the cover has left
+//! ([`crate::ngp::train::left_entries`]).
 
 use super::index::{Kernel, LevelIndices, WithKernel};
 use super::layout::{GridLayout, LevelInfo};
