@@ -79,12 +79,13 @@ fn tiny_population_report_reproducible_and_resumable() {
         "features.json",
         "detector_stego.json",
         "detector_stealth.json",
+        "detector_control.json",
     ] {
         assert!(dir.join(f).is_file(), "{f} missing");
     }
     let png = std::fs::read(dir.join("roc.png")).unwrap();
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
-    for arm in ["plain", "stego", "stealth"] {
+    for arm in ["plain", "stego", "stealth", "control"] {
         for i in 0..2 {
             assert!(dir.join(format!("models/{arm}_{i:02}.ingp")).is_file());
         }
@@ -94,47 +95,80 @@ fn tiny_population_report_reproducible_and_resumable() {
     assert_eq!(json["setup"]["models_per_arm"], 2);
 
     let fid = table(&json, "Fidelity");
-    assert_eq!(fid.len(), 3);
-    for (row, arm) in fid.iter().zip(["plain", "stego", "stealth"]) {
+    assert_eq!(fid.len(), 4);
+    for (row, arm) in fid.iter().zip(["plain", "stego", "stealth", "control"]) {
         assert_eq!(row["arm"], arm);
         assert_eq!(row["models"], 2);
         let c = row["cover_psnr"].as_f64().unwrap();
         assert!(c.is_finite() && c > 0.0, "{row}");
-        // The plain arm hides nothing, so it has no hidden-scene score.
-        assert_eq!(row.get("hidden_psnr").is_some(), arm != "plain", "{row}");
+        // The plain and control arms hide nothing, so they have no hidden-scene score.
+        let hides = arm == "stego" || arm == "stealth";
+        assert_eq!(row.get("hidden_psnr").is_some(), hides, "{row}");
     }
 
     // One row per statistic, and every statistic a model file gave.
     let feats: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("features.json")).unwrap()).unwrap();
     let feats = feats.as_array().unwrap();
-    assert_eq!(feats.len(), 6);
+    assert_eq!(feats.len(), 8);
+    // The control models are plain models of the same covers from another seed: not the
+    // plain models again.
+    let of = |arm: &str, pair: u64| {
+        feats
+            .iter()
+            .find(|f| f["arm"] == arm && f["pair"] == pair)
+            .unwrap()["features"]
+            .clone()
+    };
+    assert_ne!(of("plain", 0), of("control", 0));
     let names: Vec<&String> = feats[0]["features"].as_object().unwrap().keys().collect();
     assert!(names.len() >= 10, "{names:?}");
     let stats = table(&json, "Per statistic");
     assert_eq!(stats.len(), names.len());
     for (row, name) in stats.iter().zip(&names) {
         assert_eq!(row["statistic"].as_str().unwrap(), name.as_str());
-        for arm in ["stego", "stealth"] {
+        for arm in ["stego", "stealth", "control"] {
             auc_ok(&row[format!("{arm}_auc")], &format!("{name} {arm}"));
+            // Two models a side: p is 1/3 at best.
+            let p = row[format!("{arm}_p")].as_f64().unwrap();
+            assert!((0.0..=1.0).contains(&p), "{name} {arm}: p = {p}");
             let dir = row[format!("{arm}_direction")].as_str().unwrap();
             assert!(dir == "higher in stego" || dir == "lower in stego");
         }
     }
     let comb = table(&json, "Combined detector");
-    // plain vs stego, plain vs stealth, and the stego detector scored on stealth models.
-    assert_eq!(comb.len(), 3, "{comb:?}");
+    // plain vs stego, stealth and control, and the stego detector scored on stealth models.
+    assert_eq!(comb.len(), 4, "{comb:?}");
     for r in comb {
-        // Scored on the held-out pair: one model of each class, so 0, 0.5 or 1.
+        // Scored on the held-out pair: one model of each class, so 0, 0.5 or 1, and chance
+        // puts the one above the other half the time.
         let a = r["auc"].as_f64().unwrap();
         assert!([0.0, 0.5, 1.0].contains(&a), "{r}");
         assert_eq!(r["scored_models"], 2);
+        // A tie counts against the detector.
+        let want = if a == 1.0 { 0.5 } else { 1.0 };
+        assert_eq!(r["p"].as_f64().unwrap(), want, "{r}");
     }
+    let summary = table(&json, "Statistics per arm");
+    let arms: Vec<&str> = summary.iter().map(|r| r["arm"].as_str().unwrap()).collect();
+    assert_eq!(arms, ["stego", "stealth", "control"]);
+    for r in summary {
+        assert_eq!(
+            r["statistics"].as_u64().unwrap() as usize,
+            names.len(),
+            "{r}"
+        );
+        // Two models an arm: no statistic can be significant after the correction.
+        assert_eq!(r["significant"], 0, "{r}");
+        auc_ok(&r["largest_auc"], "largest");
+    }
+    // Nothing lies above the largest of its own arm.
+    assert_eq!(summary[2]["above_control_max"], 0);
     let models = table(&json, "Models");
-    assert_eq!(models.len(), 6);
+    assert_eq!(models.len(), 8);
     let keys: Vec<&str> = models.iter().map(|m| m["key"].as_str().unwrap()).collect();
-    // Pair 0 uses a prf key, pair 1 a primes key; plain models none.
-    assert_eq!(keys, ["-", "prf", "prf", "-", "primes", "primes"]);
+    // Pair 0 uses a prf key, pair 1 a primes key; plain and control models none.
+    assert_eq!(keys, ["-", "prf", "prf", "-", "-", "primes", "primes", "-"]);
 
     // Same seed, fresh folder: the same numbers.
     let again = tempfile::tempdir().unwrap();
@@ -152,7 +186,7 @@ fn tiny_population_report_reproducible_and_resumable() {
     };
     let before = mtime("stealth_01.ingp");
     let err = run_ok(&args);
-    assert_eq!(err.matches("reusing").count(), 6, "{err}");
+    assert_eq!(err.matches("reusing").count(), 8, "{err}");
     assert!(!err.contains("trained "), "{err}");
     assert_eq!(mtime("stealth_01.ingp"), before);
     assert_eq!(json["tables"], report(d.path())["tables"]);
@@ -163,15 +197,15 @@ fn tiny_population_report_reproducible_and_resumable() {
     v["config"]["steps"] = 999.into();
     std::fs::write(&side, serde_json::to_vec(&v).unwrap()).unwrap();
     let err = run_ok(&args);
-    assert_eq!(err.matches("reusing").count(), 5, "{err}");
+    assert_eq!(err.matches("reusing").count(), 7, "{err}");
     assert!(err.contains("trained plain_00"), "{err}");
     assert_eq!(json["tables"], report(d.path())["tables"]);
 
-    // A cover warm-up changes the models with a hidden scene, not the plain ones.
+    // A cover warm-up changes the models with a hidden scene, not the plain or control ones.
     let mut warm = args.to_vec();
     warm.extend(["--hidden-from", "3"]);
     let err = run_ok(&warm);
-    assert_eq!(err.matches("reusing").count(), 2, "{err}");
+    assert_eq!(err.matches("reusing").count(), 4, "{err}");
     for m in ["stego_00", "stego_01", "stealth_00", "stealth_01"] {
         assert!(err.contains(&format!("trained {m}")), "{m}: {err}");
     }
@@ -187,7 +221,7 @@ fn tiny_population_report_reproducible_and_resumable() {
     let mut capped = warm.clone();
     capped.extend(["--density-cap", "0"]);
     let err = run_ok(&capped);
-    assert_eq!(err.matches("reusing").count(), 4, "{err}");
+    assert_eq!(err.matches("reusing").count(), 6, "{err}");
     for m in ["stealth_00", "stealth_01"] {
         assert!(err.contains(&format!("trained {m}")), "{m}: {err}");
     }

@@ -93,6 +93,10 @@ pub struct Args {
     /// detectability: leave out the stealth arm (plain and default stego models only).
     #[arg(long)]
     pub no_stealth_arm: bool,
+    /// detectability: leave out the control arm (plain models of the same covers from
+    /// another seed, scored as if they hid something: chance at this population's size).
+    #[arg(long)]
+    pub no_control_arm: bool,
     /// pairs: a cover/hidden pair of dataset folders, COVER:HIDDEN (repeatable) [default:
     /// --cover with each --hidden; without those, a generated object cover with a generated
     /// text and a generated logo].
@@ -287,6 +291,7 @@ pub fn run(a: Args) -> Result<()> {
         let opts = DetectOptions {
             models: a.models,
             stealth_arm: !a.no_stealth_arm,
+            control_arm: !a.no_control_arm,
             res,
             ..DetectOptions::default()
         };

@@ -8,7 +8,11 @@
 //! hidden, the default training) and optionally `stealth` (the same with stealth training).
 //! Stego models cycle through the four combinations of key scheme (`prf`, `primes`) and
 //! schedule (mixed batches, the paper's random scene per step), so the detector is measured
-//! against every way we train.
+//! against every way we train. A `control` arm (plain models of the same covers, trained
+//! from another seed) is scored as if it hid something: what the statistics and the
+//! detector make of it is chance at this population's size, the floor against which the
+//! other arms read (with 53 statistics on 20 + 20 models the largest AUC of two plain arms
+//! is about 0.7, so no arm can show every statistic at 0.5).
 //!
 //! Every model is saved as an `.ingp` and analysed from the file alone
 //! ([`crate::steganalysis::analyse_file`]). Per statistic the report gives the ROC AUC of
@@ -27,7 +31,9 @@ use crate::error::{Error, Result};
 use crate::ngp::data::save_png_rgb;
 use crate::ngp::train::Schedule;
 use crate::rng::Pcg32;
-use crate::steganalysis::{Detector, analyse_file, feature_matrix, roc_auc};
+use crate::steganalysis::{
+    Detector, analyse_file, auc_p_value, directed_auc_p_value, feature_matrix, roc_auc,
+};
 use crate::stego::SchemeKind;
 use crate::synth::scene::{Material, Object, Scene, Shape, V3, text_scene};
 use crate::synth::{CAMERA_ANGLE_X, CAMERA_RADIUS, layout_text, look_at, render_view};
@@ -47,6 +53,8 @@ pub struct DetectOptions {
     pub res: u32,
     pub n_train_views: usize,
     pub n_test_views: usize,
+    /// Train the control arm (plain models from another seed) as well.
+    pub control_arm: bool,
 }
 
 impl Default for DetectOptions {
@@ -57,6 +65,7 @@ impl Default for DetectOptions {
             res: 32,
             n_train_views: 40,
             n_test_views: 8,
+            control_arm: true,
         }
     }
 }
@@ -71,6 +80,8 @@ enum Arm {
     Plain,
     Stego,
     Stealth,
+    /// Plain models of the same covers from another training seed: the null hypothesis.
+    Control,
 }
 
 impl Arm {
@@ -79,6 +90,20 @@ impl Arm {
             Arm::Plain => "plain",
             Arm::Stego => "stego",
             Arm::Stealth => "stealth",
+            Arm::Control => "control",
+        }
+    }
+
+    fn hides(self) -> bool {
+        matches!(self, Arm::Stego | Arm::Stealth)
+    }
+
+    /// The training seed of this arm's model of pair `pair_seed`: the control arm's differs
+    /// from the plain model's (same scenes, another initialisation and sample order).
+    fn training_seed(self, pair_seed: u64) -> u64 {
+        match self {
+            Arm::Control => pair_seed ^ 0xc0_17_c0_17,
+            _ => pair_seed,
         }
     }
 }
@@ -324,9 +349,9 @@ fn model_config(
     let rel = |p: &Path| p.strip_prefix(&cfg.out).unwrap_or(p).to_path_buf();
     let mut v = json!({
         "format": MODEL_FORMAT, "arm": arm.name(), "cover": rel(scenes.0),
-        "hidden": if arm == Arm::Plain { Value::Null } else { json!(rel(scenes.1)) },
-        "seed": seed, "scheme": if arm == Arm::Plain { Value::Null } else { json!(combo.0.name()) },
-        "schedule": if arm == Arm::Plain { Value::Null } else { json!(combo.1.name()) },
+        "hidden": if arm.hides() { json!(rel(scenes.1)) } else { Value::Null },
+        "seed": seed, "scheme": if arm.hides() { json!(combo.0.name()) } else { Value::Null },
+        "schedule": if arm.hides() { json!(combo.1.name()) } else { Value::Null },
         // A string: serde_json's float parsing does not round-trip every f64 exactly, and a
         // sidecar must compare equal to what wrote it.
         "steps": cfg.steps, "batch": cfg.batch, "occupancy_fraction": cfg.occupancy_fraction.to_string(),
@@ -334,7 +359,7 @@ fn model_config(
         "base_resolution": g.base_resolution, "eval_views": cfg.eval_views,
         "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
     });
-    if arm != Arm::Plain {
+    if arm.hides() {
         cfg.record_hidden_options(&mut v);
     }
     if arm == Arm::Stealth {
@@ -357,7 +382,7 @@ fn model(
     hidden_kind: &str,
     models_dir: &Path,
 ) -> Result<ModelRecord> {
-    let seed = pair_seed(cfg.seed, i);
+    let seed = arm.training_seed(pair_seed(cfg.seed, i));
     let combo = combination(i);
     let config = model_config(cfg, arm, scenes, seed, combo);
     let stem = format!("{}_{i:02}", arm.name());
@@ -368,16 +393,16 @@ fn model(
             hidden: vec![scenes.1.to_path_buf()],
             seed,
             scheme: combo.0,
-            schedule: if arm == Arm::Plain {
-                Schedule::Mixed
-            } else {
+            schedule: if arm.hides() {
                 combo.1
+            } else {
+                Schedule::Mixed
             },
             stealth: arm == Arm::Stealth,
             ..cfg.clone()
         };
         // Key number i under the pair's seed: stego and stealth pair i share their key.
-        let key = (arm != Arm::Plain).then_some(i as u64);
+        let key = arm.hides().then_some(i as u64);
         let run = train_pair(&mcfg, key, &stem)?;
         let fields = json!({
             "train_s": run.train_seconds, "eval_s": run.eval_seconds,
@@ -394,7 +419,7 @@ fn model(
     Ok(ModelRecord {
         arm,
         index: i,
-        scheme: (arm != Arm::Plain).then_some(combo.0),
+        scheme: arm.hides().then_some(combo.0),
         schedule: combo.1,
         hidden_kind: hidden_kind.into(),
         cover_psnr: info["cover_psnr"].as_f64().unwrap_or(f64::NAN),
@@ -441,19 +466,21 @@ pub fn roc_points(pos: &[f64], neg: &[f64]) -> Vec<(f64, f64)> {
 }
 
 /// AUC of one statistic with the direction an analyst would pick from the data:
-/// (max(AUC, 1 − AUC), true if larger values mean stego). NaN values are left out.
-fn directed_auc(pos: &[f64], neg: &[f64]) -> (f64, bool) {
+/// (max(AUC, 1 − AUC), true if larger values mean stego, the two-sided p-value of that
+/// AUC). NaN values are left out.
+fn directed_auc(pos: &[f64], neg: &[f64]) -> (f64, bool, f64) {
     let p: Vec<f64> = pos.iter().copied().filter(|v| v.is_finite()).collect();
     let n: Vec<f64> = neg.iter().copied().filter(|v| v.is_finite()).collect();
     let auc = roc_auc(&p, &n);
     if auc.is_nan() {
-        return (f64::NAN, true);
+        return (f64::NAN, true, f64::NAN);
     }
-    if auc >= 0.5 {
+    let (auc, up) = if auc >= 0.5 {
         (auc, true)
     } else {
         (1.0 - auc, false)
-    }
+    };
+    (auc, up, directed_auc_p_value(auc, p.len(), n.len()))
 }
 
 fn mean(v: impl IntoIterator<Item = f64>) -> f64 {
@@ -527,12 +554,14 @@ const PLOT: u32 = 400;
 const MARGIN: u32 = 24;
 
 /// Curve colours, in the order the report's legend lists them.
-const COLOURS: [(&str, [f32; 3]); 5] = [
+const COLOURS: [(&str, [f32; 3]); 7] = [
     ("red", [0.85, 0.1, 0.1]),
     ("blue", [0.1, 0.25, 0.9]),
     ("orange", [1.0, 0.6, 0.0]),
     ("cyan", [0.0, 0.75, 0.8]),
     ("green", [0.1, 0.6, 0.15]),
+    ("magenta", [0.8, 0.1, 0.75]),
+    ("brown", [0.5, 0.3, 0.1]),
 ];
 
 struct Canvas {
@@ -646,11 +675,13 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         "s{}_r{}_v{}-{}",
         cfg.seed, opts.res, opts.n_train_views, opts.n_test_views
     ));
-    let arms: Vec<Arm> = if opts.stealth_arm {
-        vec![Arm::Plain, Arm::Stego, Arm::Stealth]
-    } else {
-        vec![Arm::Plain, Arm::Stego]
-    };
+    let mut arms = vec![Arm::Plain, Arm::Stego];
+    if opts.stealth_arm {
+        arms.push(Arm::Stealth);
+    }
+    if opts.control_arm {
+        arms.push(Arm::Control);
+    }
     let t_all = Instant::now();
     let mut models: Vec<ModelRecord> = Vec::new();
     for i in 0..opts.models {
@@ -710,7 +741,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             "cover_psnr": num(mean(of(a).map(|m| m.cover_psnr))),
             "cover_lpips": num(mean(of(a).filter_map(|m| m.cover_lpips))),
         });
-        if a != Arm::Plain {
+        if a.hides() {
             row["hidden_psnr"] = num(mean(of(a).filter_map(|m| m.hidden_psnr)));
             row["hidden_lpips"] = num(mean(of(a).filter_map(|m| m.hidden_lpips)));
         }
@@ -733,6 +764,8 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         "Per statistic: ROC AUC of plain vs each arm over all models, as max(AUC, 1 − AUC) with the direction that gives it",
     );
     let mut best: Vec<(f64, usize, bool)> = vec![(f64::NAN, 0, true); arms.len()];
+    // Per arm: (AUC, p, statistic) of every statistic defined on both sides.
+    let mut per_arm: Vec<Vec<(f64, f64, usize)>> = vec![Vec::new(); arms.len()];
     for (j, name) in names.iter().enumerate() {
         let plain = column(j, Arm::Plain);
         let mut row = serde_json::Map::new();
@@ -740,12 +773,16 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         row.insert("plain_mean".into(), num(mean(plain.iter().copied())));
         for (k, &a) in arms.iter().enumerate().skip(1) {
             let vals = column(j, a);
-            let (auc, up) = directed_auc(&vals, &plain);
+            let (auc, up, p) = directed_auc(&vals, &plain);
             row.insert(
                 format!("{}_mean", a.name()),
                 num(mean(vals.iter().copied())),
             );
             row.insert(format!("{}_auc", a.name()), num(auc));
+            row.insert(format!("{}_p", a.name()), num(p));
+            if auc.is_finite() {
+                per_arm[k].push((auc, p, j));
+            }
             row.insert(
                 format!("{}_direction", a.name()),
                 json!(if up {
@@ -759,6 +796,36 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             }
         }
         per_stat.push(Value::Object(row));
+    }
+
+    // Per arm, what the statistics add up to; the control arm's largest AUC is what chance
+    // gives the largest of this many statistics on this many models.
+    let control_max = arms
+        .iter()
+        .position(|&a| a == Arm::Control)
+        .and_then(|k| per_arm[k].iter().map(|x| x.0).reduce(f64::max));
+    let mut summary = Table::new(
+        "Statistics per arm (plain vs the arm, all models): the largest AUC, how many statistics reach at most 0.6, their mean AUC, how many are significant after a Bonferroni correction (two-sided p < 0.05 / statistics), and how many lie above the control arm's largest AUC",
+    );
+    for (k, &a) in arms.iter().enumerate().skip(1) {
+        let stats = &per_arm[k];
+        let n = stats.len();
+        let top = stats
+            .iter()
+            .copied()
+            .reduce(|x, y| if y.0 > x.0 { y } else { x });
+        let mut row = json!({
+            "arm": a.name(), "statistics": n,
+            "largest_auc": num(top.map_or(f64::NAN, |t| t.0)),
+            "largest_statistic": top.map(|t| names[t.2].as_str()).unwrap_or("-"),
+            "at_most_0_6": stats.iter().filter(|x| x.0 <= 0.6).count(),
+            "mean_auc": num(mean(stats.iter().map(|x| x.0))),
+            "significant": stats.iter().filter(|x| x.1 < 0.05 / n.max(1) as f64).count(),
+        });
+        if let Some(c) = control_max {
+            row["above_control_max"] = json!(stats.iter().filter(|x| x.0 > c).count());
+        }
+        summary.push(row);
     }
 
     // Combined detectors, fitted on the first half of the pairs, scored on the rest.
@@ -775,7 +842,8 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
                 c.detector.save(&path)?;
                 comb.push(json!({
                     "fitted_on": format!("plain vs {}", a.name()), "scored": format!("plain vs {}", a.name()),
-                    "auc": num(c.auc), "scored_models": c.held_out.0.len() + c.held_out.1.len(),
+                    "auc": num(c.auc), "p": num(auc_p_value(c.auc, c.held_out.0.len(), c.held_out.1.len())),
+                    "scored_models": c.held_out.0.len() + c.held_out.1.len(),
                     "features_used": c.detector.features.len(),
                 }));
                 fitted.push((a, c));
@@ -797,7 +865,8 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     if let Some((d, (p, n))) = &stego_on_stealth {
         comb.push(json!({
             "fitted_on": "plain vs stego", "scored": "plain vs stealth",
-            "auc": num(roc_auc(p, n)), "scored_models": p.len() + n.len(),
+            "auc": num(roc_auc(p, n)), "p": num(auc_p_value(roc_auc(p, n), p.len(), n.len())),
+            "scored_models": p.len() + n.len(),
             "features_used": d.features.len(),
         }));
     }
@@ -844,6 +913,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         ));
     }
     report.tables.push(comb);
+    report.tables.push(summary);
     report.tables.push(per_stat);
 
     // Per model, for inspection.
@@ -851,8 +921,8 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     for m in &models {
         per_model.push(json!({
             "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(SchemeKind::name).unwrap_or("-"),
-            "schedule": if m.arm == Arm::Plain { "-" } else { m.schedule.name() },
-            "hidden": if m.arm == Arm::Plain { "-" } else { m.hidden_kind.as_str() },
+            "schedule": if m.arm.hides() { m.schedule.name() } else { "-" },
+            "hidden": if m.arm.hides() { m.hidden_kind.as_str() } else { "-" },
             "cover_psnr": num(m.cover_psnr), "hidden_psnr": m.hidden_psnr.map(num).unwrap_or(json!("-")),
             "half": if m.index < n_fit { "fit" } else { "scored" },
             "stego_detector_score": stego_detector.map(|d| num(d.score(&m.features))).unwrap_or(Value::Null),
@@ -875,13 +945,26 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     ));
 
     report.notes.push(format!(
-        "{} pairs of generated scenes; each pair is one cover (a random tabletop of primitives) and one hidden scene (3D text or another random tabletop, alternating), with one seed and one key, shared by its plain, stego{} models. Stego pairs cycle through the key schemes (prf, primes) and schedules (mixed, random-scene). Every model is analysed from its .ingp file alone.",
+        "{} pairs of generated scenes; each pair is one cover (a random tabletop of primitives) and one hidden scene (3D text or another random tabletop, alternating), with one seed and one key, shared by its plain, stego{} models{}. Stego pairs cycle through the key schemes (prf, primes) and schedules (mixed, random-scene). Every model is analysed from its .ingp file alone.",
         opts.models,
-        if opts.stealth_arm { " and stealth" } else { "" }
+        if opts.stealth_arm { " and stealth" } else { "" },
+        if opts.control_arm {
+            " (the control models: the same cover, another training seed)"
+        } else {
+            ""
+        }
     ));
     report.notes.push(
-        "Per-statistic AUC is max(AUC, 1 − AUC) over all models, with the direction (larger or smaller in stego models) that gives it: an analyst picks the direction from data, so a statistic that separates the classes either way counts, and 0.5 is the floor. This is optimistic for the statistic (the direction is chosen on the same models it is scored on). The combined detector is honest: fitted on the first half of the pairs, its AUC is measured on the second half, covers and hidden scenes it never saw. The detectors are saved as detector_<arm>.json.".into(),
+        "Per-statistic AUC is max(AUC, 1 − AUC) over all models, with the direction (larger or smaller in stego models) that gives it: an analyst picks the direction from data, so a statistic that separates the classes either way counts, and 0.5 is the floor. This is optimistic for the statistic (the direction is chosen on the same models it is scored on); its p-value (`<arm>_p`) is two-sided for that reason, exact (Mann–Whitney). The combined detector is honest: fitted on the first half of the pairs, its AUC is measured on the second half, covers and hidden scenes it never saw; its p is the chance that a detector that knows nothing scores at least that AUC on those models. The detectors are saved as detector_<arm>.json.".into(),
     );
+    if opts.control_arm {
+        report.notes.push(format!(
+            "The control arm is plain models of the same covers trained from another seed, scored as if they hid something: every figure it gets is chance at this population's size{}. Read the other arms against it, not against 0.5.",
+            control_max
+                .map(|c| format!(" (its largest statistic reaches AUC {c:.3})"))
+                .unwrap_or_default()
+        ));
+    }
     if opts.stealth_arm {
         let m = |a: Arm, hidden: bool| {
             mean(of(a).filter_map(|x| {
@@ -1029,6 +1112,34 @@ mod tests {
         assert_eq!(config(&capped, Arm::Stealth)["density_cap"], "10");
     }
 
+    /// The control arm is the plain model of the same cover from another seed: its sidecar
+    /// is the plain one's but for the arm and the seed, and the options that change the
+    /// models with a hidden scene leave it alone.
+    #[test]
+    fn the_control_arm_is_a_plain_model_from_another_seed() {
+        let scenes = (Path::new("out/scenes/c"), Path::new("out/scenes/h"));
+        let combo = combination(1);
+        let seed = pair_seed(0, 1);
+        let config =
+            |c: &ExpConfig, arm: Arm| model_config(c, arm, scenes, arm.training_seed(seed), combo);
+        let base = exp_config(0, 1.0);
+        let (plain, control) = (config(&base, Arm::Plain), config(&base, Arm::Control));
+        assert_eq!(plain["seed"], seed);
+        assert_ne!(control["seed"], plain["seed"]);
+        assert_eq!(control["arm"], "control");
+        let mut relabelled = control.clone();
+        relabelled["arm"] = plain["arm"].clone();
+        relabelled["seed"] = plain["seed"].clone();
+        assert_eq!(relabelled, plain);
+        let hidden_options = ExpConfig {
+            density_cap: Some(10.0),
+            ..exp_config(50, 0.25)
+        };
+        assert_eq!(config(&hidden_options, Arm::Control), control);
+        assert!(!Arm::Control.hides() && !Arm::Plain.hides());
+        assert!(Arm::Stego.hides() && Arm::Stealth.hides());
+    }
+
     #[test]
     fn roc_points_by_hand() {
         // Perfect separation: straight up, then across.
@@ -1045,10 +1156,18 @@ mod tests {
 
     #[test]
     fn directed_auc_picks_the_direction() {
-        assert_eq!(directed_auc(&[3.0, 4.0], &[1.0, 2.0]), (1.0, true));
-        assert_eq!(directed_auc(&[1.0, 2.0], &[3.0, 4.0]), (1.0, false));
-        let (a, _) = directed_auc(&[2.0, 4.0, f64::NAN], &[1.0, 3.0]);
-        assert_eq!(a, 0.75);
+        // Two of each: 1 order in 6 separates them one way, 1 the other.
+        assert_eq!(
+            directed_auc(&[3.0, 4.0], &[1.0, 2.0]),
+            (1.0, true, 1.0 / 3.0)
+        );
+        assert_eq!(
+            directed_auc(&[1.0, 2.0], &[3.0, 4.0]),
+            (1.0, false, 1.0 / 3.0)
+        );
+        // The NaN is left out: two against two, U = 3 of 4, P(U ≥ 3) = 2/6, twice.
+        let (a, _, p) = directed_auc(&[2.0, 4.0, f64::NAN], &[1.0, 3.0]);
+        assert_eq!((a, p), (0.75, 2.0 / 3.0));
         assert!(directed_auc(&[f64::NAN], &[1.0]).0.is_nan());
     }
 

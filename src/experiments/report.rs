@@ -55,7 +55,10 @@ impl Table {
                 .iter()
                 .map(|c| match r.get(*c) {
                     Some(Value::Number(n)) => match n.as_f64() {
-                        // Four places below 1 (SSIM, LPIPS, AUC), three above (dB, s).
+                        // Four places below 1 (SSIM, LPIPS, AUC), three above (dB, s);
+                        // two significant digits below 1e-3 (p-values), where four places
+                        // would print 0.0000.
+                        Some(f) if n.is_f64() && f != 0.0 && f.abs() < 1e-3 => format!("{f:.1e}"),
                         Some(f) if n.is_f64() && f.abs() < 1.0 => format!("{f:.4}"),
                         Some(f) if n.is_f64() => format!("{f:.3}"),
                         _ => n.to_string(),
@@ -159,5 +162,12 @@ mod tests {
         // LPIPS-sized values keep a fourth place.
         t.push(serde_json::json!({"a": 0.01234, "b": -0.5}));
         assert!(t.markdown().contains("| 0.0123 | -0.5000 |"));
+        // p-values below 1e-3 keep two significant digits; zero stays a number of places.
+        t.push(serde_json::json!({"a": 5.4e-6, "b": 0.0}));
+        assert!(
+            t.markdown().contains("| 5.4e-6 | 0.0000 |"),
+            "{}",
+            t.markdown()
+        );
     }
 }

@@ -367,9 +367,71 @@ pub fn roc_auc(scores_pos: &[f64], scores_neg: &[f64]) -> f64 {
     (rank_sum - np * (np + 1.0) / 2.0) / (np * nn)
 }
 
+/// How often chance alone gives an AUC of at least `auc` on `n_pos` positives and `n_neg`
+/// negatives: the one-sided p-value of the Mann–Whitney test, exact (the null distribution
+/// of U counted over all C(n_pos + n_neg, n_pos) orders). Tied scores make U a half-integer;
+/// it is rounded down, which counts ties against the detector (a conservative p). NaN when
+/// either side is empty or `auc` is NaN.
+pub fn auc_p_value(auc: f64, n_pos: usize, n_neg: usize) -> f64 {
+    if n_pos == 0 || n_neg == 0 || !auc.is_finite() {
+        return f64::NAN;
+    }
+    let u_max = n_pos * n_neg;
+    let u_obs = ((auc * u_max as f64) + 1e-9)
+        .floor()
+        .clamp(0.0, u_max as f64) as usize;
+    // ways[j][u]: orders of i positives and j negatives with U = u, updated in place as i
+    // grows (a new largest score is a positive, above all j negatives, or a negative).
+    let mut ways: Vec<Vec<f64>> = (0..=n_neg).map(|_| vec![0.0; u_max + 1]).collect();
+    for w in ways.iter_mut() {
+        w[0] = 1.0;
+    }
+    for _ in 1..=n_pos {
+        let mut next: Vec<Vec<f64>> = (0..=n_neg).map(|_| vec![0.0; u_max + 1]).collect();
+        for j in 0..=n_neg {
+            for u in 0..=u_max {
+                let top_pos = if u >= j { ways[j][u - j] } else { 0.0 };
+                let top_neg = if j > 0 { next[j - 1][u] } else { 0.0 };
+                next[j][u] = top_pos + top_neg;
+            }
+        }
+        ways = next;
+    }
+    let all = &ways[n_neg];
+    let total: f64 = all.iter().sum();
+    all[u_obs..].iter().sum::<f64>() / total
+}
+
+/// The two-sided p-value of a directed AUC (`max(AUC, 1 − AUC)`, the direction read from
+/// the same data): chance gives one at least this far from ½ either way twice as often.
+pub fn directed_auc_p_value(directed_auc: f64, n_pos: usize, n_neg: usize) -> f64 {
+    (2.0 * auc_p_value(directed_auc, n_pos, n_neg)).min(1.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn auc_p_values_by_hand() {
+        // One of each: the positive is above half the time.
+        assert_eq!(auc_p_value(1.0, 1, 1), 0.5);
+        assert_eq!(auc_p_value(0.0, 1, 1), 1.0);
+        // Two of each: the 6 orders give U = 0, 1, 2, 2, 3, 4.
+        assert_eq!(auc_p_value(1.0, 2, 2), 1.0 / 6.0);
+        assert_eq!(auc_p_value(0.75, 2, 2), 2.0 / 6.0);
+        assert_eq!(auc_p_value(0.5, 2, 2), 4.0 / 6.0);
+        // A tie (U = 2.5 of 4 would be AUC 0.625) counts as U = 2.
+        assert_eq!(auc_p_value(0.625, 2, 2), 4.0 / 6.0);
+        // Two positives, one negative: U = 0, 1, 2 once each.
+        assert!((auc_p_value(0.5, 2, 1) - 2.0 / 3.0).abs() < 1e-15);
+        // Ten of each, perfect separation: 1 order of C(20, 10) = 184756.
+        assert!((auc_p_value(1.0, 10, 10) - 1.0 / 184_756.0).abs() < 1e-18);
+        // A directed AUC of ½ is no evidence at all; a perfect one, either way, twice 1/C.
+        assert_eq!(directed_auc_p_value(0.5, 10, 10), 1.0);
+        assert!((directed_auc_p_value(1.0, 10, 10) - 2.0 / 184_756.0).abs() < 1e-18);
+        assert!(auc_p_value(f64::NAN, 2, 2).is_nan() && auc_p_value(1.0, 0, 2).is_nan());
+    }
 
     #[test]
     fn auc_by_hand() {

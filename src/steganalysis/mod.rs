@@ -55,7 +55,9 @@
 mod detector;
 mod stats;
 
-pub use detector::{Detector, FeatureWeight, feature_matrix, roc_auc};
+pub use detector::{
+    Detector, FeatureWeight, auc_p_value, directed_auc_p_value, feature_matrix, roc_auc,
+};
 pub use stats::{INIT_BOUND, LevelStats, MatrixStats, SetStats, Summary, level_stats, mlp_stats};
 
 use crate::error::{Error, Result};
