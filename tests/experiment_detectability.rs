@@ -148,6 +148,18 @@ fn tiny_population_report_reproducible_and_resumable() {
         // A tie counts against the detector.
         let want = if a == 1.0 { 0.5 } else { 1.0 };
         assert_eq!(r["p"].as_f64().unwrap(), want, "{r}");
+        // Fitted on one arm: the other fold too, and both folds' held-out models together
+        // (two of each class: a multiple of 1/4).
+        if r["fitted_on"] == r["scored"] {
+            let second = r["auc_second_fold"].as_f64().unwrap();
+            assert!([0.0, 0.5, 1.0].contains(&second), "{r}");
+            let cross = r["auc_cross_fitted"].as_f64().unwrap();
+            assert_eq!((cross * 4.0).fract(), 0.0, "{r}");
+            let p = r["p_cross_fitted"].as_f64().unwrap();
+            assert!(p > 0.0 && p <= 1.0, "{r}");
+        } else {
+            assert!(r.get("auc_cross_fitted").is_none(), "{r}");
+        }
     }
     let summary = table(&json, "Statistics per arm");
     let arms: Vec<&str> = summary.iter().map(|r| r["arm"].as_str().unwrap()).collect();

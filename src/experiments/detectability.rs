@@ -499,7 +499,23 @@ fn num(x: f64) -> Value {
     if x.is_finite() { json!(x) } else { Value::Null }
 }
 
-/// A combined detector for plain vs `arm`: fitted on pairs `< n_fit`, scored on the rest.
+/// Which half of the pairs a combined detector is fitted on; it is scored on the other.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Fold {
+    /// Pairs `0..n_fit`: the detector the report draws and saves.
+    First,
+    /// Pairs `n_fit..`: with [`Fold::First`], every model is scored once by a detector that
+    /// never saw it (cross-fitting), twice the held-out models of one fold.
+    Second,
+}
+
+impl Fold {
+    fn fits(self, pair: usize, n_fit: usize) -> bool {
+        (pair < n_fit) == (self == Fold::First)
+    }
+}
+
+/// A combined detector for plain vs `arm`, fitted on one fold and scored on the other.
 struct Combined {
     detector: Detector,
     /// Held-out scores: (stego models, plain models).
@@ -507,22 +523,26 @@ struct Combined {
     auc: f64,
 }
 
-fn fit_combined(models: &[ModelRecord], arm: Arm, n_fit: usize) -> Result<Combined> {
+fn fit_combined(models: &[ModelRecord], arm: Arm, n_fit: usize, fold: Fold) -> Result<Combined> {
     let fit: Vec<&ModelRecord> = models
         .iter()
-        .filter(|m| m.index < n_fit && (m.arm == Arm::Plain || m.arm == arm))
+        .filter(|m| fold.fits(m.index, n_fit) && (m.arm == Arm::Plain || m.arm == arm))
         .collect();
     let samples: Vec<Vec<(String, f64)>> = fit.iter().map(|m| m.features.clone()).collect();
     let (names, rows) = feature_matrix(&samples);
     let labels: Vec<bool> = fit.iter().map(|m| m.arm == arm).collect();
     let mut detector = Detector::fit(&names, &rows, &labels)?;
+    let pairs = match fold {
+        Fold::First => format!("0..{n_fit}"),
+        Fold::Second => format!("{n_fit}.."),
+    };
     detector.fitted_on = format!(
-        "{} plain and {} {} models (pairs 0..{n_fit}) of the detectability experiment",
+        "{} plain and {} {} models (pairs {pairs}) of the detectability experiment",
         labels.iter().filter(|l| !**l).count(),
         labels.iter().filter(|l| **l).count(),
         arm.name()
     );
-    let held_out = score_held_out(&detector, models, arm, n_fit);
+    let held_out = score_held_out(&detector, models, arm, n_fit, fold);
     let auc = roc_auc(&held_out.0, &held_out.1);
     Ok(Combined {
         detector,
@@ -536,11 +556,12 @@ fn score_held_out(
     models: &[ModelRecord],
     arm: Arm,
     n_fit: usize,
+    fitted_on: Fold,
 ) -> (Vec<f64>, Vec<f64>) {
     let scores = |a: Arm| {
         models
             .iter()
-            .filter(|m| m.index >= n_fit && m.arm == a)
+            .filter(|m| !fitted_on.fits(m.index, n_fit) && m.arm == a)
             .map(|m| d.score(&m.features))
             .collect::<Vec<f64>>()
     };
@@ -830,22 +851,34 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
 
     // Combined detectors, fitted on the first half of the pairs, scored on the rest.
     let mut comb = Table::new(
-        "Combined detector (logistic regression): fitted on pairs 0..n_fit, ROC AUC on the held-out pairs",
+        "Combined detector (logistic regression): fitted on pairs 0..n_fit, ROC AUC on the held-out pairs; auc_second_fold: fitted on the held-out pairs, scored on the first; auc_cross_fitted: every model scored by the detector fitted on the other half",
     );
     let mut curves: Vec<Vec<(f64, f64)>> = Vec::new();
     let mut legend: Vec<String> = Vec::new();
     let mut fitted: Vec<(Arm, Combined)> = Vec::new();
     for &a in arms.iter().skip(1) {
-        match fit_combined(&models, a, n_fit) {
+        match fit_combined(&models, a, n_fit, Fold::First) {
             Ok(c) => {
                 let path = out.join(format!("detector_{}.json", a.name()));
                 c.detector.save(&path)?;
-                comb.push(json!({
+                let mut row = json!({
                     "fitted_on": format!("plain vs {}", a.name()), "scored": format!("plain vs {}", a.name()),
                     "auc": num(c.auc), "p": num(auc_p_value(c.auc, c.held_out.0.len(), c.held_out.1.len())),
                     "scored_models": c.held_out.0.len() + c.held_out.1.len(),
                     "features_used": c.detector.features.len(),
-                }));
+                });
+                // The other fold, and every model scored by the detector that did not see it.
+                if let Ok(c2) = fit_combined(&models, a, n_fit, Fold::Second) {
+                    let pos: Vec<f64> =
+                        c.held_out.0.iter().chain(&c2.held_out.0).copied().collect();
+                    let neg: Vec<f64> =
+                        c.held_out.1.iter().chain(&c2.held_out.1).copied().collect();
+                    let cross = roc_auc(&pos, &neg);
+                    row["auc_second_fold"] = num(c2.auc);
+                    row["auc_cross_fitted"] = num(cross);
+                    row["p_cross_fitted"] = num(auc_p_value(cross, pos.len(), neg.len()));
+                }
+                comb.push(row);
                 fitted.push((a, c));
             }
             Err(e) => report.notes.push(format!(
@@ -859,9 +892,12 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         .iter()
         .find(|(a, _)| *a == Arm::Stego)
         .map(|(_, c)| &c.detector);
-    let stego_on_stealth = stego_detector
-        .filter(|_| opts.stealth_arm)
-        .map(|d| (d, score_held_out(d, &models, Arm::Stealth, n_fit)));
+    let stego_on_stealth = stego_detector.filter(|_| opts.stealth_arm).map(|d| {
+        (
+            d,
+            score_held_out(d, &models, Arm::Stealth, n_fit, Fold::First),
+        )
+    });
     if let Some((d, (p, n))) = &stego_on_stealth {
         comb.push(json!({
             "fitted_on": "plain vs stego", "scored": "plain vs stealth",
@@ -1138,6 +1174,14 @@ mod tests {
         assert_eq!(config(&hidden_options, Arm::Control), control);
         assert!(!Arm::Control.hides() && !Arm::Plain.hides());
         assert!(Arm::Stego.hides() && Arm::Stealth.hides());
+    }
+
+    #[test]
+    fn the_two_folds_split_the_pairs() {
+        for pair in 0..5 {
+            assert_eq!(Fold::First.fits(pair, 3), pair < 3);
+            assert_ne!(Fold::First.fits(pair, 3), Fold::Second.fits(pair, 3));
+        }
     }
 
     #[test]
