@@ -3,7 +3,7 @@
 
 use anyhow::{Context, Result};
 use std::path::PathBuf;
-use stegongp::steganalysis::{Analysis, Detector, analyse_file};
+use stegongp::steganalysis::{Analysis, Detector, NEAR_ZERO, analyse_file};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -92,6 +92,11 @@ fn print_report(a: &Analysis) {
     } else {
         println!("occupancy     no grid stored: every entry counts as reachable");
     }
+    println!(
+        "field         {}% of cascade 0 decodes a raw log-density within ±{:e} of 0",
+        pct(a.field_near_zero_frac),
+        NEAR_ZERO
+    );
     println!(
         "at init       an entry whose every feature has |v| ≤ {:.6e}",
         a.init_bound

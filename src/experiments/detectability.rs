@@ -826,7 +826,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         .position(|&a| a == Arm::Control)
         .and_then(|k| per_arm[k].iter().map(|x| x.0).reduce(f64::max));
     let mut summary = Table::new(
-        "Statistics per arm (plain vs the arm, all models): the largest AUC, how many statistics reach at most 0.6, their mean AUC, how many are significant after a Bonferroni correction (two-sided p < 0.05 / statistics), and how many lie above the control arm's largest AUC",
+        "Statistics per arm (plain vs the arm, all models): the largest AUC, how many statistics reach at most 0.6, their mean AUC, how many are significant after a Bonferroni correction (two-sided p < 0.05 / statistics) and, with a control arm, how many lie above its largest AUC",
     );
     for (k, &a) in arms.iter().enumerate().skip(1) {
         let stats = &per_arm[k];

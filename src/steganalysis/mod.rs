@@ -64,7 +64,9 @@ use crate::error::{Error, Result};
 use crate::ngp::encoding::reach::reachable_entries;
 use crate::ngp::encoding::reference_indices;
 use crate::ngp::network::NerfLayout;
+use crate::ngp::network::nerf::NerfNetwork;
 use crate::ngp::occupancy::{N_CELLS, OccupancyGrid};
+use crate::ngp::render::march::Marcher;
 use crate::ngp::snapshot::{self, Snapshot};
 use serde::Serialize;
 use std::io::{Read, Write};
@@ -122,6 +124,13 @@ pub struct Analysis {
     pub grid_mean: f64,
     /// Largest optical thickness of a cascade-0 cell.
     pub grid_max: f64,
+    /// Fraction of cascade 0 (the unit box, where keys place hidden scenes) where the
+    /// density network outputs a raw log-density within ±[`NEAR_ZERO`] of 0: one point in
+    /// each of every [`FIELD_STRIDE`]-th cell. A trained plain cover decodes its empty space
+    /// to small positive values, off 0 in all but a few percent of the box; covers sharing
+    /// their weights with a hidden text scene decode ≈ 0 in up to three quarters of it,
+    /// and an untrained network everywhere (BENCHMARKS.md, "What chance gives").
+    pub field_near_zero_frac: f64,
     /// Magnitude at or below which an entry counts as at initialisation.
     pub init_bound: f32,
     pub levels: Vec<LevelStats>,
@@ -129,6 +138,29 @@ pub struct Analysis {
     pub loss: f32,
     pub training_step: u32,
     pub compression: Compression,
+}
+
+/// Raw log-densities within this of 0 count as "near zero" ([`Analysis::field_near_zero_frac`]):
+/// a thousandth of the density of 1 that a network outputs where no hidden unit fires.
+pub const NEAR_ZERO: f32 = 1e-3;
+
+/// [`Analysis::field_near_zero_frac`] evaluates the field in every this-many-th cell of
+/// cascade 0 (about 300 000 of its 2^21): the fraction to a few parts in a thousand, in
+/// well under a second.
+pub const FIELD_STRIDE: usize = 7;
+
+/// [`Analysis::field_near_zero_frac`] of a snapshot's network.
+fn field_near_zero_frac(snap: &Snapshot) -> Result<f64> {
+    let net = NerfNetwork::new(snap.config)?;
+    let cells: Vec<u32> = (0..N_CELLS as u32).step_by(FIELD_STRIDE).collect();
+    let marcher = Marcher::new(snap.config.aabb_scale);
+    let pos: Vec<[f32; 3]> = OccupancyGrid::points_in_cells(&cells, 0x5eed)
+        .into_iter()
+        .map(|p| marcher.warp(p))
+        .collect();
+    let raw = net.density_batch(&snap.params, &reference_indices(&net.layout.grid), &pos);
+    let near = raw.iter().filter(|r| r.abs() <= NEAR_ZERO).count();
+    Ok(near as f64 / raw.len().max(1) as f64)
 }
 
 /// Reads a model file once and measures it. Errors name the file.
@@ -203,6 +235,7 @@ pub fn analyse_snapshot(snap: &Snapshot) -> Result<Analysis> {
                 .iter()
                 .fold(0.0f64, |m, &v| m.max(v as f64))
         }),
+        field_near_zero_frac: field_near_zero_frac(snap)?,
         init_bound: INIT_BOUND,
         levels: level_stats(
             &layout.grid,
@@ -302,12 +335,13 @@ impl Analysis {
     ///   `reach_frac_{dense,hashed}`, and the mean over hashed levels of
     ///   `{reach,unreach}_log10_mag_median_hashed`;
     /// - per MLP matrix: `mlp_{density,color}{layer}_std` and `…_kurt`;
-    /// - `log10_loss` (when the loss is positive), `gzip_ratio`, `occupied_frac`, and with a
-    ///   stored grid `grid_log10_mean` and `grid_log10_max` (cascade 0's optical thickness).
+    /// - `log10_loss` (when the loss is positive), `gzip_ratio`, `field_near_zero_frac`,
+    ///   `occupied_frac`, and with a stored grid `grid_log10_mean` and `grid_log10_max`
+    ///   (cascade 0's optical thickness).
     ///
     /// Fractions and ratios rather than counts, so a detector fitted on small tables applies
     /// to 2^19 ones. Models with other level counts give other names; a detector treats a
-    /// name it lacks as missing. At most 3·L + 23 features (71 for 16 levels).
+    /// name it lacks as missing. At most 3·L + 24 features (72 for 16 levels).
     pub fn features(&self) -> Vec<(String, f64)> {
         let mut f: Vec<(String, f64)> = Vec::new();
         for l in &self.levels {
@@ -369,6 +403,7 @@ impl Analysis {
             f.push(("log10_loss".into(), (self.loss as f64).log10()));
         }
         f.push(("gzip_ratio".into(), self.compression.ratio));
+        f.push(("field_near_zero_frac".into(), self.field_near_zero_frac));
         f.push(("occupied_frac".into(), self.occupied_frac));
         if self.density_grid_stored {
             f.push(("grid_log10_mean".into(), log10_floor(self.grid_mean)));

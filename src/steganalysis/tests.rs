@@ -209,6 +209,7 @@ fn features_have_unique_stable_names_and_stay_few() {
         "mlp_density0_kurt",
         "mlp_color2_std",
         "gzip_ratio",
+        "field_near_zero_frac",
         "occupied_frac",
         "grid_log10_mean",
         "grid_log10_max",
@@ -216,7 +217,7 @@ fn features_have_unique_stable_names_and_stay_few() {
         assert!(names.contains(&want), "{want} missing from {names:?}");
     }
     assert!((f.iter().find(|(n, _)| n == "log10_loss").unwrap().1 + 2.0).abs() < 1e-6);
-    assert!(f.len() <= 3 * 2 + 23);
+    assert!(f.len() <= 3 * 2 + 24);
     assert!(f.iter().all(|(_, v)| v.is_finite()));
     names.sort();
     names.dedup();
@@ -257,4 +258,45 @@ fn bad_files_are_named_in_the_error() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("absent.ingp"), "{e}");
+}
+
+/// The field's near-zero fraction on networks whose density output is known everywhere:
+/// an untrained one (every entry at ±1e-4, so raw log-densities of order 1e-5), one whose
+/// density output row is zero (raw exactly 0), and one that decodes 1 at every point (every
+/// feature 1, every input weight 1/32, the output row 1/64: each hidden unit 1, raw 1).
+#[test]
+fn the_fields_near_zero_fraction_on_known_networks() {
+    let (layout, p) = untouched();
+    let a = analyse(&Snapshot::new(config(), p.clone(), one_cell_grid()), "ingp");
+    assert_eq!(a.field_near_zero_frac, 1.0);
+
+    let dm = layout.density_mlp;
+    let (w0_len, width) = (dm.width * dm.n_in, dm.width);
+    let out_row = layout.density_offset + w0_len..layout.density_offset + w0_len + width;
+    let mut zero_out = p.clone();
+    zero_out[out_row.clone()].fill(0.0);
+    // Even with every table entry moved: the output row alone decides.
+    for v in &mut zero_out[layout.grid_offset..] {
+        *v = 0.5;
+    }
+    let a = analyse(&Snapshot::new(config(), zero_out, one_cell_grid()), "ingp");
+    assert_eq!(a.field_near_zero_frac, 1.0);
+
+    let mut one = p;
+    let w0 = layout.density_offset..layout.density_offset + w0_len;
+    one[w0].fill(1.0 / dm.n_in as f32);
+    one[out_row].fill(1.0 / width as f32);
+    for v in &mut one[layout.grid_offset..] {
+        *v = 1.0;
+    }
+    // fp16 keeps 1/32 and 1/64 exactly: raw is 1 up to rounding, far from 0.
+    let a = analyse(&Snapshot::new(config(), one, one_cell_grid()), "ingp");
+    assert_eq!(a.field_near_zero_frac, 0.0);
+    let f = a.features();
+    let got = f
+        .iter()
+        .find(|(n, _)| n == "field_near_zero_frac")
+        .unwrap()
+        .1;
+    assert_eq!(got, 0.0);
 }
