@@ -27,7 +27,11 @@ fn quantile_map(vals: &mut [f32], reference: &[f32]) {
     order.sort_by(|&a, &b| vals[a].total_cmp(&vals[b]));
     let n = vals.len();
     for (rank, &i) in order.iter().enumerate() {
-        let q = if n > 1 { rank as f64 / (n - 1) as f64 } else { 0.5 };
+        let q = if n > 1 {
+            rank as f64 / (n - 1) as f64
+        } else {
+            0.5
+        };
         let pos = q * (r.len() - 1) as f64;
         let lo = pos.floor() as usize;
         let hi = (lo + 1).min(r.len() - 1);
@@ -44,7 +48,12 @@ fn match_mlp(layout: &NerfLayout, params: &mut [f32], reference: &[f32]) {
             layout.config.grid.n_output_dims(),
             DENSITY_OUT,
         ),
-        (layout.color_mlp, layout.color_offset, DENSITY_OUT + SH_DIMS, 3),
+        (
+            layout.color_mlp,
+            layout.color_offset,
+            DENSITY_OUT + SH_DIMS,
+            3,
+        ),
     ];
     for (shape, offset, n_in, n_out) in nets {
         let mats = shape.matrices();
