@@ -824,21 +824,19 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     let control_max = arms
         .iter()
         .position(|&a| a == Arm::Control)
-        .and_then(|k| per_arm[k].iter().map(|x| x.0).reduce(f64::max));
+        .map(|k| best[k].0)
+        .filter(|c| c.is_finite());
     let mut summary = Table::new(
         "Statistics per arm (plain vs the arm, all models): the largest AUC, how many statistics reach at most 0.6, their mean AUC, how many are significant after a Bonferroni correction (two-sided p < 0.05 / statistics) and, with a control arm, how many lie above its largest AUC",
     );
     for (k, &a) in arms.iter().enumerate().skip(1) {
         let stats = &per_arm[k];
         let n = stats.len();
-        let top = stats
-            .iter()
-            .copied()
-            .reduce(|x, y| if y.0 > x.0 { y } else { x });
+        let (largest, j, _) = best[k];
         let mut row = json!({
             "arm": a.name(), "statistics": n,
-            "largest_auc": num(top.map_or(f64::NAN, |t| t.0)),
-            "largest_statistic": top.map(|t| names[t.2].as_str()).unwrap_or("-"),
+            "largest_auc": num(largest),
+            "largest_statistic": if largest.is_finite() { names[j].as_str() } else { "-" },
             "at_most_0_6": stats.iter().filter(|x| x.0 <= 0.6).count(),
             "mean_auc": num(mean(stats.iter().map(|x| x.0))),
             "significant": stats.iter().filter(|x| x.1 < 0.05 / n.max(1) as f64).count(),
@@ -899,9 +897,10 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         )
     });
     if let Some((d, (p, n))) = &stego_on_stealth {
+        let auc = roc_auc(p, n);
         comb.push(json!({
             "fitted_on": "plain vs stego", "scored": "plain vs stealth",
-            "auc": num(roc_auc(p, n)), "p": num(auc_p_value(roc_auc(p, n), p.len(), n.len())),
+            "auc": num(auc), "p": num(auc_p_value(auc, p.len(), n.len())),
             "scored_models": p.len() + n.len(),
             "features_used": d.features.len(),
         }));
