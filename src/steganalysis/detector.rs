@@ -380,8 +380,8 @@ pub fn auc_p_value(auc: f64, n_pos: usize, n_neg: usize) -> f64 {
     let u_obs = ((auc * u_max as f64) + 1e-9)
         .floor()
         .clamp(0.0, u_max as f64) as usize;
-    // ways[j][u]: orders of i positives and j negatives with U = u, updated in place as i
-    // grows (a new largest score is a positive, above all j negatives, or a negative).
+    // ways[j][u]: orders of i positives and j negatives with U = u, rebuilt for each i from
+    // the last (the largest score is a positive, above all j negatives, or a negative).
     let mut ways: Vec<Vec<f64>> = (0..=n_neg).map(|_| vec![0.0; u_max + 1]).collect();
     for w in ways.iter_mut() {
         w[0] = 1.0;

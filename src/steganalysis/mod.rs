@@ -141,7 +141,8 @@ pub struct Analysis {
 }
 
 /// Raw log-densities within this of 0 count as "near zero" ([`Analysis::field_near_zero_frac`]):
-/// a thousandth of the density of 1 that a network outputs where no hidden unit fires.
+/// densities within 0.1 % of 1, what the network outputs where no hidden unit with a density
+/// weight fires.
 pub const NEAR_ZERO: f32 = 1e-3;
 
 /// [`Analysis::field_near_zero_frac`] evaluates the field in every this-many-th cell of
