@@ -14,9 +14,8 @@
 use anyhow::{Context, Result, bail};
 use std::path::Path;
 use stegongp::ngp::network::NerfLayout;
-use stegongp::ngp::network::layout::{DENSITY_OUT, SH_DIMS};
 use stegongp::ngp::snapshot;
-use stegongp::steganalysis::INIT_BOUND;
+use stegongp::steganalysis::{INIT_BOUND, mlp_matrices};
 
 /// Replaces `vals` by `reference`'s values of the same rank (linear between ranks when the
 /// two differ in length).
@@ -41,38 +40,14 @@ fn quantile_map(vals: &mut [f32], reference: &[f32]) {
 }
 
 fn match_mlp(layout: &NerfLayout, params: &mut [f32], reference: &[f32]) {
-    let nets = [
-        (
-            layout.density_mlp,
-            layout.density_offset,
-            layout.config.grid.n_output_dims(),
-            DENSITY_OUT,
-        ),
-        (
-            layout.color_mlp,
-            layout.color_offset,
-            DENSITY_OUT + SH_DIMS,
-            3,
-        ),
-    ];
-    for (shape, offset, n_in, n_out) in nets {
-        let mats = shape.matrices();
-        let last = mats.len() - 1;
-        let mut at = offset;
-        for (li, &(rows, cols)) in mats.iter().enumerate() {
-            // tcnn's padding rows and columns stay as they are, as the detector skips them.
-            let used_rows = if li == last { n_out.min(rows) } else { rows };
-            let used_cols = if li == 0 { n_in.min(cols) } else { cols };
-            let idx: Vec<usize> = (0..used_rows)
-                .flat_map(|r| (0..used_cols).map(move |c| at + r * cols + c))
-                .collect();
-            let mut v: Vec<f32> = idx.iter().map(|&i| params[i]).collect();
-            let rv: Vec<f32> = idx.iter().map(|&i| reference[i]).collect();
-            quantile_map(&mut v, &rv);
-            for (&i, x) in idx.iter().zip(v) {
-                params[i] = x;
-            }
-            at += rows * cols;
+    // The weights the detector counts: tcnn's padding stays as it is.
+    for m in mlp_matrices(layout) {
+        let idx: Vec<usize> = m.indices().collect();
+        let mut v: Vec<f32> = idx.iter().map(|&i| params[i]).collect();
+        let rv: Vec<f32> = idx.iter().map(|&i| reference[i]).collect();
+        quantile_map(&mut v, &rv);
+        for (&i, x) in idx.iter().zip(v) {
+            params[i] = x;
         }
     }
 }

@@ -58,7 +58,10 @@ mod stats;
 pub use detector::{
     Detector, FeatureWeight, auc_p_value, directed_auc_p_value, feature_matrix, roc_auc,
 };
-pub use stats::{INIT_BOUND, LevelStats, MatrixStats, SetStats, Summary, level_stats, mlp_stats};
+pub use stats::{
+    INIT_BOUND, LevelStats, MatrixSpan, MatrixStats, SetStats, Summary, level_stats, mlp_matrices,
+    mlp_stats,
+};
 
 use crate::error::{Error, Result};
 use crate::ngp::encoding::reach::reachable_entries;

@@ -213,8 +213,33 @@ fn matrix_stats(
     }
 }
 
-/// Statistics of every weight matrix of the density and colour MLPs, input layer first.
-pub fn mlp_stats(layout: &NerfLayout, params: &[f32]) -> Vec<MatrixStats> {
+/// Where one MLP weight matrix lies in the parameter vector (row-major, `cols_stored` a row)
+/// and the part of it that counts: tcnn's padding rows and columns are left out, since no
+/// gradient ever reaches them and they keep their initial values in every model.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MatrixSpan {
+    /// "density" or "color".
+    pub network: &'static str,
+    /// 0 = input layer.
+    pub layer: usize,
+    pub offset: usize,
+    pub cols_stored: usize,
+    pub rows: usize,
+    pub cols: usize,
+}
+
+impl MatrixSpan {
+    /// Parameter indices of the counted weights, row by row.
+    pub fn indices(&self) -> impl Iterator<Item = usize> + '_ {
+        (0..self.rows).flat_map(move |r| {
+            let row = self.offset + r * self.cols_stored;
+            row..row + self.cols
+        })
+    }
+}
+
+/// Every weight matrix of the density and colour MLPs, input layer first.
+pub fn mlp_matrices(layout: &NerfLayout) -> Vec<MatrixSpan> {
     let mut out = Vec::new();
     let nets = [
         (
@@ -232,25 +257,40 @@ pub fn mlp_stats(layout: &NerfLayout, params: &[f32]) -> Vec<MatrixStats> {
             3,
         ),
     ];
-    for (name, shape, offset, n_in, n_out) in nets {
+    for (network, shape, offset, n_in, n_out) in nets {
         let mats = shape.matrices();
         let last = mats.len() - 1;
         let mut at = offset;
-        for (li, &(rows, cols)) in mats.iter().enumerate() {
-            let used_rows = if li == last { n_out.min(rows) } else { rows };
-            let used_cols = if li == 0 { n_in.min(cols) } else { cols };
-            out.push(matrix_stats(
-                name,
-                li,
-                &params[at..at + rows * cols],
-                cols,
-                used_rows,
-                used_cols,
-            ));
+        for (layer, &(rows, cols)) in mats.iter().enumerate() {
+            out.push(MatrixSpan {
+                network,
+                layer,
+                offset: at,
+                cols_stored: cols,
+                rows: if layer == last { n_out.min(rows) } else { rows },
+                cols: if layer == 0 { n_in.min(cols) } else { cols },
+            });
             at += rows * cols;
         }
     }
     out
+}
+
+/// Statistics of every weight matrix of the density and colour MLPs, input layer first.
+pub fn mlp_stats(layout: &NerfLayout, params: &[f32]) -> Vec<MatrixStats> {
+    mlp_matrices(layout)
+        .iter()
+        .map(|m| {
+            matrix_stats(
+                m.network,
+                m.layer,
+                &params[m.offset..],
+                m.cols_stored,
+                m.rows,
+                m.cols,
+            )
+        })
+        .collect()
 }
 
 #[cfg(test)]
