@@ -13,6 +13,7 @@
 
 use std::sync::Arc;
 use std::time::Instant;
+use stegongp::backend::Device;
 use stegongp::gpu::{GpuContext, GpuRenderer, rebuild_occupancy_gpu};
 use stegongp::ngp::camera::Camera;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
@@ -21,7 +22,7 @@ use stegongp::ngp::metrics::psnr;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::{RenderOptions, rebuild_occupancy, render_image};
-use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
+use stegongp::stego::recipe::{Budget, Recipe, StepOptions, StoredLoss};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 /// Best of `reps` (≥ 1) runs of `f`, in seconds, and its last result.
@@ -65,30 +66,24 @@ fn trained(res: u32) -> (Model, Camera) {
     let test = Dataset::load(dir.path(), Split::Test, &o).unwrap_or_else(|e| fail(e));
     let mut cfg = ModelConfig::default();
     cfg.grid.log2_hashmap_size = 16;
-    let layout = stegongp::ngp::network::NerfLayout::new(cfg).unwrap_or_else(|e| fail(e));
     let t0 = Instant::now();
-    let mut t = Trainer::new(
-        cfg,
-        vec![SceneSpec {
-            dataset: Arc::new(train),
-            indices: reference_indices(&layout.grid),
-        }],
-        TrainConfig {
-            seed: 7,
-            batch_samples: 1 << 13,
-            occupancy_fraction: 1.0 / 16.0,
-            ..Default::default()
-        },
-    )
-    .unwrap_or_else(|e| fail(e));
-    for _ in 0..100 {
-        t.train_step();
-    }
+    let steps = StepOptions {
+        seed: 7,
+        batch: 1 << 13,
+        occupancy_fraction: 1.0 / 16.0,
+        workers: 0,
+    };
+    let mut recipe = Recipe::plain(cfg, Arc::new(train), steps, Budget::Steps(100));
+    recipe.stored_loss = StoredLoss::Last;
+    let cpu = Device::default();
+    let mut training = recipe.start(&cpu).unwrap_or_else(|e| fail(e));
+    training.run(|_, _| Ok(())).unwrap_or_else(|e| fail(e));
+    let model = training.finish().unwrap_or_else(|e| fail(e)).model;
     println!(
         "trained the {res}×{res} object scene on the CPU: 100 steps of 2^13 samples in {:.1} s",
         t0.elapsed().as_secs_f64()
     );
-    (Model::from_trainer(&t, 0.0), test.frames[0].camera.clone())
+    (model, test.frames[0].camera.clone())
 }
 
 /// `model`'s first training camera (as a pinhole), scaled to `res` pixels wide.

@@ -1,5 +1,5 @@
-//! Training speed and time-to-PSNR on any device: trains a scene (a generated one by
-//! default) with `--device`'s backend, scoring held-out views every `eval-every` steps
+//! Training speed and time-to-PSNR on any device: trains a plain model of a scene (a
+//! generated one by default) through the one recipe with `--device`'s backend, scoring held-out views every `eval-every` steps
 //! (evaluation time excluded), and prints trained samples/s, steps/s and the training time
 //! at which the test PSNR first reached each target.
 //!
@@ -23,7 +23,7 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::ngp::train::{SceneSpec, TrainConfig};
+use stegongp::stego::recipe::{Budget, Recipe, StepOptions, StoredLoss};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 fn arg<T: std::str::FromStr>(i: usize, default: T) -> T {
@@ -67,11 +67,11 @@ fn main() -> anyhow::Result<()> {
     let opts = LoadOptions::default();
     let train = Dataset::load(&dir, Split::Train, &opts)?;
     let test = Dataset::load(&dir, Split::Test, &opts)?;
-    let config = ModelConfig {
+    let model = ModelConfig {
         aabb_scale: train.aabb_scale,
         ..Default::default()
     };
-    let layout = NerfLayout::new(config)?;
+    let grid = NerfLayout::new(model)?.grid;
     let device = Device::open(device)?;
     eprintln!(
         "device: {}; {} training images of {}×{}",
@@ -80,56 +80,50 @@ fn main() -> anyhow::Result<()> {
         train.width,
         train.height
     );
-    let cfg = TrainConfig {
-        batch_samples: 1 << log2_batch,
+    let steps_opts = StepOptions {
+        batch: 1 << log2_batch,
         occupancy_fraction,
         ..Default::default()
     };
-    let scenes = vec![SceneSpec {
-        dataset: Arc::new(train),
-        indices: reference_indices(&layout.grid),
-    }];
-    let mut trainer = device.trainer(config, scenes, cfg)?;
+    let mut recipe = Recipe::plain(model, Arc::new(train), steps_opts, Budget::Steps(steps));
+    recipe.stored_loss = StoredLoss::Last;
+    let mut training = recipe.start(&device)?;
     let which = spread_views(test.frames.len(), 8);
     let ropts = RenderOptions::default();
-    let (mut secs, mut samples) = (0.0f64, 0u64);
-    let mut loss = 0.0f32;
     let mut evals = Vec::new();
     let mut reached: Vec<Option<f64>> = vec![None; targets.len()];
-    while trainer.step() < steps {
-        let st = trainer.train_step()?;
-        secs += st.seconds;
-        samples += st.n_samples;
-        loss = st.cover_loss.unwrap_or(loss);
-        if trainer.step() % eval_every == 0 || trainer.step() == steps {
-            let model = trainer.model(loss)?;
-            let idx = reference_indices(&layout.grid);
+    while training.step()?.is_some() {
+        let t = *training.totals();
+        if t.steps % eval_every == 0 || t.steps == steps {
+            let model = training.model()?;
+            let idx = reference_indices(&grid);
             let mut r = device.renderer(&model, &idx, &model.grid)?;
             let e = evaluate_on(r.as_mut(), &test, &ropts, Some(&which), None, |_, _, _| {})?;
             eprintln!(
                 "step {:5}: {:7.1} s, {:8.0} k samples/s, test PSNR {:.2} dB",
-                trainer.step(),
-                secs,
-                samples as f64 / secs / 1e3,
+                t.steps,
+                t.seconds,
+                t.samples_per_second() / 1e3,
                 e.psnr
             );
-            for (t, at) in targets.iter().zip(reached.iter_mut()) {
-                if at.is_none() && e.psnr >= *t {
-                    *at = Some(secs);
+            for (target, at) in targets.iter().zip(reached.iter_mut()) {
+                if at.is_none() && e.psnr >= *target {
+                    *at = Some(t.seconds);
                 }
             }
-            evals.push(json!({"step": trainer.step(), "seconds": secs, "psnr": e.psnr}));
+            evals.push(json!({"step": t.steps, "seconds": t.seconds, "psnr": e.psnr}));
         }
     }
+    let t = *training.totals();
     let out = json!({
         "device": device.report(),
         "scene": scene,
-        "steps": trainer.step(),
+        "steps": t.steps,
         "batch_samples": 1u64 << log2_batch,
         "occupancy_fraction": occupancy_fraction,
-        "train_seconds": secs,
-        "samples_per_second": samples as f64 / secs,
-        "steps_per_second": trainer.step() as f64 / secs,
+        "train_seconds": t.seconds,
+        "samples_per_second": t.samples as f64 / t.seconds,
+        "steps_per_second": t.steps as f64 / t.seconds,
         "evaluations": evals,
         "time_to_psnr": targets.iter().zip(&reached)
             .map(|(t, s)| json!({"psnr": t, "seconds": s}))

@@ -4,7 +4,7 @@
 //! rank; entries at initialisation are left alone), then saves the result. Everything the
 //! detector reads from the weights' first moments then equals the reference's; what the
 //! cover's grid, loss and compression show does not change. A diagnostic: the mapped model
-//! renders worse (nothing retrains it), and BENCHMARKS.md ("What chance gives") reports what
+//! renders worse (nothing retrains it), and benchmarks/steganalysis.md ("What chance gives") reports what
 //! the detectors make of such models.
 //!
 //! ```sh

@@ -1,21 +1,18 @@
 //! StegoNGP: 3D cryptographic steganography in Instant-NGP neural radiance fields.
 //!
-//! `ngp` is a CPU Instant-NGP engine that knows nothing of keys: the hash-grid encoding takes
-//! one index function per level. `stego` supplies keyed index functions, key files and
-//! multi-scene training. `synth` ray-traces generated scenes for tests and the demo. `gpu`
-//! (feature `gpu`) is the wgpu backend, tested against the CPU engine; `backend` puts the
-//! two behind one boundary (`--device auto|cpu|gpu`).
+//! The program and a facade over the workspace's layers, each its own crate (README.md,
+//! "Layout"): [`ngp`] the engine (knows nothing of keys or devices), [`gpu`] its wgpu
+//! backend, [`backend`] the device boundary (`--device`), [`synth`] generated scenes,
+//! [`stego`] keys, the training recipe, stealth and [`steganalysis`], and
+//! [`experiments`] (the `lab` crate).
 
-pub mod backend;
-pub mod error;
-pub mod experiments;
+pub use backend;
+pub use lab as experiments;
+pub use ngp;
+pub use ngp::{Error, Result, error, rng, util};
+pub use stego;
+pub use stego::steganalysis;
+pub use synth;
+
 #[cfg(feature = "gpu")]
-pub mod gpu;
-pub mod ngp;
-pub mod rng;
-pub mod steganalysis;
-pub mod stego;
-pub mod synth;
-pub mod util;
-
-pub use error::{Error, Result};
+pub use gpu;

@@ -2,23 +2,7 @@
 //! non-zero exit, no panic, nothing half-written.
 
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
-
-fn fails_with(out: &Output, needles: &[&str]) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "expected failure, stderr: {err}");
-    assert!(!err.contains("panicked"), "panic: {err}");
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}: {err}");
-    }
-}
+use testkit::cli::{fails_naming as fails_with, stegongp};
 
 fn write(p: &Path, s: &str) {
     std::fs::create_dir_all(p.parent().unwrap()).unwrap();

@@ -2,32 +2,7 @@
 //! are not models: a clear error naming the file, a non-zero exit, no panic.
 
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
-
-fn ok(out: &Output) -> String {
-    assert!(
-        out.status.success(),
-        "stegongp failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
-}
-
-fn fails_naming(out: &Output, needles: &[&str]) {
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success(), "expected failure, stderr: {err}");
-    assert!(!err.contains("panicked"), "panic: {err}");
-    for n in needles {
-        assert!(err.contains(n), "stderr lacks {n:?}: {err}");
-    }
-}
+use testkit::cli::{fails_naming, stdout_ok as ok, stegongp};
 
 /// A model of a few seconds' training: 8 levels × 2, T = 2^12 (dense and hashed levels).
 fn tiny_model(dir: &Path) -> std::path::PathBuf {
@@ -192,7 +167,7 @@ fn detect_reports_a_trained_model_and_refuses_what_is_not_one() {
 /// loaded the model, so its first line already meets a closed pipe.
 #[test]
 fn a_closed_pipe_ends_detect_without_a_panic() {
-    use std::process::Stdio;
+    use std::process::{Command, Stdio};
     let d = tempfile::tempdir().unwrap();
     let model = tiny_model(d.path());
     let mut child = Command::new(env!("CARGO_BIN_EXE_stegongp"))

@@ -3,7 +3,7 @@
 //! with the key.
 
 use std::sync::Arc;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
@@ -11,7 +11,8 @@ use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::stego::{Key, generate_prf, open_scene};
-use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::synth::SceneKind;
+use testkit::scenes::generated;
 
 const RES: u32 = 40;
 
@@ -24,27 +25,7 @@ fn model_config() -> ModelConfig {
 }
 
 fn scene(dir: &std::path::Path, kind: SceneKind, seed: u64) -> (Dataset, Dataset) {
-    generate(
-        &SynthOptions {
-            scene: kind,
-            resolution: RES,
-            n_train: 40,
-            n_val: 0,
-            n_test: 4,
-            seed,
-            aabb_scale: 1,
-        },
-        dir,
-    )
-    .unwrap();
-    let o = LoadOptions {
-        downscale: 1,
-        ..Default::default()
-    };
-    (
-        Dataset::load(dir, Split::Train, &o).unwrap(),
-        Dataset::load(dir, Split::Test, &o).unwrap(),
-    )
+    generated(dir, kind, RES, 40, 4, seed).pair()
 }
 
 fn config() -> TrainConfig {

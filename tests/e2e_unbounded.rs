@@ -372,7 +372,7 @@ fn hidden_scene_confined_to_its_box_in_a_large_cover() {
         "key holder: {right:.2} dB, empty {blank:.2}"
     );
     // Measured 10.21 against 9.90 (whole box 10.55): at this size the cover's entries met
-    // at random are still faint; on fox the whole box costs 4 dB (BENCHMARKS.md).
+    // at random are still faint; on fox the whole box costs 4 dB (benchmarks/stego.md).
     assert!(
         (in_box - blank).abs() < 1.5,
         "wrong key in the box: {in_box:.2} dB, empty {blank:.2}"

@@ -1,23 +1,7 @@
 //! `stegongp experiment`: a small partial-keys run writes its Markdown and JSON report and
 //! its PNG grids, with a row per scheme and m, and the keys are reproducible from --seed.
 
-use std::process::{Command, Output};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
-
-fn run_ok(args: &[&str]) {
-    let out = stegongp(args);
-    assert!(
-        out.status.success(),
-        "stegongp {args:?} failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
+use testkit::cli::{refused_before_writing, run_ok};
 
 #[test]
 fn partial_keys_report_and_figures() {
@@ -25,7 +9,7 @@ fn partial_keys_report_and_figures() {
     let out = d.path().to_str().unwrap();
     // Tiny everything: 4 levels (so m = 4 only; 8 and 16 exceed the levels and are
     // skipped), T = 2^12, 24 px scenes, a few steps. Only the plumbing is under test here;
-    // the numbers are BENCHMARKS.md's.
+    // the numbers are benchmarks/stego.md's.
     let args = [
         "experiment",
         "partial-keys",
@@ -86,15 +70,6 @@ fn partial_keys_report_and_figures() {
     )
     .unwrap();
     assert_eq!(json["tables"], json2["tables"]);
-}
-
-/// `stegongp ARGS` fails, says `says`, and leaves `out_dir` uncreated.
-fn refused_before_writing(args: &[&str], says: &str, out_dir: &std::path::Path) {
-    let r = stegongp(args);
-    let err = String::from_utf8_lossy(&r.stderr);
-    assert!(!r.status.success(), "{args:?}");
-    assert!(err.contains(says), "{args:?}: {err}");
-    assert!(!out_dir.exists(), "{args:?} wrote {}", out_dir.display());
 }
 
 /// `--cover-only-mlp` changes stealth training: without `--stealth` (outside detectability)

@@ -3,36 +3,10 @@
 //! and a rerun that reuses every model file instead of training again.
 
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
-
-fn run_ok(args: &[&str]) -> String {
-    let out = stegongp(args);
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "stegongp {args:?} failed: {err}");
-    err
-}
+use testkit::cli::{report_table as table, run_ok, stegongp};
 
 fn report(dir: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(dir.join("detectability/report.json")).unwrap()).unwrap()
-}
-
-/// The table whose title starts with `prefix`.
-fn table<'a>(json: &'a serde_json::Value, prefix: &str) -> &'a Vec<serde_json::Value> {
-    json["tables"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|t| t["title"].as_str().unwrap().starts_with(prefix))
-        .unwrap_or_else(|| panic!("no table '{prefix}…' in {json}"))["rows"]
-        .as_array()
-        .unwrap()
 }
 
 fn auc_ok(v: &serde_json::Value, what: &str) {
@@ -48,7 +22,7 @@ fn tiny_population_report_reproducible_and_resumable() {
     let out = d.path().to_str().unwrap();
     // Two pairs (the least that leaves one to fit the detector on and one to score), three
     // arms, 16 px scenes, 8 levels, T = 2^10, a few steps: the plumbing is under test, the
-    // numbers are BENCHMARKS.md's. Scoring the hidden scenes (rebuilding their occupancy
+    // numbers are benchmarks/steganalysis.md's. Scoring the hidden scenes (rebuilding their occupancy
     // grids at 128³) is most of the time.
     let args = [
         "experiment",

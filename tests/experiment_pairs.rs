@@ -4,21 +4,7 @@
 //! before any training.
 
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
-
-fn run_ok(args: &[&str]) -> String {
-    let out = stegongp(args);
-    let err = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(out.status.success(), "stegongp {args:?} failed: {err}");
-    err
-}
+use testkit::cli::{report_table as table, run_ok, stegongp};
 
 fn synth(dir: &Path, scene: &str, seed: &str) {
     run_ok(&[
@@ -40,17 +26,6 @@ fn synth(dir: &Path, scene: &str, seed: &str) {
 
 fn report(dir: &Path) -> serde_json::Value {
     serde_json::from_slice(&std::fs::read(dir.join("pairs/report.json")).unwrap()).unwrap()
-}
-
-fn table<'a>(json: &'a serde_json::Value, prefix: &str) -> &'a Vec<serde_json::Value> {
-    json["tables"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|t| t["title"].as_str().unwrap().starts_with(prefix))
-        .unwrap_or_else(|| panic!("no table '{prefix}…' in {json}"))["rows"]
-        .as_array()
-        .unwrap()
 }
 
 #[test]

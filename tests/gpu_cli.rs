@@ -4,20 +4,13 @@
 #![cfg(feature = "gpu")]
 
 use serde_json::Value;
-use std::process::{Command, Output};
+use std::process::Output;
 use stegongp::gpu::{AdapterRequest, GpuContext, test_context};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
+use testkit::cli::stegongp;
 
 fn ok(out: Output) -> (String, String) {
-    let err = String::from_utf8_lossy(&out.stderr).to_string();
-    assert!(out.status.success(), "stegongp failed: {err}");
-    (String::from_utf8_lossy(&out.stdout).to_string(), err)
+    let err = testkit::cli::ok(&out);
+    (String::from_utf8_lossy(&out.stdout).into_owned(), err)
 }
 
 fn json(out: Output) -> Value {

@@ -23,15 +23,8 @@ use stegongp::ngp::encoding::grid::{self, GridCache};
 use stegongp::ngp::encoding::{GridConfig, GridLayout, LevelIndex, reference_indices};
 use stegongp::rng::Pcg32;
 use stegongp::stego::stealth::confine;
-use stegongp::stego::{DenseMode, Key, SchemeKind, generate_with};
-
-fn seeded_key(kind: SchemeKind, m: usize, seed: u64) -> Key {
-    let mut rng = Pcg32::new(seed, 3);
-    generate_with(kind, m, || {
-        Ok((rng.next_u32() as u64) << 32 | rng.next_u32() as u64)
-    })
-    .unwrap()
-}
+use stegongp::stego::{DenseMode, SchemeKind};
+use testkit::keys::seeded_key;
 
 fn random_f32(n: usize, seed: u64) -> Vec<f32> {
     let mut r = Pcg32::new(seed, 5);
@@ -259,7 +252,7 @@ fn paper_layout_matches_the_cpu_under_every_index_kind() {
     let pos = positions(&layout, 3000, 2);
     rig.check("reference", &reference_indices(&layout), &pos, 3);
     for kind in [SchemeKind::Prf, SchemeKind::Primes] {
-        let key = seeded_key(kind, 4, 7).with_dense(DenseMode::Permute);
+        let key = seeded_key(kind, 4, 7, 3).with_dense(DenseMode::Permute);
         let what = format!("{} dense permuted", kind.name());
         rig.check(&what, &key.level_indices(&layout), &pos, 4);
     }
@@ -274,7 +267,7 @@ fn paper_layout_matches_the_cpu_under_every_index_kind() {
             (0..lv.size).map(|_| rng.below(n) * 10 % lv.size).collect()
         })
         .collect();
-    let key = seeded_key(SchemeKind::Prf, 16, 21);
+    let key = seeded_key(SchemeKind::Prf, 16, 21, 3);
     rig.check("stealth prf", &confine(&key, &layout, &maps), &pos, 5);
 }
 
@@ -286,7 +279,7 @@ fn a_larger_box_matches_the_cpu() {
     let rig = Rig::new(ctx, layout.clone(), 11);
     let pos = positions(&layout, 2000, 12);
     rig.check("reference aabb 8", &reference_indices(&layout), &pos, 13);
-    let key = seeded_key(SchemeKind::Primes, 16, 14).with_dense(DenseMode::Hash);
+    let key = seeded_key(SchemeKind::Primes, 16, 14, 3).with_dense(DenseMode::Hash);
     rig.check(
         "primes dense hashed aabb 8",
         &key.level_indices(&layout),
@@ -311,7 +304,7 @@ fn every_feature_count_matches_the_cpu() {
         .unwrap();
         let rig = Rig::new(ctx, layout.clone(), 20 + f as u64);
         let pos = positions(&layout, 1000, 30 + f as u64);
-        let key = seeded_key(SchemeKind::Prf, 2, 40).with_dense(DenseMode::Permute);
+        let key = seeded_key(SchemeKind::Prf, 2, 40, 3).with_dense(DenseMode::Permute);
         rig.check(
             &format!("F = {f} reference"),
             &reference_indices(&layout),

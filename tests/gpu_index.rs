@@ -9,7 +9,8 @@ use stegongp::gpu::{CornerKernel, GpuContext, GpuIndex, test_context};
 use stegongp::ngp::encoding::{GridConfig, GridLayout, LevelIndex, reference_indices};
 use stegongp::rng::Pcg32;
 use stegongp::stego::stealth::confine;
-use stegongp::stego::{DenseMode, Key, KeyScheme, SchemeKind, generate_with};
+use stegongp::stego::{DenseMode, Key, KeyScheme, SchemeKind};
+use testkit::keys::seeded_key;
 
 /// Per level: every cell whose coordinates are 0, res − 1 or res (the upper corners wrap
 /// into the next row or past the table), one far out where u32 and u64 products wrap, and
@@ -70,14 +71,6 @@ fn assert_identical(ctx: &GpuContext, what: &str, indices: &[LevelIndex], cells:
     }
 }
 
-fn seeded_key(kind: SchemeKind, m: usize, seed: u64) -> Key {
-    let mut rng = Pcg32::new(seed, 3);
-    generate_with(kind, m, || {
-        Ok((rng.next_u32() as u64) << 32 | rng.next_u32() as u64)
-    })
-    .unwrap()
-}
-
 fn paper_layout() -> GridLayout {
     GridLayout::new(GridConfig::default(), 1).unwrap()
 }
@@ -89,7 +82,7 @@ fn every_key_kind_and_dense_mode_is_bit_identical() {
     let cells = cells(&layout, 600, 1);
     for (kind, m) in [(SchemeKind::Primes, 16), (SchemeKind::Prf, 4)] {
         for dense in [DenseMode::Permute, DenseMode::Hash] {
-            let key = seeded_key(kind, m, 11).with_dense(dense);
+            let key = seeded_key(kind, m, 11, 3).with_dense(dense);
             let what = format!("{} m={m} dense={}", kind.name(), dense.name());
             assert_identical(ctx, &what, &key.level_indices(&layout), &cells);
         }
@@ -104,7 +97,7 @@ fn reference_and_partly_disclosed_keys_are_bit_identical() {
     assert_identical(ctx, "reference", &reference_indices(&layout), &cells);
     // Half the levels on the reference index, half keyed, in one upload.
     for kind in [SchemeKind::Primes, SchemeKind::Prf] {
-        let key = seeded_key(kind, 4, 5).disclose_levels(0.5);
+        let key = seeded_key(kind, 4, 5, 3).disclose_levels(0.5);
         assert_identical(ctx, "disclosed", &key.level_indices(&layout), &cells);
     }
 }
@@ -149,7 +142,7 @@ fn confined_indices_are_bit_identical() {
         .collect();
     for kind in [SchemeKind::Primes, SchemeKind::Prf] {
         for dense in [DenseMode::Permute, DenseMode::Hash] {
-            let key = seeded_key(kind, 16, 21).with_dense(dense);
+            let key = seeded_key(kind, 16, 21, 3).with_dense(dense);
             let what = format!("confined {} {}", kind.name(), dense.name());
             assert_identical(ctx, &what, &confine(&key, &layout, &maps), &cells);
         }
@@ -170,7 +163,7 @@ fn other_layouts_are_bit_identical() {
         let cells = cells(&layout, 100, 6);
         for kind in [SchemeKind::Primes, SchemeKind::Prf] {
             // Hash mode: a permutation of a 2^25-slot level would take the CPU a while.
-            let key = seeded_key(kind, 3, 8).with_dense(DenseMode::Hash);
+            let key = seeded_key(kind, 3, 8, 3).with_dense(DenseMode::Hash);
             let what = format!(
                 "{} log2 T {} aabb {aabb}",
                 kind.name(),

@@ -1,4 +1,4 @@
-//! The GPU network after the grid (SH, density MLP, colour MLP; `src/gpu/mlp.rs`) against
+//! The GPU network after the grid (SH, density MLP, colour MLP; `crates/gpu/src/mlp.rs`) against
 //! the CPU engine's `NerfNetwork`, on random encodings, directions, weights and output
 //! gradients: forward, density only, weight gradients and the encoding's gradient.
 //!

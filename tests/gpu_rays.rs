@@ -1,4 +1,4 @@
-//! GPU training rays (`src/gpu/rays.rs`) against the CPU trainer's draws and
+//! GPU training rays (`crates/gpu/src/rays.rs`) against the CPU trainer's draws and
 //! `Marcher::march`, on whatever adapter `test_context` finds (lavapipe in CI).
 //!
 //! Tolerances. Draws (image, pixel, background) are bit-identical: PCG32 in 64-bit words.

@@ -1,4 +1,4 @@
-//! Rendering and the key holder's occupancy rebuild on the device (`src/gpu/renderer.rs`)
+//! Rendering and the key holder's occupancy rebuild on the device (`crates/gpu/src/renderer.rs`)
 //! against the CPU engine (`render_image`, `OccupancyGrid::rebuild`), on a small stego model
 //! trained on the CPU: a generated object as the cover (reference index) and a generated
 //! logo as the hidden scene (a seeded `prf` key).
@@ -8,7 +8,7 @@ use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 use stegongp::gpu::{GpuRenderer, rebuild_occupancy_gpu, test_context};
 use stegongp::ngp::camera::{Camera, Distortion};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::metrics::psnr;
 use stegongp::ngp::model::Model;
@@ -20,7 +20,8 @@ use stegongp::ngp::render::image::{
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::rng::Pcg32;
 use stegongp::stego::{SchemeKind, generate_with};
-use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::synth::SceneKind;
+use testkit::scenes::generated;
 
 /// CPU training steps of the fixture: enough that both scenes have surfaces, opaque and
 /// semi-transparent regions and empty space for the comparisons to cover.
@@ -45,27 +46,7 @@ struct Fixture {
 }
 
 fn scene(dir: &std::path::Path, scene: SceneKind, seed: u64) -> (Dataset, Dataset) {
-    generate(
-        &SynthOptions {
-            scene,
-            resolution: 40,
-            n_train: 40,
-            n_val: 0,
-            n_test: 4,
-            seed,
-            aabb_scale: 1,
-        },
-        dir,
-    )
-    .unwrap();
-    let o = LoadOptions {
-        downscale: 1,
-        ..Default::default()
-    };
-    (
-        Dataset::load(dir, Split::Train, &o).unwrap(),
-        Dataset::load(dir, Split::Test, &o).unwrap(),
-    )
+    generated(dir, scene, 40, 40, 4, seed).pair()
 }
 
 fn fixture() -> Option<&'static Fixture> {

@@ -1,24 +1,27 @@
-//! Stego (multi-scene) training on the device (`src/gpu/trainer.rs`) against the CPU
+//! Stego (multi-scene) training on the device (`crates/gpu/src/trainer.rs`) against the CPU
 //! trainer: a generated cover and a generated hidden scene under a key, trained on both
 //! backends with the same configuration; the GPU model opens on the CPU (`open_scene`) as
-//! the CPU's does. Also the random-scene schedule and stealth training's index refresh.
+//! the CPU's does. Also the random-scene schedule, and stealth's parts through the training
+//! hooks on both backends.
 #![cfg(feature = "gpu")]
 
 use std::sync::Arc;
 use std::time::Instant;
 use stegongp::gpu::{GpuTrainer, test_context};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::eval::{evaluate_with, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::occupancy::OccupancyGrid;
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::ngp::train::{DensityCap, IndexRefresh, SceneSpec, Schedule, TrainConfig, Trainer};
-use stegongp::rng::Pcg32;
-use stegongp::stego::stealth::StealthRefresh;
-use stegongp::stego::{Key, SchemeKind, generate_with, open_scene};
-use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::ngp::train::{SceneSpec, Schedule, TrainConfig, TrainPolicy, Trainer};
+use stegongp::stego::stealth::{DensityCap, Stealth, StealthParts};
+use stegongp::stego::{Key, SchemeKind, open_scene};
+use stegongp::synth::SceneKind;
+use testkit::compare::{largest_distance, n_different};
+use testkit::keys::seeded_key;
+use testkit::scenes::generated;
 
 /// Steps of the stego comparison. gpu_train's budget (100 steps of 2^12 samples, occupancy
 /// fraction 1/128) would take ~4 minutes here: two scenes a step, and at 2^12 samples every
@@ -39,36 +42,18 @@ fn model_config() -> ModelConfig {
 }
 
 fn scene(dir: &std::path::Path, kind: SceneKind, seed: u64) -> (Arc<Dataset>, Dataset) {
-    generate(
-        &SynthOptions {
-            scene: kind,
-            resolution: 40,
-            n_train: 40,
-            n_val: 0,
-            n_test: 4,
-            seed,
-            aabb_scale: 1,
-        },
-        dir,
-    )
-    .unwrap();
-    let o = LoadOptions {
-        downscale: 1,
-        ..Default::default()
-    };
-    (
-        Arc::new(Dataset::load(dir, Split::Train, &o).unwrap()),
-        Dataset::load(dir, Split::Test, &o).unwrap(),
-    )
+    generated(dir, kind, 40, 40, 4, seed).shared()
 }
 
 /// A `prf` key (m = 4) drawn from a seeded stream, so that runs compare.
 fn key() -> Key {
-    let mut r = Pcg32::new(11, 5);
-    generate_with(SchemeKind::Prf, 4, || {
-        Ok((r.next_u32() as u64) << 32 | r.next_u32() as u64)
-    })
-    .unwrap()
+    seeded_key(SchemeKind::Prf, 4, 11, 5)
+}
+
+/// Stealth's `parts` for the hidden scene under `key`.
+fn stealth(parts: StealthParts, key: &Key) -> Box<Stealth> {
+    let layout = NerfLayout::new(model_config()).unwrap();
+    Box::new(Stealth::with_parts(layout, std::slice::from_ref(key), parts).unwrap())
 }
 
 fn config(schedule: Schedule) -> TrainConfig {
@@ -177,7 +162,7 @@ fn gpu_stego_model_opens_with_its_key_like_the_cpus() {
     let mut last = None;
     for _ in 0..STEPS {
         let s = gpu.train_step().unwrap();
-        let cover = s.cover_loss.expect("a mixed step trains the cover");
+        let cover = s.primary_loss.expect("a mixed step trains the cover");
         assert!(cover < s.loss, "the step's loss sums both scenes'");
         occupancy += s.occupancy_seconds;
         optimizer += s.optimizer_seconds;
@@ -194,7 +179,7 @@ fn gpu_stego_model_opens_with_its_key_like_the_cpus() {
          counters {:?} {:?}; {bound} scene-steps within 1/16 of the {}-sample budget",
         t0.elapsed().as_secs_f64(),
         s.loss,
-        s.cover_loss.unwrap(),
+        s.primary_loss.unwrap(),
         s.n_rays,
         s.n_samples,
         s.n_marched,
@@ -247,7 +232,7 @@ fn gpu_stego_model_opens_with_its_key_like_the_cpus() {
     }
 }
 
-/// The random-scene schedule draws the CPU's scenes (scene 0 trained when `cover_loss` is
+/// The random-scene schedule draws the CPU's scenes (scene 0 trained when `primary_loss` is
 /// set), with the CPU's per-scene seeds: the first steps' losses agree to rounding.
 #[test]
 fn random_scene_trains_the_cpus_scenes() {
@@ -263,8 +248,8 @@ fn random_scene_trains_the_cpus_scenes() {
     let (mut c, mut g) = (Vec::new(), Vec::new());
     for step in 0..12 {
         let (a, b) = (cpu.train_step(), gpu.train_step().unwrap());
-        c.push(a.cover_loss.is_some());
-        g.push(b.cover_loss.is_some());
+        c.push(a.primary_loss.is_some());
+        g.push(b.primary_loss.is_some());
         // Measured: within 3e-5 relative for steps 0–4; at step 5 the hidden scene's batch
         // (2 000 rays, 27 500 samples on the CPU) fills the GPU's 16 384-sample budget, and
         // from there the weights differ.
@@ -312,13 +297,18 @@ fn paced_steps_like_the_cpu(
     table: usize,
     cover_only_mlp: bool,
 ) {
-    let mut tc = config(Schedule::RandomScene);
+    let tc = config(Schedule::RandomScene);
     // With the cover-only MLP (stealth's option) a hidden-only step leaves the MLP's
     // gradient zero; without it the hidden scene's MLP gradient waits for the cover's step.
-    tc.cover_paced_table = true;
-    tc.cover_only_mlp = cover_only_mlp;
+    let parts = StealthParts {
+        pace: true,
+        cover_only_mlp,
+        ..StealthParts::none()
+    };
     let mut cpu = Trainer::new(cfg, specs(ctrain, htrain, key), tc.clone()).unwrap();
     let mut gpu = GpuTrainer::new(ctx, cfg, specs(ctrain, htrain, key), tc).unwrap();
+    cpu.set_policy(stealth(parts, key)).unwrap();
+    gpu.set_policy(stealth(parts, key)).unwrap();
     let (mut held, mut moved, mut waited) = (0, 0, 0);
     for step in 0..10 {
         let (c0, g0) = (
@@ -331,13 +321,13 @@ fn paced_steps_like_the_cpu(
         );
         let (a, b) = (cpu.train_step(), gpu.train_step().unwrap());
         assert_eq!(
-            a.cover_loss.is_some(),
-            b.cover_loss.is_some(),
+            a.primary_loss.is_some(),
+            b.primary_loss.is_some(),
             "step {step}"
         );
         let (c1, g1) = (&cpu.params[table..], &gpu.params().unwrap()[table..]);
         let (nc, ng) = (n_different(&c0, c1), n_different(&g0, g1));
-        if a.cover_loss.is_none() {
+        if a.primary_loss.is_none() {
             assert_eq!(
                 (nc, ng),
                 (0, 0),
@@ -389,7 +379,7 @@ fn paced_steps_like_the_cpu(
         "{held} hidden-only and {moved} cover steps, {waited} hidden-only after a cover step"
     );
     // The optimizer's clock is the cover's, and so is the step count a file records.
-    assert_eq!((cpu.cover_steps, gpu.cover_steps), (moved, moved));
+    assert_eq!((cpu.weight_steps, gpu.weight_steps), (moved, moved));
     assert_eq!(gpu.model(0.0).unwrap().training_step, moved);
 }
 
@@ -404,13 +394,16 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
     let key = key();
     let cfg = model_config();
     let mlp = NerfLayout::new(cfg).unwrap().grid_offset;
-    let arms = || {
-        let mut stealth = config(Schedule::Mixed);
-        stealth.cover_only_mlp = true;
-        plain_variant_stego(&ctrain, &htrain, &key, stealth)
+    let parts = StealthParts {
+        cover_only_mlp: true,
+        ..StealthParts::none()
     };
-    let [plain, stealth, stego] = arms().map(|(s, tc)| {
+    let arms = || plain_variant_stego(&ctrain, &htrain, &key, config(Schedule::Mixed), parts);
+    let [plain, stealth, stego] = arms().map(|(s, tc, p)| {
         let mut t = Trainer::new(cfg, s, tc).unwrap();
+        if let Some(p) = p {
+            t.set_policy(p).unwrap();
+        }
         t.train_step();
         t.params[..mlp].to_vec()
     });
@@ -425,8 +418,11 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
     );
 
     let Some(ctx) = test_context() else { return };
-    let [plain, stealth, stego] = arms().map(|(s, tc)| {
+    let [plain, stealth, stego] = arms().map(|(s, tc, p)| {
         let mut t = GpuTrainer::new(ctx, cfg, s, tc).unwrap();
+        if let Some(p) = p {
+            t.set_policy(p).unwrap();
+        }
         t.train_step().unwrap();
         t.params().unwrap()[..mlp].to_vec()
     });
@@ -449,7 +445,7 @@ fn cover_only_mlp_moves_the_mlp_as_the_cover_alone_would() {
     );
 }
 
-/// Before `hidden_from_step` a stego model trains exactly as the cover alone would (every
+/// Before `solo_steps` a stego model trains exactly as the cover alone would (every
 /// parameter, not only the MLP), on either backend; the default stego step does not.
 #[test]
 fn hidden_from_step_trains_the_cover_alone_first() {
@@ -461,10 +457,10 @@ fn hidden_from_step_trains_the_cover_alone_first() {
     let warm = 3;
     let arms = || {
         let mut later = config(Schedule::Mixed);
-        later.hidden_from_step = warm;
-        plain_variant_stego(&ctrain, &htrain, &key, later)
+        later.solo_steps = warm;
+        plain_variant_stego(&ctrain, &htrain, &key, later, StealthParts::none())
     };
-    let [plain, later, stego] = arms().map(|(s, tc)| {
+    let [plain, later, stego] = arms().map(|(s, tc, _)| {
         let mut t = Trainer::new(cfg, s, tc).unwrap();
         (0..warm).for_each(|_| {
             t.train_step();
@@ -491,7 +487,7 @@ fn hidden_from_step_trains_the_cover_alone_first() {
     );
 
     let Some(ctx) = test_context() else { return };
-    let [plain, later, stego] = arms().map(|(s, tc)| {
+    let [plain, later, stego] = arms().map(|(s, tc, _)| {
         let mut t = GpuTrainer::new(ctx, cfg, s, tc).unwrap();
         t.train_step().unwrap();
         t.params().unwrap()
@@ -512,34 +508,27 @@ fn hidden_from_step_trains_the_cover_alone_first() {
     );
 }
 
-/// How many parameters two models hold differently.
-/// Three trainers' scenes and configurations, mixed batches: the cover alone, cover and
-/// hidden scene under `variant`, and both under the default stego configuration.
+/// A trainer's scenes, configuration and policy.
+type Arm = (Vec<SceneSpec>, TrainConfig, Option<Box<dyn TrainPolicy>>);
+
+/// Three trainers, mixed batches: the cover alone, cover and hidden scene under `variant`
+/// and stealth's `parts` (when any), and both under the default stego configuration.
 fn plain_variant_stego(
     cover: &Arc<Dataset>,
     hidden: &Arc<Dataset>,
     key: &Key,
     variant: TrainConfig,
-) -> [(Vec<SceneSpec>, TrainConfig); 3] {
+    parts: StealthParts,
+) -> [Arm; 3] {
     let mut plain = specs(cover, hidden, key);
     plain.truncate(1);
+    let policy: Option<Box<dyn TrainPolicy>> =
+        (parts != StealthParts::none()).then(|| stealth(parts, key) as Box<dyn TrainPolicy>);
     [
-        (plain, config(Schedule::Mixed)),
-        (specs(cover, hidden, key), variant),
-        (specs(cover, hidden, key), config(Schedule::Mixed)),
+        (plain, config(Schedule::Mixed), None),
+        (specs(cover, hidden, key), variant, policy),
+        (specs(cover, hidden, key), config(Schedule::Mixed), None),
     ]
-}
-
-fn n_different(a: &[f32], b: &[f32]) -> usize {
-    a.iter().zip(b).filter(|(u, v)| u != v).count()
-}
-
-/// The largest distance between two models' parameters.
-fn largest_distance(a: &[f32], b: &[f32]) -> f32 {
-    a.iter()
-        .zip(b)
-        .map(|(u, v)| (u - v).abs())
-        .fold(0f32, f32::max)
 }
 
 /// Fraction of each level's table entries two index functions share.
@@ -556,18 +545,24 @@ fn same_tables(a: &LevelIndices, b: &LevelIndices) -> Vec<f64> {
         .collect()
 }
 
-/// A refresh that names the cover: refused.
+/// A policy whose index refresh names the cover: refused.
 struct Bad(LevelIndices);
 
-impl IndexRefresh for Bad {
-    fn refresh(&self, _: &OccupancyGrid, _: &[f32]) -> Vec<(usize, LevelIndices)> {
+impl TrainPolicy for Bad {
+    fn reads(&self) -> stegongp::ngp::train::PolicyReads {
+        stegongp::ngp::train::PolicyReads {
+            grid: false,
+            published: true,
+        }
+    }
+    fn indices(&mut self, _: &OccupancyGrid, _: &[f32]) -> Vec<(usize, LevelIndices)> {
         vec![(0, self.0.clone())]
     }
 }
 
-/// Stealth training's refresh through `set_index_refresh`: the hidden scene's indices are
-/// the CPU's when installed and follow the cover's grid as the CPU's do. Also a hidden loss
-/// weight other than 1, as the CPU applies it.
+/// Stealth's confinement through the policy's index refresh: the hidden scene's indices
+/// are the CPU's when installed and follow the cover's grid as the CPU's do. Also a hidden
+/// loss weight other than 1, as the CPU applies it.
 #[test]
 fn stealth_refresh_confines_the_hidden_indices_like_the_cpu() {
     let Some(ctx) = test_context() else { return };
@@ -578,12 +573,15 @@ fn stealth_refresh_confines_the_hidden_indices_like_the_cpu() {
     let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
     let mut tc = config(Schedule::Mixed);
-    tc.hidden_loss_weight = 0.25;
-    let refresh = || Box::new(StealthRefresh::new(layout.clone(), vec![key.clone()]));
+    tc.others_weight = 0.25;
+    let confine = StealthParts {
+        confine: true,
+        ..StealthParts::none()
+    };
     let mut cpu = Trainer::new(cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
-    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).unwrap();
-    cpu.set_index_refresh(refresh()).unwrap();
-    gpu.set_index_refresh(refresh()).unwrap();
+    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
+    cpu.set_policy(stealth(confine, &key)).unwrap();
+    gpu.set_policy(stealth(confine, &key)).unwrap();
     // The same grid and weights before any step: the same confinement.
     assert!(gpu.indices(1) == cpu.indices(1));
     assert!(gpu.indices(0) == cpu.indices(0));
@@ -614,12 +612,16 @@ fn stealth_refresh_confines_the_hidden_indices_like_the_cpu() {
         assert!((g - c).abs() <= 0.01, "GPU {moved:?} vs CPU {cpu_moved:?}");
     }
 
+    // A policy comes before the first step.
+    assert!(gpu.set_policy(stealth(confine, &key)).is_err());
     // A refresh for the cover is an error, installed or at the next update, not a panic.
+    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).unwrap();
     let before = gpu.indices(1).clone();
     let bad = Box::new(Bad(gpu.indices(0).clone()));
-    assert!(gpu.set_index_refresh(bad).is_err());
+    assert!(gpu.set_policy(bad).is_err());
     assert!(*gpu.indices(1) == before);
     assert!(gpu.train_step().is_err());
+    let _ = layout;
 }
 
 /// The cover's density cap on the device, against the CPU's: the same points above the cap
@@ -639,14 +641,18 @@ fn density_cap_holds_the_cover_down_like_the_cpu() {
         s.truncate(1);
         s
     };
-    let mut capped_cfg = config(Schedule::Mixed);
-    capped_cfg.density_cap = Some(DensityCap {
-        max_optical_thickness: 0.0015,
-        weight: 1.0,
-        samples: 2048,
-    });
-    let mut cpu = Trainer::new(cfg, cover(), capped_cfg.clone()).unwrap();
-    let mut gpu = GpuTrainer::new(ctx, cfg, cover(), capped_cfg).unwrap();
+    let capped = StealthParts {
+        density_cap: Some(DensityCap {
+            max_optical_thickness: 0.0015,
+            weight: 1.0,
+            samples: 2048,
+        }),
+        ..StealthParts::none()
+    };
+    let mut cpu = Trainer::new(cfg, cover(), config(Schedule::Mixed)).unwrap();
+    let mut gpu = GpuTrainer::new(ctx, cfg, cover(), config(Schedule::Mixed)).unwrap();
+    cpu.set_policy(stealth(capped, &key)).unwrap();
+    gpu.set_policy(stealth(capped, &key)).unwrap();
     let mut cpu_free = Trainer::new(cfg, cover(), config(Schedule::Mixed)).unwrap();
     let mut gpu_free = GpuTrainer::new(ctx, cfg, cover(), config(Schedule::Mixed)).unwrap();
     let (mut sum_c, mut sum_g) = (0u64, 0u64);
@@ -654,12 +660,12 @@ fn density_cap_holds_the_cover_down_like_the_cpu() {
         let (a, b) = (cpu.train_step(), gpu.train_step().unwrap());
         cpu_free.train_step();
         gpu_free.train_step().unwrap();
-        assert!(a.capped > 0, "step {step}: no point above the cap");
+        assert!(a.penalised > 0, "step {step}: no point above the cap");
         assert!(
-            a.capped.abs_diff(b.capped) <= a.capped / 50 + 5,
+            a.penalised.abs_diff(b.penalised) <= a.penalised / 50 + 5,
             "step {step}: {} points above the cap on the CPU, {} on the GPU",
-            a.capped,
-            b.capped
+            a.penalised,
+            b.penalised
         );
         assert!(
             (a.loss - b.loss).abs() <= 1e-3 * a.loss,
@@ -667,8 +673,8 @@ fn density_cap_holds_the_cover_down_like_the_cpu() {
             a.loss,
             b.loss
         );
-        sum_c += a.capped as u64;
-        sum_g += b.capped as u64;
+        sum_c += a.penalised as u64;
+        sum_g += b.penalised as u64;
     }
     // What the cap changed, on each backend.
     let gp = gpu.params().unwrap();
@@ -697,10 +703,10 @@ fn density_cap_holds_the_cover_down_like_the_cpu() {
 /// with the same bounds (read back from the same grid and published weights), every left
 /// entry within its bound after each step on both, and the same losses. (That the hidden
 /// scene moves left entries is `tests/stealth.rs`'s; the kernels' rule by hand is
-/// `gpu::pacing`'s.)
+/// `gpu::held`'s.)
 #[test]
 fn left_entries_are_bounded_like_the_cpu() {
-    use stegongp::ngp::train::left_entries::LeftEntries;
+    use stegongp::ngp::train::TableBounds;
     let Some(ctx) = test_context() else { return };
     let dir = tempfile::tempdir().unwrap();
     let (ctrain, _) = scene(&dir.path().join("cover"), SceneKind::Object, 3);
@@ -709,20 +715,23 @@ fn left_entries_are_bounded_like_the_cpu() {
     let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
     let table = layout.grid_offset;
-    let mut tc = config(Schedule::Mixed);
-    tc.cover_paced_table = true;
-    tc.bounded_left_entries = true;
-    let refresh = || Box::new(StealthRefresh::new(layout.clone(), vec![key.clone()]));
+    let tc = config(Schedule::Mixed);
+    let parts = StealthParts {
+        confine: true,
+        pace: true,
+        bound_left: true,
+        ..StealthParts::none()
+    };
     let mut cpu = Trainer::new(cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
-    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc.clone()).unwrap();
-    cpu.set_index_refresh(refresh()).unwrap();
-    gpu.set_index_refresh(refresh()).unwrap();
+    let mut gpu = GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).unwrap();
+    cpu.set_policy(stealth(parts, &key)).unwrap();
+    gpu.set_policy(stealth(parts, &key)).unwrap();
     let n = layout.grid.n_entries as usize;
-    let past_bound = |params: &[f32], left: &LeftEntries| {
+    let past_bound = |params: &[f32], left: &TableBounds| {
         params[table..]
             .chunks(2)
             .enumerate()
-            .filter(|&(e, f)| left.is_left(e) && f.iter().any(|v| v.abs() > left.bound(e)))
+            .filter(|&(e, f)| left.is_bounded(e) && f.iter().any(|v| v.abs() > left.bound(e)))
             .count()
     };
     for step in 0..8 {
@@ -733,7 +742,7 @@ fn left_entries_are_bounded_like_the_cpu() {
             a.loss,
             b.loss
         );
-        let (lc, lg) = (cpu.left_entries().unwrap(), gpu.left_entries().unwrap());
+        let (lc, lg) = (cpu.table_bounds().unwrap(), gpu.table_bounds().unwrap());
         assert_eq!(
             past_bound(&cpu.params, lc),
             0,
@@ -744,8 +753,8 @@ fn left_entries_are_bounded_like_the_cpu() {
             0,
             "step {step}: GPU past a bound"
         );
-        let left: Vec<usize> = (0..n).filter(|&e| lc.is_left(e)).collect();
-        let left_g = (0..n).filter(|&e| lg.is_left(e)).count();
+        let left: Vec<usize> = (0..n).filter(|&e| lc.is_bounded(e)).collect();
+        let left_g = (0..n).filter(|&e| lg.is_bounded(e)).count();
         let worst = left
             .iter()
             .map(|&e| (lc.bound(e) - lg.bound(e)).abs())
@@ -760,8 +769,10 @@ fn left_entries_are_bounded_like_the_cpu() {
         assert!(worst <= 1e-6, "step {step}: bounds apart by {worst}");
     }
 
-    // Without the paced table, the option is refused on both backends.
-    tc.cover_paced_table = false;
-    assert!(Trainer::new(cfg, specs(&ctrain, &htrain, &key), tc.clone()).is_err());
-    assert!(GpuTrainer::new(ctx, cfg, specs(&ctrain, &htrain, &key), tc).is_err());
+    // Without the paced table, the part is refused.
+    let unpaced = StealthParts {
+        pace: false,
+        ..parts
+    };
+    assert!(Stealth::with_parts(layout, std::slice::from_ref(&key), unpaced).is_err());
 }

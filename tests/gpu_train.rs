@@ -1,4 +1,4 @@
-//! The whole training step on the device (`src/gpu/trainer.rs`) against the CPU trainer: a
+//! The whole training step on the device (`crates/gpu/src/trainer.rs`) against the CPU trainer: a
 //! generated scene trained on both with the same configuration, seed and steps; the GPU
 //! model, saved as a snapshot, loads and renders on the CPU.
 #![cfg(feature = "gpu")]
@@ -6,17 +6,18 @@
 use std::sync::Arc;
 use std::time::Instant;
 use stegongp::gpu::{GpuTrainer, test_context};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::synth::SceneKind;
+use testkit::scenes::generated;
 
 /// Steps both backends train. Not e2e_train's budget (250 steps of 2^15 samples, ~22 dB):
-/// llvmpipe runs the network's forward + backward at ~12 500 samples/s (BENCHMARKS.md, 76×
+/// llvmpipe runs the network's forward + backward at ~12 500 samples/s (benchmarks/gpu.md, 76×
 /// slower than one CPU core), so 2^15-sample steps take 5–7 s each there and that budget
 /// would take half an hour. 100 steps of 2^12 samples (about 6 500 marched a step) take
 /// about a minute on llvmpipe, and the CPU reaches ~17.5 dB with them from the untrained
@@ -32,27 +33,7 @@ fn model_config() -> ModelConfig {
 }
 
 fn scene(dir: &std::path::Path) -> (Dataset, Dataset) {
-    generate(
-        &SynthOptions {
-            scene: SceneKind::Object,
-            resolution: 40,
-            n_train: 40,
-            n_val: 0,
-            n_test: 4,
-            seed: 3,
-            aabb_scale: 1,
-        },
-        dir,
-    )
-    .unwrap();
-    let o = LoadOptions {
-        downscale: 1,
-        ..Default::default()
-    };
-    (
-        Dataset::load(dir, Split::Train, &o).unwrap(),
-        Dataset::load(dir, Split::Test, &o).unwrap(),
-    )
+    generated(dir, SceneKind::Object, 40, 40, 4, 3).pair()
 }
 
 fn config() -> TrainConfig {

@@ -4,7 +4,7 @@
 //! first hashed level) stays where a plain model has it.
 
 use std::sync::Arc;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::reach::reachable_entries;
 use stegongp::ngp::encoding::{GridLayout, reference_indices};
 use stegongp::ngp::eval::{evaluate, spread_views};
@@ -12,9 +12,10 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::stego::stealth::{StealthRefresh, cover_entries, hidden_indices};
+use stegongp::stego::stealth::{Stealth, StealthParts, cover_entries, hidden_indices};
 use stegongp::stego::{Key, generate_prf, open_scene};
-use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::synth::SceneKind;
+use testkit::scenes::generated;
 
 const RES: u32 = 32;
 const STEPS: u32 = 250;
@@ -28,24 +29,7 @@ fn model_config() -> ModelConfig {
 }
 
 fn scene(dir: &std::path::Path, kind: SceneKind, seed: u64) -> (Arc<Dataset>, Dataset) {
-    generate(
-        &SynthOptions {
-            scene: kind,
-            resolution: RES,
-            n_train: 30,
-            n_val: 0,
-            n_test: 4,
-            seed,
-            aabb_scale: 1,
-        },
-        dir,
-    )
-    .unwrap();
-    let o = LoadOptions::default();
-    (
-        Arc::new(Dataset::load(dir, Split::Train, &o).unwrap()),
-        Dataset::load(dir, Split::Test, &o).unwrap(),
-    )
+    generated(dir, kind, RES, 30, 4, seed).shared()
 }
 
 enum Mode {
@@ -71,20 +55,24 @@ fn train(mode: Mode, cover: &Arc<Dataset>, hidden: &Arc<Dataset>, key: &Key) -> 
         seed: 3,
         batch_samples: 1 << 14,
         occupancy_fraction: 1.0 / 32.0,
-        // As `train --stealth` trains.
-        cover_paced_table: matches!(mode, Mode::Stealth),
-        bounded_left_entries: matches!(mode, Mode::Stealth),
         ..Default::default()
     };
     let mut t = Trainer::new(cfg, scenes, tc).unwrap();
     if matches!(mode, Mode::Stealth) {
-        t.set_index_refresh(Box::new(StealthRefresh::new(layout, vec![key.clone()])))
-            .unwrap();
+        // As `train --stealth` trains, but for the density cap.
+        let parts = StealthParts {
+            confine: true,
+            pace: true,
+            bound_left: true,
+            ..StealthParts::none()
+        };
+        let policy = Stealth::with_parts(layout, std::slice::from_ref(key), parts).unwrap();
+        t.set_policy(Box::new(policy)).unwrap();
     }
     for _ in 0..STEPS {
         let st = t.train_step();
         let cover_loss = st
-            .cover_loss
+            .primary_loss
             .expect("mixed batches train the cover every step");
         if matches!(mode, Mode::Plain) {
             assert_eq!(cover_loss, st.loss);
@@ -146,7 +134,7 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
     let reach = reachable_entries(&layout, &stealth.grid, 1, &reference_indices(&layout));
     let moved = cover_entries(&stealth.net.layout, &stealth.params);
     let trained = stealth_t.indices(1);
-    let left = stealth_t.left_entries().unwrap();
+    let left = stealth_t.table_bounds().unwrap();
     let (mut same, mut total, mut in_left, mut unbounded) = (0u32, 0u32, 0u32, 0u32);
     for (l, lv) in layout.levels.iter().enumerate() {
         let r = lv.resolution;
@@ -159,7 +147,7 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
             // (The key holder's reach is the stored fp16 grid's, the trainer's its own.)
             if !reach[l].contains(h) {
                 in_left += 1;
-                unbounded += !left.is_left((lv.offset + h) as usize) as u32;
+                unbounded += !left.is_bounded((lv.offset + h) as usize) as u32;
             }
             assert!(
                 moved[l].contains(h),
@@ -180,7 +168,7 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
     assert!(unbounded as f64 <= 0.001 * total as f64, "{unbounded}");
     let table = &stealth_t.params[stealth_t.net.layout.grid_offset..];
     let n_left = (0..layout.n_entries as usize)
-        .filter(|&e| left.is_left(e))
+        .filter(|&e| left.is_bounded(e))
         .inspect(|&e| {
             for v in &table[2 * e..2 * e + 2] {
                 assert!(

@@ -2,20 +2,7 @@
 //! `--downscale` does not shrink the hidden scenes), and the key opens the hidden scene;
 //! the stealth flags.
 
-use std::process::{Command, Output};
-
-fn stegongp(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_stegongp"))
-        .args(args)
-        .output()
-        .expect("run stegongp")
-}
-
-fn ok(out: Output) -> String {
-    let err = String::from_utf8_lossy(&out.stderr).to_string();
-    assert!(out.status.success(), "stegongp failed: {err}");
-    err
-}
+use testkit::cli::{ok, stegongp};
 
 /// In `d`: a generated object cover and text scene at `res` px (4 train views, 1 test), a
 /// `prf` key, and where a model goes: (cover, text, key, model).
@@ -23,11 +10,11 @@ fn cover_text_key(d: &std::path::Path, res: &str) -> (String, String, String, St
     let p = |n: &str| d.join(n).to_str().unwrap().to_string();
     let (cover, text, key, model) = (p("cover"), p("text"), p("k.json"), p("m.ingp"));
     for (scene, dir) in [("object", &cover), ("text", &text)] {
-        ok(stegongp(&[
+        ok(&stegongp(&[
             "synth", "--scene", scene, "--res", res, "--train", "4", "--test", "1", "--out", dir,
         ]));
     }
-    ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    ok(&stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
     (cover, text, key, model)
 }
 
@@ -35,7 +22,7 @@ fn cover_text_key(d: &std::path::Path, res: &str) -> (String, String, String, St
 fn cover_downscale_leaves_hidden_scenes_at_their_resolution() {
     let d = tempfile::tempdir().unwrap();
     let (cover, text, key, model) = cover_text_key(d.path(), "32");
-    let log = ok(stegongp(&[
+    let log = ok(&stegongp(&[
         "train",
         &cover,
         "--downscale",
@@ -55,7 +42,7 @@ fn cover_downscale_leaves_hidden_scenes_at_their_resolution() {
     ]));
     assert!(log.contains("cover: 4 images of 16×16"), "{log}");
     assert!(log.contains("hidden: 4 images of 32×32"), "{log}");
-    let log = ok(stegongp(&[
+    let log = ok(&stegongp(&[
         "train",
         &cover,
         "--hidden",
@@ -86,7 +73,7 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
     let d = tempfile::tempdir().unwrap();
     let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
     let (room, text, key, model) = (p("room"), p("text"), p("k.json"), p("m.ingp"));
-    ok(stegongp(&[
+    ok(&stegongp(&[
         "synth",
         "--scene",
         "room",
@@ -101,7 +88,7 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
         "--out",
         &room,
     ]));
-    ok(stegongp(&[
+    ok(&stegongp(&[
         "synth",
         "--scene",
         "text",
@@ -116,7 +103,7 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
         "--out",
         &text,
     ]));
-    ok(stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
+    ok(&stegongp(&["keygen", "--scheme", "prf", "--out", &key]));
     let common = [
         "--steps",
         "2",
@@ -152,7 +139,7 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
     );
     assert!(!std::path::Path::new(&model).exists());
     let key8 = p("k8.json");
-    ok(stegongp(&[
+    ok(&stegongp(&[
         "keygen",
         "--scheme",
         "prf",
@@ -163,7 +150,7 @@ fn hidden_scenes_take_the_cover_box_or_are_refused() {
     ]));
     let i = args.iter().position(|a| *a == key.as_str()).unwrap();
     args[i] = &key8;
-    let log = ok(stegongp(&args));
+    let log = ok(&stegongp(&args));
     assert!(log.contains("hidden: 4 images of 16×16"), "{log}");
     let info = stegongp(&["inspect", &model, "--json"]);
     let info: serde_json::Value = serde_json::from_slice(&info.stdout).unwrap();
@@ -192,9 +179,9 @@ fn cover_only_mlp_trains_with_stealth_and_only_with_it() {
         !d.path().join("m.ingp").exists(),
         "a refused run wrote a model"
     );
-    let log = ok(train(&["--stealth", "--cover-only-mlp"]));
+    let log = ok(&train(&["--stealth", "--cover-only-mlp"]));
     assert!(log.contains("the MLP learnt from the cover alone"), "{log}");
-    ok(stegongp(&[
+    ok(&stegongp(&[
         "eval",
         "--model",
         &model,
@@ -260,7 +247,7 @@ fn hidden_from_is_checked_before_anything_is_written() {
         !d.path().join("m.ingp").exists(),
         "a cover-only model was written"
     );
-    ok(train(&[
+    ok(&train(&[
         "--hidden",
         &text,
         "--key",
@@ -301,16 +288,16 @@ fn density_cap_is_stealths_and_checked_before_anything_is_written() {
             "a refused run wrote a model"
         );
     }
-    let log = ok(train(&["--stealth"]));
+    let log = ok(&train(&["--stealth"]));
     assert!(
         log.contains("the cover's optical thickness capped at 2"),
         "{log}"
     );
-    let log = ok(train(&["--stealth", "--density-cap", "0.5"]));
+    let log = ok(&train(&["--stealth", "--density-cap", "0.5"]));
     assert!(
         log.contains("the cover's optical thickness capped at 0.5"),
         "{log}"
     );
-    let log = ok(train(&["--stealth", "--density-cap", "0"]));
+    let log = ok(&train(&["--stealth", "--density-cap", "0"]));
     assert!(log.contains("the cover's density uncapped"), "{log}");
 }

@@ -8,6 +8,7 @@ use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::eval::spread_views;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions};
+use stegongp::stego::options::choice;
 use stegongp::stego::{KeyVariant, OpenedScene};
 
 /// What `render` and `eval` both take: a model, seen through an optional key, and the
@@ -20,7 +21,7 @@ pub struct ViewArgs {
     /// Dataset whose cameras (and, for eval, images) to use.
     #[arg(long)]
     pub data: PathBuf,
-    #[arg(long, value_enum, default_value_t = Split::Test)]
+    #[arg(long, value_parser = choice::<Split>(), default_value_t = Split::Test)]
     pub split: Split,
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
@@ -30,7 +31,7 @@ pub struct ViewArgs {
     /// At most this many views, spread over the split (0 = all).
     #[arg(long, default_value_t = 0)]
     pub views: usize,
-    #[arg(long, value_enum, default_value_t = Background::White)]
+    #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
     /// Key file: the hidden scene it unlocks instead of the cover.
     #[arg(long)]

@@ -6,13 +6,14 @@ use anyhow::Result;
 use std::path::PathBuf;
 use stegongp::experiments::report::save_grid;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split, save_png_rgb};
-use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate_on, ground_truth, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::model::Model;
-use stegongp::ngp::network::{ModelConfig, NerfLayout};
+use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::ngp::train::{SceneSpec, TrainConfig};
+use stegongp::stego::recipe::{
+    Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
+};
 use stegongp::stego::{Key, generate_prf, load_key, open_scene_on, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
@@ -77,48 +78,49 @@ pub fn run(a: Args) -> Result<()> {
         ..Default::default()
     };
     let cover = Dataset::load(&cover_dir, Split::Train, &opts)?;
-    let hidden = Dataset::load(&hidden_dir, Split::Train, &opts)?;
-    let config = ModelConfig::default();
-    let layout = NerfLayout::new(config)?;
-    let scenes = vec![
-        SceneSpec {
-            dataset: cover.into(),
-            indices: reference_indices(&layout.grid),
+    let model = ModelConfig::default();
+    let hidden = HiddenScene::load(
+        &hidden_dir,
+        key.clone(),
+        &key_path.display().to_string(),
+        &opts,
+        model.aabb_scale,
+    )?;
+    let recipe = Recipe {
+        model,
+        cover: cover.into(),
+        hidden: vec![hidden],
+        steps: StepOptions {
+            seed: a.seed,
+            batch: a.batch,
+            occupancy_fraction: 0.125,
+            workers: 0,
         },
-        SceneSpec {
-            dataset: hidden.into(),
-            indices: key.level_indices(&layout.grid),
-        },
-    ];
-    let cfg = TrainConfig {
-        seed: a.seed,
-        batch_samples: a.batch,
-        occupancy_fraction: 0.125,
-        ..Default::default()
+        options: HiddenOptions::default(),
+        budget: Budget::Steps(a.steps),
+        stored_loss: StoredLoss::Last,
     };
     let device = a.device.open()?;
     eprintln!("device: {}", device.report());
-    let mut trainer = device.trainer(config, scenes, cfg)?;
+    let mut training = recipe.start(&device)?;
     let pb = super::common::progress(
         a.steps as u64,
         "{spinner} training cover + hidden [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
     );
-    let (mut secs, mut samples, mut loss) = (0.0, 0u64, 0.0);
-    for _ in 0..a.steps {
-        let st = trainer.train_step()?;
-        secs += st.seconds;
-        samples += st.n_samples;
-        loss = st.cover_loss.unwrap_or(loss);
+    training.run(|t, _| {
         pb.inc(1);
         pb.set_message(format!(
-            "loss {loss:.4} {:.0}k samples/s",
-            samples as f64 / secs / 1e3
+            "loss {:.4} {:.0}k samples/s",
+            t.stored_loss(),
+            t.totals().samples_per_second() / 1e3
         ));
-    }
+        Ok(())
+    })?;
     pb.finish_and_clear();
     let model_path = a.out.join("model.ingp");
-    trainer.model(loss)?.save(&model_path)?;
-    drop(trainer);
+    let trained = training.finish()?;
+    trained.model.save(&model_path)?;
+    let (secs, samples) = (trained.totals.seconds, trained.totals.samples);
 
     // Everything below uses only the published file, as a viewer or a key holder would.
     let model = Model::load(&model_path)?;

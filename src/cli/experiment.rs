@@ -8,6 +8,7 @@ use stegongp::experiments::{
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
 use stegongp::stego::SchemeKind;
+use stegongp::stego::recipe::HiddenOptions;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
@@ -59,29 +60,12 @@ pub struct Args {
     /// Key scheme of the hidden scenes (key-sensitivity and partial-keys always run both).
     #[arg(long, value_enum, default_value_t = SchemeKind::Prf)]
     pub scheme: SchemeKind,
-    /// Train the stego models with stealth (hidden scenes confined to the table entries the
-    /// cover trained; see `train --stealth`).
-    #[arg(long)]
-    pub stealth: bool,
-    /// Stealth models learn their MLP from the cover alone (see `train --cover-only-mlp`):
-    /// with --stealth, or for detectability's stealth arm.
-    #[arg(long)]
-    pub cover_only_mlp: bool,
-    /// Models with hidden scenes train the cover alone for their first N steps, then every
-    /// scene (see `train --hidden-from`); below --steps.
-    #[arg(long, value_name = "N", default_value_t = 0)]
-    pub hidden_from: u32,
-    /// Loss weight of the hidden scenes relative to the cover's 1 (see `train
-    /// --hidden-weight`): where the scenes share weights, less moves quality back to the
-    /// cover, and the model closer to a plain one.
-    #[arg(long, default_value_t = 1.0)]
-    pub hidden_weight: f32,
-    /// Stealth models' cap on the cover's optical thickness (see `train --density-cap`; 0:
-    /// none): with --stealth, or for detectability's stealth arm. [default: 2]
-    #[arg(long, value_name = "T")]
-    pub density_cap: Option<f32>,
-    /// Use the paper's one-scene-per-step schedule instead of mixed batches.
-    #[arg(long)]
+    /// How every model with hidden scenes trains them, as `train` does (models without one
+    /// train plain); detectability's stealth options are its stealth arm's.
+    #[command(flatten)]
+    pub training: HiddenOptions,
+    /// The paper's one-scene-per-step schedule: `--schedule random-scene`.
+    #[arg(long, hide = true, conflicts_with = "schedule")]
     pub random_scene: bool,
     /// Resolution of generated scenes [default: 64; detectability: 32].
     #[arg(long)]
@@ -129,7 +113,10 @@ const DETECT_RES: u32 = 32;
 /// (occupied fraction within a few tenths of a percent of 0.125's).
 const DETECT_OCCUPANCY: f32 = 0.03;
 
-pub fn run(a: Args) -> Result<()> {
+pub fn run(mut a: Args) -> Result<()> {
+    if a.random_scene {
+        a.training.schedule = Schedule::RandomScene;
+    }
     let detect = a.name == Experiment::Detectability;
     let pairs_exp = a.name == Experiment::Pairs;
     let explicit_pairs = !a.pairs.is_empty() || a.pairs_file.is_some();
@@ -142,43 +129,35 @@ pub fn run(a: Args) -> Result<()> {
     if a.minutes.is_some() && a.steps.is_some() {
         bail!("--minutes and --steps both set the budget: give one");
     }
-    if detect && (a.cover.is_some() || !a.hidden.is_empty() || a.stealth || a.random_scene) {
+    let stealth = &a.training.stealth;
+    if detect
+        && (a.cover.is_some()
+            || !a.hidden.is_empty()
+            || stealth.enabled
+            || a.training.schedule != Schedule::Mixed)
+    {
         bail!(
             "detectability generates its own scenes and trains every scheme, schedule and \
-             stealth itself: --cover, --hidden, --stealth and --random-scene do not apply \
+             stealth itself: --cover, --hidden, --stealth and --schedule do not apply \
              (--no-stealth-arm leaves the stealth models out)"
         );
     }
-    if a.cover_only_mlp && !a.stealth && !detect {
-        bail!("--cover-only-mlp changes stealth training: give it with --stealth");
-    }
-    if a.cover_only_mlp && detect && a.no_stealth_arm {
-        bail!("--cover-only-mlp changes the stealth arm, which --no-stealth-arm leaves out");
-    }
-    if a.density_cap.is_some() && (if detect { a.no_stealth_arm } else { !a.stealth }) {
+    if detect && a.no_stealth_arm && (stealth.cover_only_mlp || stealth.density_cap.is_some()) {
         bail!(
-            "--density-cap changes stealth training: give it with --stealth (detectability: \
-             without --no-stealth-arm)"
+            "--cover-only-mlp and --density-cap change the stealth arm, which \
+             --no-stealth-arm leaves out"
         );
     }
-    if let Some(c) = a.density_cap
-        && !(c.is_finite() && c >= 0.0)
-    {
-        bail!("--density-cap must be a number ≥ 0 (0: no cap)");
-    }
+    // The options as the recipe checks them; detectability's stealth options are its arm's.
+    let mut checked = a.training;
+    checked.stealth.enabled |= detect;
+    checked.check()?;
     let steps = a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 });
-    if a.hidden_from > 0 && a.name == Experiment::KeyStrength {
+    if a.training.hidden_from > 0 && a.name == Experiment::KeyStrength {
         bail!("--hidden-from changes training, and key-strength trains no model");
     }
-    if !(a.hidden_weight.is_finite() && a.hidden_weight > 0.0) {
-        bail!("--hidden-weight must be a positive number");
-    }
-    if a.hidden_from > 0 && a.minutes.is_none() && a.hidden_from >= steps {
-        bail!(
-            "--hidden-from {} is not below the {steps} training steps: the hidden scenes \
-             would never train",
-            a.hidden_from
-        );
+    if a.minutes.is_none() {
+        a.training.check_steps(steps)?;
     }
     let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
     std::fs::create_dir_all(&a.out)?;
@@ -252,16 +231,7 @@ pub fn run(a: Args) -> Result<()> {
             base_resolution: 16,
         },
         scheme: a.scheme,
-        schedule: if a.random_scene {
-            Schedule::RandomScene
-        } else {
-            Schedule::Mixed
-        },
-        stealth: a.stealth,
-        cover_only_mlp: a.cover_only_mlp,
-        hidden_from_step: a.hidden_from,
-        hidden_loss_weight: a.hidden_weight,
-        density_cap: a.density_cap,
+        training: a.training,
         lpips: !a.no_lpips,
         verbose: true,
         device: std::sync::Arc::new(device),

@@ -1,17 +1,20 @@
 use super::common::{DeviceArg, check_model_path, progress};
+use super::keygen;
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::PathBuf;
+use std::sync::Arc;
 use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
-use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::{Background, RenderOptions};
-use stegongp::ngp::train::{DensityCap, SceneSpec, Schedule, TrainConfig};
-use stegongp::stego::stealth::StealthRefresh;
+use stegongp::stego::options::choice;
+use stegongp::stego::recipe::{
+    Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
+};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -42,72 +45,25 @@ pub struct Args {
     /// Train for this many minutes of wall-clock time (evaluation pauses excluded).
     #[arg(long)]
     pub minutes: Option<f64>,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Target trained samples per step (the reference's 2^18 by default).
-    #[arg(long, default_value_t = 1 << 18)]
-    pub batch: u32,
-    /// Fraction of the reference's occupancy-grid update samples.
-    #[arg(long, default_value_t = 1.0)]
-    pub occupancy_fraction: f32,
-    /// Worker threads (gradient partitions); 0 = one per core.
-    #[arg(long, default_value_t = 0)]
-    pub workers: usize,
-    /// Hash-grid levels.
-    #[arg(long, default_value_t = 16)]
-    pub levels: u32,
-    /// Features per level.
-    #[arg(long, default_value_t = 2)]
-    pub features: u32,
-    /// log2 of the hash table size T.
-    #[arg(long, default_value_t = 19)]
-    pub log2_t: u32,
+    #[command(flatten)]
+    pub step: StepOptions,
+    #[command(flatten)]
+    pub grid: GridOptions,
     /// Hidden scene directory (repeat for several; each needs its own --key).
     #[arg(long)]
     pub hidden: Vec<PathBuf>,
     /// Key file of the matching --hidden scene.
     #[arg(long)]
     pub key: Vec<PathBuf>,
-    #[arg(long, value_enum, default_value_t = Schedule::Mixed)]
-    pub schedule: Schedule,
-    /// Loss weight of each hidden scene relative to the cover's 1: where the scenes share
-    /// table entries, a larger weight moves quality from the cover to the hidden scenes.
-    #[arg(long, default_value_t = 1.0)]
-    pub hidden_weight: f32,
-    /// Steps the cover trains alone before the hidden scenes join (they train for the
-    /// remaining steps). A real capture's first steps settle its occupancy grid and its
-    /// background; a few hundred steps of it alone keep most of the quality a hidden scene
-    /// otherwise costs it (fox: −0.3 dB against −2.1 dB at 600 steps; BENCHMARKS.md).
-    #[arg(long, default_value_t = 0, requires = "hidden")]
-    pub hidden_from: u32,
-    /// Stealth: confine the hidden scenes to the table entries the cover itself trained
-    /// (those off their initial value in the file), so that the file's statistics look like
-    /// a plain model's (see `stegongp detect`); an entry the cover's occupancy grid still
-    /// reaches moves only in steps where the cover's own gradient reaches it, one the grid
-    /// has left keeps at most the magnitude it had then. Render and evaluate the hidden
-    /// scenes with `--stealth` too.
-    #[arg(long)]
-    pub stealth: bool,
-    /// With --stealth: the MLP learns from the cover alone, the hidden scenes train their
-    /// keyed table entries only and are decoded by the cover's MLP. Fewer statistics tell
-    /// the file from a plain one and the cover keeps more of its quality; the hidden scenes
-    /// lose more (BENCHMARKS.md, "Stealth with the cover's own MLP").
-    #[arg(long, requires = "stealth")]
-    pub cover_only_mlp: bool,
-    /// With --stealth: the cap on the cover's optical thickness per finest marching step
-    /// (the occupancy grid's unit), 0 for none. Hidden scenes sharing the cover's entries
-    /// make its network decode dense cells inside opaque objects, where no cover ray looks,
-    /// and the stored grid shows them; a penalty pulls the cover's density above the cap
-    /// back down (BENCHMARKS.md, "Capping the cover's density"). [default: 2]
-    #[arg(long, requires = "stealth")]
-    pub density_cap: Option<f32>,
+    #[command(flatten)]
+    pub training: HiddenOptions,
     /// Evaluate the cover's test PSNR at these elapsed minutes (e.g. 2,5,10,20).
     #[arg(long, value_delimiter = ',')]
     pub checkpoints: Vec<f64>,
     /// Test views used at checkpoints.
     #[arg(long, default_value_t = 25)]
     pub eval_views: usize,
-    #[arg(long, value_enum, default_value_t = Background::White)]
+    #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
     #[command(flatten)]
     pub device: DeviceArg,
@@ -153,56 +109,53 @@ pub fn run(a: Args) -> Result<()> {
     if a.downscale == 0 || a.hidden_downscale == 0 {
         bail!("--downscale and --hidden-downscale must be at least 1");
     }
-    if !(a.hidden_weight.is_finite() && a.hidden_weight > 0.0) {
-        bail!("--hidden-weight must be a positive number");
-    }
-    if let Some(c) = a.density_cap
-        && !(c.is_finite() && c >= 0.0)
-    {
-        bail!("--density-cap must be a number ≥ 0 (0: no cap)");
-    }
-    if let Some(steps) = a.steps
-        && a.hidden_from >= steps
-    {
-        bail!(
-            "--hidden-from {} leaves the hidden scenes no step of the {steps} to train",
-            a.hidden_from
-        );
-    }
+    // The options first, before any image is read; the recipe checks them again with the
+    // scenes and keys.
+    a.training.check()?;
     let opts = LoadOptions {
         downscale: a.downscale,
         images: a.images.clone(),
         aabb_scale: a.aabb_scale,
     };
     let cover = Dataset::load(&a.scene, Split::Train, &opts)?;
-    let config = ModelConfig {
-        grid: GridConfig {
-            n_levels: a.levels,
-            n_features: a.features,
-            log2_hashmap_size: a.log2_t,
-            base_resolution: 16,
-        },
+    let model = ModelConfig {
+        grid: a.grid.grid(),
         aabb_scale: cover.aabb_scale,
     };
-    let layout = NerfLayout::new(config)?;
-    let mut scenes = vec![SceneSpec {
-        dataset: std::sync::Arc::new(cover),
-        indices: reference_indices(&layout.grid),
-    }];
-    let (hidden_scenes, hidden_keys) = super::stego_scenes(
-        &a.hidden,
-        &a.key,
-        &layout,
-        &LoadOptions {
-            downscale: a.hidden_downscale,
-            ..Default::default()
-        },
-        config.aabb_scale,
-    )?;
-    scenes.extend(hidden_scenes);
-    if a.stealth && hidden_keys.is_empty() {
-        bail!("--stealth needs at least one --hidden scene");
-    }
+    let hidden_opts = LoadOptions {
+        downscale: a.hidden_downscale,
+        ..Default::default()
+    };
+    let hidden = a
+        .hidden
+        .iter()
+        .zip(&a.key)
+        .map(|(dir, kp)| {
+            let key = keygen::load_key_reporting(kp)?;
+            let name = kp.display().to_string();
+            Ok(HiddenScene::load(
+                dir,
+                key,
+                &name,
+                &hidden_opts,
+                model.aabb_scale,
+            )?)
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let budget = match (a.steps, a.minutes) {
+        (_, Some(m)) => Budget::Seconds(m * 60.0),
+        (steps, None) => Budget::Steps(steps.unwrap_or(1000)),
+    };
+    let recipe = Recipe {
+        model,
+        cover: Arc::new(cover),
+        hidden,
+        steps: a.step,
+        options: a.training,
+        budget,
+        stored_loss: StoredLoss::Smoothed,
+    };
+    recipe.check()?;
     let eval_data = if a.checkpoints.is_empty() {
         None
     } else {
@@ -211,28 +164,11 @@ pub fn run(a: Args) -> Result<()> {
                 .context("loading test views for --checkpoints")?,
         )
     };
-    let density_cap = stealth_density_cap(&a);
-    let cfg = TrainConfig {
-        seed: a.seed,
-        batch_samples: a.batch,
-        occupancy_fraction: a.occupancy_fraction,
-        schedule: a.schedule,
-        hidden_loss_weight: a.hidden_weight,
-        cover_paced_table: a.stealth,
-        bounded_left_entries: a.stealth,
-        cover_only_mlp: a.cover_only_mlp,
-        density_cap,
-        hidden_from_step: a.hidden_from,
-        workers: a.workers,
-        ..Default::default()
-    };
     let device = a.device.open()?;
-    let mut trainer = device.trainer(config, scenes, cfg)?;
-    if a.stealth {
-        trainer.set_index_refresh(Box::new(StealthRefresh::new(layout.clone(), hidden_keys)))?;
-    }
+    let mut training = recipe.start(&device)?;
     if !a.json {
         eprintln!("device: {}", device.report());
+        let trainer = training.trainer();
         for i in 0..trainer.n_scenes() {
             let d = trainer.dataset(i);
             let role = if i == 0 { "cover" } else { "hidden" };
@@ -243,86 +179,45 @@ pub fn run(a: Args) -> Result<()> {
                 d.height
             );
         }
-        if a.stealth {
-            eprintln!(
-                "stealth: hidden scenes confined to the entries the cover moved, those its \
-                 grid reaches paced on the cover, those it left bounded, the MLP {}, {}",
-                if a.cover_only_mlp {
-                    "learnt from the cover alone"
-                } else {
-                    "shared"
-                },
-                match density_cap {
-                    Some(c) => format!(
-                        "the cover's optical thickness capped at {}",
-                        c.max_optical_thickness
-                    ),
-                    None => "the cover's density uncapped".into(),
-                }
-            );
+        if a.training.stealth.enabled {
+            eprintln!("{}", a.training.stealth.describe());
         }
     }
-    let budget_s = a.minutes.map(|m| m * 60.0);
-    let steps = a
-        .steps
-        .unwrap_or(if budget_s.is_some() { u32::MAX } else { 1000 });
-    let pb = if let Some(s) = budget_s {
-        progress(
+    let pb = match budget {
+        Budget::Seconds(s) => progress(
             s.ceil() as u64,
             "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len}s {msg}",
-        )
-    } else {
-        progress(
-            steps as u64,
+        ),
+        Budget::Steps(n) => progress(
+            n as u64,
             "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}",
-        )
+        ),
     };
-    let mut train_s = 0.0;
-    let (mut samples, mut marched) = (0u64, 0u64);
-    // The progress line shows the loss of every scene; the file stores the cover's alone,
-    // as a plain model's would.
-    let mut loss_ema = 0.0f32;
-    let mut cover_ema: Option<f32> = None;
-    let mut phase = [0.0f64; 3];
     let mut checkpoints = Vec::new();
     let mut pending: Vec<f64> = a.checkpoints.clone();
     pending.sort_by(|x, y| x.total_cmp(y));
-    while trainer.step() < steps && budget_s.is_none_or(|b| train_s < b) {
-        let st = trainer.train_step()?;
-        train_s += st.seconds;
-        samples += st.n_samples;
-        marched += st.n_marched;
-        phase[0] += st.occupancy_seconds;
-        phase[1] += st.rays_seconds;
-        phase[2] += st.optimizer_seconds;
-        loss_ema = if trainer.step() == 1 {
-            st.loss
-        } else {
-            0.95 * loss_ema + 0.05 * st.loss
-        };
-        if let Some(c) = st.cover_loss {
-            cover_ema = Some(cover_ema.map_or(c, |e| 0.95 * e + 0.05 * c));
-        }
-        if budget_s.is_some() {
-            pb.set_position(train_s as u64);
-        } else {
-            pb.set_position(trainer.step() as u64);
+    let grid = NerfLayout::new(model)?.grid;
+    while training.step()?.is_some() {
+        let t = *training.totals();
+        match budget {
+            Budget::Seconds(_) => pb.set_position(t.seconds as u64),
+            Budget::Steps(_) => pb.set_position(t.steps as u64),
         }
         pb.set_message(format!(
             "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s",
-            trainer.step(),
-            loss_ema,
-            trainer.step() as f64 / train_s,
-            samples as f64 / train_s / 1e3
+            t.steps,
+            training.shown_loss(),
+            t.steps_per_second(),
+            t.samples_per_second() / 1e3
         ));
         while let Some(&m) = pending.first() {
-            if train_s < m * 60.0 {
+            if t.seconds < m * 60.0 {
                 break;
             }
             pending.remove(0);
             let data = eval_data.as_ref().expect("loaded with checkpoints");
-            let model = trainer.model(cover_ema.unwrap_or(0.0))?;
-            let idx = reference_indices(&layout.grid);
+            let model = training.model()?;
+            let idx = reference_indices(&grid);
             let mut renderer = device.renderer(&model, &idx, &model.grid)?;
             let opts = RenderOptions {
                 background: a.background.rgb(),
@@ -339,10 +234,7 @@ pub fn run(a: Args) -> Result<()> {
             )?;
             let line = format!(
                 "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views)",
-                trainer.step(),
-                r.psnr,
-                r.ssim,
-                r.n_views
+                t.steps, r.psnr, r.ssim, r.n_views
             );
             // A hidden bar (no terminal) swallows println: write the line ourselves.
             if pb.is_hidden() {
@@ -352,7 +244,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             checkpoints.push(Checkpoint {
                 minutes: m,
-                step: trainer.step(),
+                step: t.steps,
                 psnr: r.psnr,
                 ssim: r.ssim,
             });
@@ -360,28 +252,23 @@ pub fn run(a: Args) -> Result<()> {
     }
     pb.finish_and_clear();
     // A --minutes budget can end before --hidden-from: the file would hold the cover alone.
-    if trainer.n_scenes() > 1 && trainer.step() <= a.hidden_from {
-        bail!(
-            "training stopped at step {} with --hidden-from {}: the hidden scenes never \
-             trained; nothing written (give more --minutes or a smaller --hidden-from)",
-            trainer.step(),
-            a.hidden_from
-        );
-    }
-    let model = trainer.model(cover_ema.unwrap_or(0.0))?;
-    model.save(&a.out)?;
+    let trained = training
+        .finish()
+        .map_err(|e| anyhow::anyhow!("{e}; nothing written"))?;
+    trained.model.save(&a.out)?;
+    let t = trained.totals;
     let summary = Summary {
         model: a.out.clone(),
         device: device.report(),
-        steps: trainer.step(),
-        train_seconds: train_s,
-        final_loss: cover_ema.unwrap_or(0.0),
-        samples_per_second: samples as f64 / train_s,
-        marched_samples_per_second: marched as f64 / train_s,
-        steps_per_second: trainer.step() as f64 / train_s,
-        occupancy_seconds: phase[0],
-        rays_seconds: phase[1],
-        optimizer_seconds: phase[2],
+        steps: t.steps,
+        train_seconds: t.seconds,
+        final_loss: trained.model.loss,
+        samples_per_second: t.samples as f64 / t.seconds,
+        marched_samples_per_second: t.marched as f64 / t.seconds,
+        steps_per_second: t.steps as f64 / t.seconds,
+        occupancy_seconds: t.occupancy_seconds,
+        rays_seconds: t.rays_seconds,
+        optimizer_seconds: t.optimizer_seconds,
         checkpoints,
     };
     if a.json {
@@ -399,12 +286,4 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// The cover's density cap: stealth's, at `--density-cap` if given (0: none).
-fn stealth_density_cap(a: &Args) -> Option<DensityCap> {
-    if !a.stealth {
-        return None;
-    }
-    DensityCap::stealth(a.density_cap)
 }

@@ -1,0 +1,980 @@
+//! A whole training step on the device (issue 10), composed from the tested kernels: the
+//! occupancy updates on the CPU trainer's schedule with the field on the device, a batch of
+//! rays drawn, marched and compacted ([`RayKernels`]), the grid forward, the network forward
+//! keeping its activations, the loss, the network and grid backward, and Adam + EMA. One
+//! or more scenes on one set of weights, as the CPU [`Trainer`], which is the oracle: same
+//! initial weights, same seeds (`mix`, per scene), same ray draws, same rays-per-batch
+//! adaptation per scene, same loss normalisation (scene weight / rays) and density
+//! pull-up, same schedules ([`Schedule::Mixed`]: every scene every step, their gradients
+//! summed into one Adam step; [`Schedule::RandomScene`]: one scene a step, drawn as the CPU
+//! draws it), and the same [`TrainPolicy`] hooks at the same points of the step, with the
+//! mechanisms behind [`PolicyOps`] in device kernels (`held.rs`).
+//!
+//! Each scene has its own index functions on the device ([`GpuIndex`]: the grid kernels
+//! bind one per dispatch), its own occupancy grid ([`GpuOccupancy`]), its own frames
+//! ([`RayKernels`]) and counters. The sample buffers, the network workspace and the
+//! gradient are shared: the scenes of a step run one after another, each in its own
+//! submissions, and both backward passes ADD into the gradient (the network's reduction
+//! adds its chunk sums, the grid's atomics add), which only the optimizer's kernel zeroes,
+//! after it has read it. So a mixed step's gradient is the sum of its scenes' gradients
+//! when the one Adam step runs, as the CPU sums its workers' partials (in another order:
+//! the sums agree to rounding, not bit for bit).
+//!
+//! Host round trips per scene trained: the batch's three counters (the network kernels take
+//! their sample count from the host, so a scene submits twice: rays, then the rest), the
+//! per-ray (loss, samples used) pairs that the rays-per-batch adaptation and the reported
+//! loss need, and each occupancy grid's mean after an update (it switches the pull-up).
+//! With a [`TrainPolicy`] installed that reads them, every update of scene 0's grid (and
+//! the installation itself) also reads back that grid and the EMA weights, calls the policy
+//! on the host and uploads the indices and bounds it returns, before the other scenes'
+//! grids update: the weights' whole vector crosses the bus once per update. A policy's
+//! extra density loss reads its raw outputs back to take the loss's derivative on the host.
+//! Otherwise samples and weights never leave the device.
+//!
+//! Differences from the CPU step, by design of this first version: the network runs (and
+//! keeps activations) on every marched sample, where the CPU first finds where each ray's
+//! transmittance ends with density-only waves and runs the full network on the used samples
+//! only; the loss kernel gives the samples past termination a zero gradient, so the update
+//! is the same, only slower by marched / used. Marching is bounded by a sample budget
+//! ([`GpuTrainer::sample_budget`]); rays past it train nothing this step, as in instant-ngp.
+//!
+//! [`Trainer`]: ngp::train::Trainer
+//! [`Schedule::Mixed`]: ngp::train::Schedule::Mixed
+//! [`Schedule::RandomScene`]: ngp::train::Schedule::RandomScene
+
+use super::field::{DensityScratch, GpuField};
+use super::grid::GridShape;
+use super::held::{GpuHoldBack, GpuKeptMlp};
+use super::loss::{LossBuffers, LossConfig, LossKernel};
+use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
+use super::occupancy::GpuOccupancy;
+use super::optimizer::GpuOptimizer;
+use super::rays::{RayBatch, RayKernels};
+use super::{
+    GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
+};
+use ngp::data::Dataset;
+use ngp::encoding::{LevelIndices, check_indices};
+use ngp::model::Model;
+use ngp::network::ModelConfig;
+use ngp::network::nerf::NerfNetwork;
+use ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
+use ngp::render::march::Marcher;
+use ngp::train::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
+use ngp::train::loss::DENSITY_PULL_UP;
+use ngp::train::schedule::{
+    MAX_RAYS_PER_BATCH, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid,
+    step_scenes,
+};
+use ngp::train::{SceneSpec, StepStats, TrainConfig};
+use std::sync::Arc;
+use std::time::Instant;
+
+const DIRS_WGSL: &str = include_str!("dirs.wgsl");
+const DIRS_WORKGROUP: u32 = 64;
+/// Most rays per batch: the CPU trainer's (and the reference's) cap.
+const MAX_RAYS: u32 = MAX_RAYS_PER_BATCH;
+/// Marched samples the device holds per batch, as a multiple of the trained-sample target.
+/// Marched samples exceed the trained ones (the generated test scene: about 1.5×), and a
+/// budget that binds drops rays from the step; 4× leaves room at the cost of 1.7 KiB of
+/// network workspace per budgeted sample. The device's largest storage binding caps it
+/// (the network's kept activations, `ACT_ROWS` floats a sample, are the largest buffer).
+const BUDGET_FACTOR: u32 = 4;
+/// The encoding's leading dimension is the sample count rounded up to this, so the kernels'
+/// padding work stays small while a bind is valid for a range of counts.
+const LD_GRANULE: u32 = 256;
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct DirsParams {
+    n_rays: u32,
+    row_width: u32,
+    _pad: [u32; 2],
+}
+
+/// One scene's state on the device (and the host copies the API hands out).
+struct GpuScene {
+    dataset: Arc<Dataset>,
+    /// The index functions as trained now (host copy of `index`).
+    indices: LevelIndices,
+    index: GpuIndex,
+    occupancy: GpuOccupancy,
+    rays: RayKernels,
+    loss_weight: f32,
+    grid_mean: f32,
+    rays_per_batch: u32,
+    measured_samples: u32,
+    measured_marched: u32,
+}
+
+/// One or more scenes trained on the device on one set of weights (scene 0: the one a model
+/// publishes).
+pub struct GpuTrainer<'c> {
+    ctx: &'c GpuContext,
+    pub config: TrainConfig,
+    model: ModelConfig,
+    marcher: Marcher,
+    field: GpuField,
+    scenes: Vec<GpuScene>,
+    policy: Option<Box<dyn TrainPolicy>>,
+    density_scratch: DensityScratch,
+    batch: RayBatch,
+    loss: LossKernel,
+    optimizer: GpuOptimizer,
+    /// The gate with hold-back and the table's bounds on the device, once a policy uses
+    /// them.
+    hold: Option<GpuHoldBack>,
+    /// The kept MLP gradient, once a policy uses it.
+    kept: Option<GpuKeptMlp>,
+    /// The table's bounds, kept on the host (a policy sets them from what it reads back)
+    /// and uploaded to the hold-back kernels.
+    bounds: Option<TableBounds>,
+    ws: MlpWorkspace,
+    dirs: wgpu::Buffer,
+    raw: wgpu::Buffer,
+    d_raw: wgpu::Buffer,
+    enc: wgpu::Buffer,
+    d_enc: wgpu::Buffer,
+    grad: wgpu::Buffer,
+    ray_out: wgpu::Buffer,
+    dirs_pipeline: wgpu::ComputePipeline,
+    dirs_uniform: wgpu::Buffer,
+    /// Steps taken, updating the weights or not: the schedule's and the rays' clock.
+    pub step: u32,
+    /// Steps that updated the weights (the CPU trainer's `weight_steps`): the optimizer's
+    /// and the occupancy grids' clock, and the step count a model file records.
+    pub weight_steps: u32,
+}
+
+fn input<T>(msg: String) -> GpuResult<T> {
+    Err(GpuError::Input(msg))
+}
+
+impl<'c> GpuTrainer<'c> {
+    /// A trainer of `scenes` (scene 0 the one a model publishes, the others weighted by
+    /// `config.others_weight`) with `model`'s architecture, starting from the weights
+    /// and occupancy grids the CPU [`Trainer`](ngp::train::Trainer) starts from for
+    /// `config.seed`, with its checks. `config.schedule` applies; `workers` does not.
+    pub fn new(
+        ctx: &'c GpuContext,
+        model: ModelConfig,
+        scenes: Vec<SceneSpec>,
+        config: TrainConfig,
+    ) -> GpuResult<Self> {
+        if scenes.is_empty() {
+            return input("no scene to train".into());
+        }
+        let net = NerfNetwork::new(model).map_err(|e| GpuError::Input(e.to_string()))?;
+        let layout = net.layout.clone();
+        let n_levels = layout.grid.levels.len();
+        for s in &scenes {
+            if s.indices.len() != n_levels {
+                return input(format!(
+                    "{} index functions for {n_levels} grid levels",
+                    s.indices.len()
+                ));
+            }
+            check_indices(&s.indices, &layout.grid).map_err(|e| GpuError::Input(e.to_string()))?;
+            if s.dataset.frames.is_empty() {
+                return input(format!("{}: no training images", s.dataset.root.display()));
+            }
+            if s.dataset.aabb_scale != model.aabb_scale {
+                return input(format!(
+                    "{}: aabb_scale {} differs from the model's {}",
+                    s.dataset.root.display(),
+                    s.dataset.aabb_scale,
+                    model.aabb_scale
+                ));
+            }
+        }
+        if config.batch_samples == 0 {
+            return input("a batch of 0 samples".into());
+        }
+        let limits = ctx.device.limits();
+        let max = limits
+            .max_storage_buffer_binding_size
+            .min(limits.max_buffer_size);
+        let fits = (max / (4 * ACT_ROWS)).min(u32::MAX as u64) as u32 / LD_GRANULE * LD_GRANULE;
+        let budget = config.batch_samples.saturating_mul(BUDGET_FACTOR).min(fits);
+        if budget < config.batch_samples {
+            return input(format!(
+                "{} samples per batch: the device's {max}-byte bindings hold {fits}",
+                config.batch_samples
+            ));
+        }
+        let params = net.init_params(config.seed);
+        // The field's own index is scene 0's; the trainer binds each scene's.
+        let field = GpuField::new(ctx, &layout, &params, &scenes[0].indices)?;
+        let marcher = Marcher::new(model.aabb_scale);
+        let mut states = Vec::with_capacity(scenes.len());
+        for s in scenes {
+            let grid = starting_grid(model.aabb_scale, &s.dataset);
+            let loss_weight = if states.is_empty() {
+                1.0
+            } else {
+                config.others_weight
+            };
+            states.push(GpuScene {
+                index: field.grid().upload_index(ctx, &s.indices)?,
+                occupancy: GpuOccupancy::upload(ctx, &grid, &marcher)?,
+                rays: RayKernels::new(ctx, &s.dataset.frames, &marcher)?,
+                grid_mean: grid.mean,
+                dataset: s.dataset,
+                indices: s.indices,
+                loss_weight,
+                rays_per_batch: initial_rays_per_batch(config.batch_samples),
+                measured_samples: 0,
+                measured_marched: 0,
+            });
+        }
+        let batch = RayBatch::new(ctx, MAX_RAYS, budget)?;
+        let loss = LossKernel::new(ctx)?;
+        let optimizer = GpuOptimizer::new(
+            ctx,
+            config.optimizer,
+            layout.n_params,
+            layout.n_mlp_params(),
+        )?;
+        let ws = field.mlp().workspace(ctx, budget)?;
+        let width = layout.grid.config.n_output_dims() as u64;
+        let b = budget as u64;
+        if 4 * width * b > max {
+            return input(format!(
+                "a budget of {budget} samples needs a {}-byte encoding, past the device's \
+                 {max}-byte binding",
+                4 * width * b
+            ));
+        }
+        let (dirs, raw, d_raw, enc, d_enc, grad, ray_out) =
+            ctx.scoped("trainer buffers", || {
+                (
+                    device_buffer(ctx, "trainer dirs", 12 * b),
+                    device_buffer(ctx, "trainer raw", 16 * b),
+                    device_buffer(ctx, "trainer d_raw", 16 * b),
+                    device_buffer(ctx, "trainer encoding", 4 * width * b),
+                    device_buffer(ctx, "trainer encoding gradient", 4 * width * b),
+                    device_buffer(ctx, "trainer gradient", 4 * layout.n_params as u64),
+                    device_buffer(ctx, "trainer ray losses", 8 * MAX_RAYS as u64),
+                )
+            })?;
+        let (dirs_pipeline, dirs_uniform) = ctx.scoped("trainer dirs kernel", || {
+            let [pipeline] = auto_layout_pipelines(ctx, "dirs.wgsl", DIRS_WGSL, ["dirs_main"]);
+            let uniform = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("dirs params"),
+                size: std::mem::size_of::<DirsParams>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            (pipeline, uniform)
+        })?;
+        Ok(GpuTrainer {
+            ctx,
+            config,
+            model,
+            marcher,
+            field,
+            scenes: states,
+            policy: None,
+            density_scratch: DensityScratch::default(),
+            batch,
+            loss,
+            optimizer,
+            hold: None,
+            kept: None,
+            bounds: None,
+            ws,
+            dirs,
+            raw,
+            d_raw,
+            enc,
+            d_enc,
+            grad,
+            ray_out,
+            dirs_pipeline,
+            dirs_uniform,
+            step: 0,
+            weight_steps: 0,
+        })
+    }
+
+    /// Marched samples a batch may hold.
+    pub fn sample_budget(&self) -> u32 {
+        self.batch.sample_budget()
+    }
+
+    pub fn n_scenes(&self) -> usize {
+        self.scenes.len()
+    }
+
+    /// The training images of scene `i`. Panics if `i` is not a scene, as
+    /// indexing does (and as the CPU trainer's accessors).
+    pub fn dataset(&self, i: usize) -> &Dataset {
+        &self.scenes[i].dataset
+    }
+
+    /// Index functions of scene `i` as trained now.
+    pub fn indices(&self, i: usize) -> &LevelIndices {
+        &self.scenes[i].indices
+    }
+
+    /// Scene `i`'s (rays per batch, trained samples, marched samples) of the last step that
+    /// trained it, as [`Trainer::batch_counters`](ngp::train::Trainer::batch_counters).
+    pub fn batch_counters(&self, i: usize) -> (u32, u32, u32) {
+        let s = &self.scenes[i];
+        (s.rays_per_batch, s.measured_samples, s.measured_marched)
+    }
+
+    /// Scene `i`'s occupancy grid's cascade-0 mean after its last update.
+    pub fn grid_mean(&self, i: usize) -> f32 {
+        self.scenes[i].grid_mean
+    }
+
+    /// Scene `i`'s occupancy grid, read back (`i` past the scenes: an input error).
+    pub fn grid(&self, i: usize) -> GpuResult<OccupancyGrid> {
+        match self.scenes.get(i) {
+            Some(s) => s.occupancy.download(self.ctx),
+            None => input(format!("scene {i} of {}", self.scenes.len())),
+        }
+    }
+
+    /// Installs a training policy, before the first step, and applies its index functions
+    /// to scene 0's starting grid (read back, with the EMA weights, when it reads them), as
+    /// [`Trainer::set_policy`](ngp::train::Trainer::set_policy).
+    pub fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> GpuResult<()> {
+        if self.step > 0 {
+            return input("a training policy is installed before the first step".into());
+        }
+        let reads = policy.reads();
+        self.policy = Some(policy);
+        if reads.published {
+            let grid = self.scenes[0].occupancy.download(self.ctx)?;
+            let published = self.optimizer.ema_params(self.ctx, &self.field.params)?;
+            self.apply_indices(&grid, &published)?;
+        }
+        Ok(())
+    }
+
+    /// The policy's new indices for the scenes it names, checked all before any is used
+    /// (an error changes nothing), then uploaded.
+    fn apply_indices(&mut self, grid: &OccupancyGrid, published: &[f32]) -> GpuResult<()> {
+        let Some(policy) = &mut self.policy else {
+            return Ok(());
+        };
+        let ctx = self.ctx;
+        let layout = self.field.layout();
+        let n_levels = layout.grid.levels.len();
+        let fresh = policy.indices(grid, published);
+        let mut uploaded = Vec::with_capacity(fresh.len());
+        for (i, indices) in fresh {
+            if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
+                return input(format!(
+                    "index refresh for scene {i} with {} levels ({} scenes, {n_levels} \
+                     levels; scene 0 is never refreshed)",
+                    indices.len(),
+                    self.scenes.len()
+                ));
+            }
+            let index = self.field.grid().upload_index(ctx, &indices)?;
+            uploaded.push((i, indices, index));
+        }
+        for (i, indices, index) in uploaded {
+            self.scenes[i].indices = indices;
+            self.scenes[i].index = index;
+        }
+        Ok(())
+    }
+
+    /// The table's bounds, once a policy has set them.
+    pub fn table_bounds(&self) -> Option<&TableBounds> {
+        self.bounds.as_ref()
+    }
+
+    /// The CPU trainer's occupancy schedule: every step for the first 16, then every
+    /// `step / 16` steps up to every 16th; every scene's grid updates on the current
+    /// weights under its own indices, the policy's hooks right after scene 0's.
+    fn update_occupancy(&mut self) -> GpuResult<()> {
+        let step = self.weight_steps;
+        let interval = (step / 16).clamp(1, 16);
+        if !step.is_multiple_of(interval) {
+            return Ok(());
+        }
+        let ctx = self.ctx;
+        for si in 0..self.scenes.len() {
+            let scene = &mut self.scenes[si];
+            let (nu, nn) = OccupancyGrid::sample_counts(
+                scene.occupancy.n_cascades as usize,
+                step,
+                self.config.occupancy_fraction,
+            );
+            let (nu, nn) = match (u32::try_from(nu), u32::try_from(nn)) {
+                (Ok(a), Ok(b)) => (a, b),
+                _ => return input(format!("occupancy: {nu} + {nn} samples")),
+            };
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            // Scene si's update seed on the CPU.
+            let seed = mix(self.config.seed, 0x6772_6964 + si as u64);
+            scene.occupancy.encode_update_under(
+                ctx,
+                &mut encoder,
+                &self.field,
+                &scene.index,
+                &mut self.density_scratch,
+                nu,
+                nn,
+                seed,
+            )?;
+            ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
+            scene.grid_mean = scene.occupancy.read_mean(ctx)?;
+            if si == 0 {
+                self.primary_grid_updated()?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The policy's hooks after an update of scene 0's grid; its indices take effect
+    /// before the other scenes' grids update.
+    fn primary_grid_updated(&mut self) -> GpuResult<()> {
+        let Some(reads) = self.policy.as_ref().map(|p| p.reads()) else {
+            return Ok(());
+        };
+        let ctx = self.ctx;
+        let grid = if reads.grid || reads.published {
+            Some(self.scenes[0].occupancy.download(ctx)?)
+        } else {
+            None
+        };
+        let published = if reads.published {
+            Some(self.optimizer.ema_params(ctx, &self.field.params)?)
+        } else {
+            None
+        };
+        let visible = grid.as_ref().filter(|_| reads.grid);
+        self.with_policy(|p, ops| p.grid_updated(visible, published.as_deref(), ops))?;
+        if let (Some(g), Some(p)) = (&grid, &published) {
+            self.apply_indices(g, p)?;
+        }
+        Ok(())
+    }
+
+    /// Runs a policy hook on the device's mechanisms, submitting what it recorded; returns
+    /// the points its extra loss penalised. `finish` records more work into the same
+    /// submission (the optimizer's step after [`TrainPolicy::before_update`]).
+    fn with_policy_then(
+        &mut self,
+        hook: impl FnOnce(&mut dyn TrainPolicy, &mut dyn PolicyOps) -> ngp::Result<()>,
+        finish: impl FnOnce(&mut Self, &mut wgpu::CommandEncoder) -> GpuResult<()>,
+    ) -> GpuResult<u32> {
+        let mut policy = self.policy.take();
+        let mut ops = GpuOps {
+            t: self,
+            encoder: None,
+            penalised: 0,
+        };
+        let run = match &mut policy {
+            Some(p) => hook(p.as_mut(), &mut ops).map_err(|e| GpuError::Input(e.to_string())),
+            None => Ok(()),
+        };
+        let GpuOps {
+            encoder, penalised, ..
+        } = ops;
+        self.policy = policy;
+        run?;
+        let ctx = self.ctx;
+        let mut encoder =
+            encoder.unwrap_or_else(|| ctx.device.create_command_encoder(&Default::default()));
+        finish(self, &mut encoder)?;
+        ctx.scoped("policy", || ctx.queue.submit([encoder.finish()]))?;
+        Ok(penalised)
+    }
+
+    fn with_policy(
+        &mut self,
+        hook: impl FnOnce(&mut dyn TrainPolicy, &mut dyn PolicyOps) -> ngp::Result<()>,
+    ) -> GpuResult<u32> {
+        if self.policy.is_none() {
+            return Ok(0);
+        }
+        self.with_policy_then(hook, |_, _| Ok(()))
+    }
+
+    /// One training step: the occupancy updates due, the scenes of the step's schedule one
+    /// after another (their gradients summed), one Adam + EMA step. `optimizer_seconds` is
+    /// the optimizer's own submission, timed from its recording until the device has run it
+    /// (every scene's work has finished before: each scene's losses are read back).
+    pub fn train_step(&mut self) -> GpuResult<StepStats> {
+        let t0 = Instant::now();
+        let step = self.step;
+        let info = StepInfo {
+            seed: self.config.seed,
+            step,
+            weight_steps: self.weight_steps,
+        };
+        let ids = step_scenes(&self.config, step, self.scenes.len());
+        let update = self.policy.as_ref().is_none_or(|p| p.updates_weights(&ids));
+        if update {
+            self.update_occupancy()?;
+        }
+        let t_occ = t0.elapsed().as_secs_f64();
+        let mut stats = StepStats {
+            step,
+            ..Default::default()
+        };
+        for si in ids {
+            self.train_scene(si, &mut stats)?;
+            stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops))?;
+        }
+        let t_rays = t0.elapsed().as_secs_f64();
+        // The CPU steps the optimizer even when nothing was trained (its MLP weights still
+        // take L2 and momentum).
+        stats.penalised += self.with_policy_then(
+            |p, ops| p.before_update(info, ops),
+            |t, encoder| {
+                if update {
+                    let ctx = t.ctx;
+                    t.optimizer
+                        .encode_step(ctx, encoder, &t.field.params, &t.grad)?;
+                    if let (Some(_), Some(h)) = (&t.bounds, &t.hold) {
+                        h.encode_clamp(ctx, encoder, &t.field.params)?;
+                    }
+                    t.weight_steps += 1;
+                }
+                Ok(())
+            },
+        )?;
+        // Without the update the gradient buffer keeps what the policy left in it for the
+        // next step that updates the weights.
+        self.ctx.wait()?;
+        self.step += 1;
+        stats.seconds = t0.elapsed().as_secs_f64();
+        stats.occupancy_seconds = t_occ;
+        stats.rays_seconds = t_rays - t_occ;
+        stats.optimizer_seconds = stats.seconds - t_rays;
+        Ok(stats)
+    }
+
+    /// Scene `si`'s batch: rays, then network, loss and backward into the gradient; its
+    /// losses and counters read back into `stats` and the scene's rays-per-batch state.
+    fn train_scene(&mut self, si: usize, stats: &mut StepStats) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let step = self.step;
+        let scene = &self.scenes[si];
+        let n_rays = scene.rays_per_batch;
+        // Scene si's batch seed on the CPU.
+        let seed = mix(mix(self.config.seed, step as u64), si as u64 + 1);
+
+        // 1. Rays: draw, march, compact; then the counts the network kernels need.
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        scene.rays.encode(
+            ctx,
+            &mut encoder,
+            &self.batch,
+            &scene.occupancy.bitfield,
+            n_rays,
+            seed,
+        )?;
+        ctx.scoped("training rays", || ctx.queue.submit([encoder.finish()]))?;
+        let (_asked, written, with_samples) = self.batch.read_counters(ctx)?;
+        let n = written.min(self.batch.sample_budget());
+
+        // 2. Network, loss and backward (adding into the gradient) in one submission.
+        let loss_norm = scene.loss_weight / n_rays as f32;
+        let pull_up = if scene.grid_mean < MIN_OPTICAL_THICKNESS {
+            DENSITY_PULL_UP
+        } else {
+            0.0
+        };
+        let (loss, used) = if n > 0 {
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.encode_samples(&mut encoder, si, n_rays, n, loss_norm, pull_up)?;
+            ctx.scoped("training samples", || ctx.queue.submit([encoder.finish()]))?;
+            let out: Vec<[f32; 2]> = ctx.read_buffer(&self.ray_out, 8 * n_rays as u64)?;
+            out.iter().fold((0.0f64, 0u64), |(l, u), o| {
+                (l + o[0] as f64, u + o[1].to_bits() as u64)
+            })
+        } else {
+            (0.0, 0)
+        };
+        let scene_loss = (loss / n_rays as f64) as f32;
+        stats.loss += scene_loss;
+        if si == 0 {
+            stats.primary_loss = Some(scene_loss);
+        }
+        stats.n_rays += with_samples as u64;
+        stats.n_samples += used;
+        stats.n_marched += n as u64;
+        let scene = &mut self.scenes[si];
+        scene.measured_samples = used as u32;
+        scene.measured_marched = n;
+        // The reference keeps its ray count when nothing was trained.
+        if used > 0 {
+            scene.rays_per_batch = next_rays_per_batch(n_rays, self.config.batch_samples, used);
+        }
+        Ok(())
+    }
+
+    /// Records directions, grid forward, network forward, loss, network backward and grid
+    /// backward over the batch's `n` compacted samples of scene `si`.
+    fn encode_samples(
+        &mut self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        n_rays: u32,
+        n: u32,
+        loss_norm: f32,
+        pull_up: f32,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let ld = n
+            .div_ceil(LD_GRANULE)
+            .saturating_mul(LD_GRANULE)
+            .min(self.batch.sample_budget());
+        let shape = GridShape { n_samples: n, ld };
+
+        // Per-sample directions.
+        let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
+        let groups = n_rays.div_ceil(DIRS_WORKGROUP).max(1);
+        let gx = groups.min(max_dim);
+        let params = DirsParams {
+            n_rays,
+            row_width: gx * DIRS_WORKGROUP,
+            _pad: [0; 2],
+        };
+        ctx.scoped("trainer dirs", || {
+            ctx.queue
+                .write_buffer(&self.dirs_uniform, 0, bytemuck::bytes_of(&params));
+            let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("dirs"),
+                layout: &self.dirs_pipeline.get_bind_group_layout(0),
+                entries: &[
+                    buffer_entry(0, &self.batch.drawn),
+                    buffer_entry(1, &self.batch.rays),
+                    buffer_entry(2, &self.dirs),
+                    buffer_entry(3, &self.dirs_uniform),
+                ],
+            });
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            pass.set_pipeline(&self.dirs_pipeline);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
+        })?;
+
+        self.encode_network_forward(encoder, si, shape)?;
+
+        // Loss and its gradient to the raw outputs.
+        let bufs = LossBuffers {
+            rays: &self.batch.rays,
+            raw: &self.raw,
+            dt: &self.batch.dt,
+            dist: &self.batch.dist,
+            pos: &self.batch.pos,
+            d_raw: &self.d_raw,
+            ray_out: &self.ray_out,
+        };
+        let cfg = LossConfig::new(&self.marcher, loss_norm, pull_up);
+        self.loss.encode(ctx, encoder, &bufs, n_rays, n, &cfg)?;
+
+        self.encode_network_backward(encoder, si, shape)
+    }
+
+    /// Byte ranges of a batch of `shape`: the grid block of the parameters (and of the
+    /// gradient), the positions, the encoding.
+    fn batch_bytes(&self, shape: GridShape) -> (std::ops::Range<u64>, u64, u64) {
+        let layout = self.field.layout();
+        let width = layout.grid.config.n_output_dims() as u64;
+        (
+            4 * layout.grid_offset as u64..4 * layout.n_params as u64,
+            12 * shape.ld as u64,
+            4 * width * shape.ld as u64,
+        )
+    }
+
+    /// The trainer's encoding buffer as a batch of `shape`.
+    fn encoded_batch(&self, shape: GridShape) -> EncodedBatch<'_> {
+        EncodedBatch {
+            params: &self.field.params,
+            enc: &self.enc,
+            ld: shape.ld,
+            n: shape.n_samples,
+        }
+    }
+
+    /// Grid forward under scene `si`'s index and network forward over the first
+    /// `shape.n_samples` positions of the batch and of `dirs`, into `raw`, keeping the
+    /// activations for [`Self::encode_network_backward`].
+    fn encode_network_forward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        shape: GridShape,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
+        let grid = self.field.grid();
+        let index = &self.scenes[si].index;
+        let forward = grid.bind_forward(
+            ctx,
+            index,
+            self.batch.pos.slice(..pos_bytes),
+            self.field.params.slice(grid_bytes),
+            self.enc.slice(..enc_bytes),
+            shape,
+        )?;
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            forward.record(&mut pass);
+        }
+        let eb = self.encoded_batch(shape);
+        self.field
+            .mlp()
+            .encode_forward(ctx, encoder, &eb, &self.dirs, &self.raw, Some(&self.ws))
+    }
+
+    /// Backward of the last [`Self::encode_network_forward`] from `d_raw`: MLP weight
+    /// gradients added into `grad`, dL/d(enc) into `d_enc`, then the grid's gradient added
+    /// into the grid block of `grad`.
+    fn encode_network_backward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        shape: GridShape,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
+        let eb = self.encoded_batch(shape);
+        self.field.mlp().encode_backward(
+            ctx,
+            encoder,
+            &eb,
+            &self.d_raw,
+            &self.ws,
+            &self.grad,
+            &self.d_enc,
+        )?;
+        let backward = self.field.grid().bind_backward(
+            ctx,
+            &self.scenes[si].index,
+            self.batch.pos.slice(..pos_bytes),
+            self.d_enc.slice(..enc_bytes),
+            self.grad.slice(grid_bytes),
+            shape,
+        )?;
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        backward.record(&mut pass);
+        Ok(())
+    }
+
+    /// [`PolicyOps::density_loss`] on the device: the points, drawn on the host, go through
+    /// the network in the batch's buffers (the scene's rays are done with them) in chunks
+    /// of the sample budget; the loss's derivative is taken on the host from the raw
+    /// outputs read back, and the backward pass adds into the gradient. Returns the points
+    /// where the derivative is not zero.
+    fn density_loss(
+        &mut self,
+        si: usize,
+        points: &[[f32; 3]],
+        d_loss: &(dyn Fn(f32) -> f32 + Sync),
+    ) -> GpuResult<u32> {
+        if si >= self.scenes.len() {
+            return input(format!(
+                "a density loss on scene {si} of {}",
+                self.scenes.len()
+            ));
+        }
+        let ctx = self.ctx;
+        let pos: Vec<[f32; 3]> = points.iter().map(|&p| self.marcher.warp(p)).collect();
+        let mut active = 0;
+        for chunk in pos.chunks(self.batch.sample_budget() as usize) {
+            let m = chunk.len() as u32;
+            let ld = m
+                .div_ceil(LD_GRANULE)
+                .saturating_mul(LD_GRANULE)
+                .min(self.batch.sample_budget());
+            let shape = GridShape { n_samples: m, ld };
+            // The colour's gradient is zero: any direction does.
+            let dirs = vec![[0.0f32, 0.0, 1.0]; chunk.len()];
+            ctx.scoped("density loss points", || {
+                ctx.queue
+                    .write_buffer(&self.batch.pos, 0, bytemuck::cast_slice(chunk));
+                ctx.queue
+                    .write_buffer(&self.dirs, 0, bytemuck::cast_slice(&dirs));
+            })?;
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.encode_network_forward(&mut encoder, si, shape)?;
+            ctx.scoped("density loss forward", || {
+                ctx.queue.submit([encoder.finish()])
+            })?;
+            let raw: Vec<[f32; 4]> = ctx.read_buffer(&self.raw, 16 * m as u64)?;
+            let d_raw: Vec<[f32; 4]> = raw
+                .iter()
+                .map(|r| {
+                    let g = d_loss(r[3]);
+                    active += (g != 0.0) as u32;
+                    [0.0, 0.0, 0.0, g]
+                })
+                .collect();
+            ctx.scoped("density loss gradient", || {
+                ctx.queue
+                    .write_buffer(&self.d_raw, 0, bytemuck::cast_slice(&d_raw));
+            })?;
+            let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.encode_network_backward(&mut encoder, si, shape)?;
+            ctx.scoped("density loss backward", || {
+                ctx.queue.submit([encoder.finish()])
+            })?;
+        }
+        Ok(active)
+    }
+
+    /// Weights to render with and to publish: the debiased EMA, read back.
+    pub fn inference_params(&self) -> GpuResult<Vec<f32>> {
+        self.optimizer.ema_params(self.ctx, &self.field.params)
+    }
+
+    /// The training weights (not the EMA), read back.
+    pub fn params(&self) -> GpuResult<Vec<f32>> {
+        self.ctx
+            .read_buffer(&self.field.params, 4 * self.field.layout().n_params as u64)
+    }
+
+    /// The gradient buffer, read back (for tests: between steps it holds what a step that
+    /// did not update the weights left for the next one, zero otherwise).
+    pub fn gradient(&self) -> GpuResult<Vec<f32>> {
+        self.ctx
+            .read_buffer(&self.grad, 4 * self.field.layout().n_params as u64)
+    }
+
+    /// The model as published (what [`Model::from_trainer`] makes of a CPU trainer): the
+    /// EMA weights with scene 0's grid, dataset and counters.
+    pub fn model(&self, loss: f32) -> GpuResult<Model> {
+        Model::from_parts(
+            self.model,
+            self.inference_params()?,
+            self.grid(0)?,
+            self.weight_steps,
+            loss,
+            &self.scenes[0].dataset,
+            self.batch_counters(0),
+        )
+        .map_err(|e| GpuError::Input(e.to_string()))
+    }
+}
+
+/// The device's side of [`PolicyOps`]: kernels recorded into one encoder that the trainer
+/// submits when the hook returns (a density loss submits what was recorded before it, then
+/// its own work).
+struct GpuOps<'t, 'c> {
+    t: &'t mut GpuTrainer<'c>,
+    encoder: Option<wgpu::CommandEncoder>,
+    penalised: u32,
+}
+
+impl GpuOps<'_, '_> {
+    /// The hold-back kernels, made on first use.
+    fn hold(&mut self) -> GpuResult<()> {
+        if self.t.hold.is_none() {
+            let layout = self.t.field.layout();
+            let h = GpuHoldBack::new(
+                self.t.ctx,
+                layout.n_params,
+                layout.n_mlp_params(),
+                layout.config.grid.n_features as usize,
+            )?;
+            self.t.hold = Some(h);
+        }
+        Ok(())
+    }
+
+    fn kept(&mut self) -> GpuResult<()> {
+        if self.t.kept.is_none() {
+            let n_matrix = self.t.field.layout().n_mlp_params();
+            self.t.kept = Some(GpuKeptMlp::new(self.t.ctx, n_matrix)?);
+        }
+        Ok(())
+    }
+
+    /// Submits what was recorded so far.
+    fn flush(&mut self) -> GpuResult<()> {
+        if let Some(e) = self.encoder.take() {
+            let ctx = self.t.ctx;
+            ctx.scoped("policy", || ctx.queue.submit([e.finish()]))?;
+        }
+        Ok(())
+    }
+
+    /// Records `f` on the hold-back kernels (made on first use) and the gradient.
+    fn record_held(
+        &mut self,
+        f: impl FnOnce(
+            &GpuHoldBack,
+            &GpuContext,
+            &mut wgpu::CommandEncoder,
+            &wgpu::Buffer,
+        ) -> GpuResult<()>,
+    ) -> ngp::Result<()> {
+        self.hold()?;
+        let t = &*self.t;
+        let encoder = self
+            .encoder
+            .get_or_insert_with(|| t.ctx.device.create_command_encoder(&Default::default()));
+        let h = t.hold.as_ref().expect("made above");
+        Ok(f(h, t.ctx, encoder, &t.grad)?)
+    }
+
+    /// Records `f` on the kept MLP gradient (made on first use) and the gradient.
+    fn record_kept(
+        &mut self,
+        f: impl FnOnce(&mut GpuKeptMlp, &mut wgpu::CommandEncoder, &wgpu::Buffer) -> GpuResult<()>,
+    ) -> ngp::Result<()> {
+        self.kept()?;
+        let t = &mut *self.t;
+        let encoder = self
+            .encoder
+            .get_or_insert_with(|| t.ctx.device.create_command_encoder(&Default::default()));
+        let k = t.kept.as_mut().expect("made above");
+        Ok(f(k, encoder, &t.grad)?)
+    }
+}
+
+impl PolicyOps for GpuOps<'_, '_> {
+    fn density_loss(
+        &mut self,
+        scene: usize,
+        points: &[[f32; 3]],
+        d_loss: &(dyn Fn(f32) -> f32 + Sync),
+    ) -> ngp::Result<u32> {
+        self.flush()?;
+        let n = self.t.density_loss(scene, points, d_loss)?;
+        self.penalised += n;
+        Ok(n)
+    }
+
+    fn open_gate(&mut self) -> ngp::Result<()> {
+        self.record_held(|h, ctx, encoder, grad| h.encode_open_gate(ctx, encoder, grad))
+    }
+
+    fn hold_back(&mut self) -> ngp::Result<()> {
+        self.record_held(|h, ctx, encoder, grad| h.encode_hold_back(ctx, encoder, grad))
+    }
+
+    fn keep_mlp(&mut self) -> ngp::Result<()> {
+        self.record_kept(|k, encoder, grad| k.encode_keep(encoder, grad))
+    }
+
+    fn restore_mlp(&mut self) -> ngp::Result<()> {
+        self.record_kept(|k, encoder, grad| k.encode_restore(encoder, grad))
+    }
+
+    fn update_bounds(&mut self, update: &mut dyn FnMut(&mut TableBounds)) -> ngp::Result<()> {
+        self.hold()?;
+        let t = &mut *self.t;
+        let grid = &t.field.layout().grid;
+        let (n_entries, f) = (grid.n_entries as usize, grid.config.n_features as usize);
+        let b = t
+            .bounds
+            .get_or_insert_with(|| TableBounds::new(n_entries, f));
+        update(b);
+        let h = t.hold.as_ref().expect("made above");
+        Ok(h.upload_bounds(t.ctx, b)?)
+    }
+}

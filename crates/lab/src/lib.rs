@@ -1,0 +1,15 @@
+//! The StegoNGP paper's experiments, and ours: each trains the models it needs on the given
+//! (or generated) scenes, evaluates held-out views, and writes a Markdown + JSON report with
+//! PNG image grids into its output directory.
+
+pub mod detectability;
+pub mod pairs;
+pub mod report;
+pub mod runs;
+pub mod setup;
+mod store;
+
+pub use detectability::{DetectOptions, run_detectability};
+pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};
+pub use runs::run_experiment;
+pub use setup::{ExpConfig, Experiment};

@@ -1,0 +1,583 @@
+//! The paper's main tables over cover/hidden pairs: for every pair, a plain model of the
+//! cover, a plain model of the hidden scene and a stego model of both, at the same budget
+//! per scene, scored on held-out views against ground truth (Table 1: PSNR, SSIM, LPIPS) and
+//! against the plain models' renders (the imperceptibility protocol of watermarking papers:
+//! how far does hiding move what the published model shows?).
+//!
+//! Budget: `--steps N` gives every scene N steps (a stego model of two scenes trains both,
+//! N steps each); `--minutes M` trains each cover's plain model for M minutes and gives
+//! every model of its pairs the number of steps that reached, so stego and plain models see
+//! the same number of samples per scene whatever the machine was doing meanwhile.
+//!
+//! Models live under `OUT/models/` (`OUT` is the experiment's folder), each with a sidecar
+//! JSON of everything the file depends on; a rerun with the same settings reuses every model
+//! whose sidecar matches, so rerunning the report trains nothing. A scene used by several
+//! pairs is trained once (per box and budget).
+
+use super::report::{Report, Table, save_grid};
+use super::setup::{
+    Budget, ExpConfig, Experiment, Scene, experiment_key, load_scene, train_scenes,
+};
+use super::store::reuse_or_train;
+use ngp::error::{Error, Result};
+use ngp::eval::{ground_truth, spread_views};
+use ngp::lpips::Lpips;
+use ngp::metrics::{psnr, ssim};
+use ngp::model::Model;
+use ngp::network::ModelConfig;
+use ngp::render::image::RenderOptions;
+use serde_json::{Value, json};
+use std::path::{Path, PathBuf};
+use stego::{Key, open_scene_on};
+
+/// Bumped when what a model file depends on changes meaning.
+const MODEL_FORMAT: u32 = 1;
+
+/// One cover/hidden pair.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PairSpec {
+    pub cover: PathBuf,
+    pub hidden: PathBuf,
+}
+
+impl std::str::FromStr for PairSpec {
+    type Err = Error;
+    /// `COVER:HIDDEN`, split at the last ':' that leaves two non-empty paths (so a Windows
+    /// drive letter in COVER still parses).
+    fn from_str(s: &str) -> Result<Self> {
+        let bad = || {
+            Error::Config(format!(
+                "pair '{s}': expected COVER:HIDDEN (two dataset folders)"
+            ))
+        };
+        let i = s.rfind(':').ok_or_else(bad)?;
+        let (c, h) = (&s[..i], &s[i + 1..]);
+        if c.is_empty() || h.is_empty() {
+            return Err(bad());
+        }
+        Ok(PairSpec {
+            cover: c.into(),
+            hidden: h.into(),
+        })
+    }
+}
+
+/// Reads a pairs file: JSON, either a list of `"COVER:HIDDEN"` strings or of
+/// `{"cover": …, "hidden": …}` objects, or an object `{"pairs": [ … ]}`. Relative paths are
+/// taken relative to the file's folder.
+pub fn read_pairs_file(path: &Path) -> Result<Vec<PairSpec>> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    let bad = |what: String| Error::Config(format!("{}: {what}", path.display()));
+    let v: Value = serde_json::from_slice(&bytes).map_err(|e| bad(format!("not JSON: {e}")))?;
+    let list = match &v {
+        Value::Array(a) => a,
+        Value::Object(o) => match o.get("pairs") {
+            Some(Value::Array(a)) => a,
+            _ => return Err(bad("expected a list of pairs or {\"pairs\": [...]}".into())),
+        },
+        _ => return Err(bad("expected a list of pairs or {\"pairs\": [...]}".into())),
+    };
+    let base = path.parent().unwrap_or(Path::new(""));
+    let mut out = Vec::new();
+    for (i, item) in list.iter().enumerate() {
+        let p = match item {
+            Value::String(s) => s
+                .parse::<PairSpec>()
+                .map_err(|e| bad(format!("pair {i}: {e}")))?,
+            Value::Object(o) => {
+                let field = |k: &str| {
+                    o.get(k)
+                        .and_then(Value::as_str)
+                        .map(PathBuf::from)
+                        .ok_or_else(|| bad(format!("pair {i}: missing string field '{k}'")))
+                };
+                PairSpec {
+                    cover: field("cover")?,
+                    hidden: field("hidden")?,
+                }
+            }
+            _ => {
+                return Err(bad(format!(
+                    "pair {i}: expected \"COVER:HIDDEN\" or an object"
+                )));
+            }
+        };
+        out.push(PairSpec {
+            cover: base.join(p.cover),
+            hidden: base.join(p.hidden),
+        });
+    }
+    if out.is_empty() {
+        return Err(bad("no pairs".into()));
+    }
+    Ok(out)
+}
+
+/// What `experiment pairs` adds to the shared configuration.
+#[derive(Clone, Debug, Default)]
+pub struct PairsOptions {
+    pub pairs: Vec<PairSpec>,
+    /// Train each cover's plain model this long and use its steps as the budget (instead of
+    /// `ExpConfig::steps`).
+    pub minutes: Option<f64>,
+    /// Score LPIPS (the slowest metric) as well as PSNR and SSIM.
+    pub lpips: bool,
+}
+
+/// Mean PSNR / SSIM / LPIPS over views.
+#[derive(Clone, Copy, Debug, Default)]
+struct Scores {
+    psnr: f64,
+    ssim: f64,
+    lpips: f64,
+    /// Views with an LPIPS value (too small an image has none).
+    n_lpips: usize,
+    n: usize,
+}
+
+impl Scores {
+    /// One view: `lpips` is its LPIPS when there is one.
+    fn add(&mut self, pred: &[f32], reference: &[f32], w: usize, h: usize, lpips: Option<f64>) {
+        self.push(psnr(pred, reference), ssim(pred, reference, w, h), lpips);
+    }
+
+    fn push(&mut self, psnr: f64, ssim: f64, lpips: Option<f64>) {
+        self.psnr += psnr;
+        self.ssim += ssim;
+        if let Some(d) = lpips {
+            self.lpips += d;
+            self.n_lpips += 1;
+        }
+        self.n += 1;
+    }
+
+    /// Adds `other`'s means as one item (Table 1 averages pairs, each its views' mean).
+    fn push_means(&mut self, other: &Scores) {
+        let n = other.n.max(1) as f64;
+        let lpips = (other.n_lpips > 0).then(|| other.lpips / other.n_lpips as f64);
+        self.push(other.psnr / n, other.ssim / n, lpips);
+    }
+
+    fn mean(&self) -> Value {
+        let n = self.n.max(1) as f64;
+        json!({
+            "psnr": round(self.psnr / n, 3),
+            "ssim": round(self.ssim / n, 4),
+            "lpips": (self.n_lpips > 0).then(|| round(self.lpips / self.n_lpips as f64, 4)),
+        })
+    }
+}
+
+fn round(x: f64, digits: i32) -> f64 {
+    let p = 10f64.powi(digits);
+    (x * p).round() / p
+}
+
+/// FNV-1a: a stable name for a configuration (file names, key numbers), not a secret.
+fn fnv64(s: &str) -> u64 {
+    s.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ b as u64).wrapping_mul(0x0000_0100_0000_01b3)
+    })
+}
+
+fn canonical(p: &Path) -> Result<PathBuf> {
+    std::fs::canonicalize(p).map_err(|e| Error::io(p, e))
+}
+
+fn scene_label(p: &Path) -> String {
+    let name: String = p
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into())
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    name
+}
+
+struct Models<'a> {
+    cfg: &'a ExpConfig,
+    dir: PathBuf,
+    trained: usize,
+    reused: usize,
+}
+
+/// A model file and what its sidecar says about its training.
+struct Stored {
+    model: Model,
+    steps: u32,
+    train_s: f64,
+    reused: bool,
+}
+
+impl Models<'_> {
+    /// Everything a model depends on besides its scenes and budget.
+    fn base_config(&self, box_scale: u32) -> Value {
+        let c = self.cfg;
+        let g = &c.grid;
+        json!({
+            "format": MODEL_FORMAT, "batch": c.batch,
+            "occupancy_fraction": c.occupancy_fraction.to_string(), "seed": c.seed,
+            "levels": g.n_levels, "features": g.n_features, "log2_t": g.log2_hashmap_size,
+            "base_resolution": g.base_resolution, "aabb_scale": box_scale,
+            "downscale": c.downscale, "hidden_downscale": c.hidden_downscale,
+        })
+    }
+
+    /// Reuses the model whose sidecar holds `config`, or trains it with `train` and stores
+    /// it (model first, sidecar last: a model without its sidecar is trained again).
+    fn get(
+        &mut self,
+        stem: &str,
+        config: Value,
+        train: impl FnOnce() -> Result<(Model, u32, f64)>,
+    ) -> Result<Stored> {
+        let tag = format!("{:016x}", fnv64(&config.to_string()));
+        let path = self.dir.join(format!("{stem}-{}.ingp", &tag[..8]));
+        let (v, reused) = reuse_or_train(&path, &config, self.cfg.verbose, || {
+            let (model, steps, train_s) = train()?;
+            let fields = json!({"steps": steps, "train_s": train_s});
+            Ok((model, fields.as_object().cloned().unwrap_or_default()))
+        })?;
+        if reused {
+            self.reused += 1;
+        } else {
+            self.trained += 1;
+        }
+        // Score what the file holds (half-precision weights), as a rerun does.
+        Ok(Stored {
+            model: Model::load(&path)?,
+            steps: v["steps"].as_u64().unwrap_or(0) as u32,
+            train_s: v["train_s"].as_f64().unwrap_or(f64::NAN),
+            reused,
+        })
+    }
+}
+
+/// The renders and scores of one scene of a pair: plain model and stego model, each against
+/// ground truth, and the stego model against the plain one.
+struct SceneScores {
+    plain: Scores,
+    stego: Scores,
+    stego_vs_plain: Scores,
+    /// First evaluated view: ground truth, plain, stego.
+    tiles: Vec<Vec<f32>>,
+    size: (u32, u32),
+}
+
+fn score_scene(
+    cfg: &ExpConfig,
+    scene: &Scene,
+    plain: &Model,
+    stego: &Model,
+    stego_key: &Key,
+    lp: Option<&Lpips>,
+) -> Result<SceneScores> {
+    let pi = Key::reference();
+    // The plain model is a one-scene model: its own stored grid. The stego model is opened
+    // as its user would: the cover from the file, a hidden scene through its key.
+    let device = &cfg.device;
+    let p_open = open_scene_on(device, plain, Some(&pi), false, cfg.seed)?;
+    let s_open = open_scene_on(device, stego, Some(stego_key), cfg.stealth(), cfg.seed)?;
+    let mut p_render = p_open.renderer(device, plain)?;
+    let mut s_render = s_open.renderer(device, stego)?;
+    let opts = RenderOptions::default();
+    let which = spread_views(scene.test.frames.len(), cfg.eval_views);
+    let mut out = SceneScores {
+        plain: Scores::default(),
+        stego: Scores::default(),
+        stego_vs_plain: Scores::default(),
+        tiles: Vec::new(),
+        size: (0, 0),
+    };
+    for &i in &which {
+        let cam = &scene.test.frames[i].camera;
+        let a = p_render.render(cam, &opts)?;
+        let b = s_render.render(cam, &opts)?;
+        let gt = ground_truth(&scene.test, i, opts.background);
+        let (w, h) = (a.width as usize, a.height as usize);
+        // Each image goes through the LPIPS network once for its three comparisons.
+        let feats = lp.map(|l| {
+            let (fg, (fa, fb)) = rayon::join(
+                || l.features(&gt, w, h),
+                || rayon::join(|| l.features(&a.rgb, w, h), || l.features(&b.rgb, w, h)),
+            );
+            (l, fg, fa, fb)
+        });
+        let d = |x: usize, y: usize| {
+            let (l, fg, fa, fb) = feats.as_ref()?;
+            let f = [fg, fa, fb];
+            Some(l.distance_features(f[x].as_ref()?, f[y].as_ref()?))
+        };
+        out.plain.add(&a.rgb, &gt, w, h, d(1, 0));
+        out.stego.add(&b.rgb, &gt, w, h, d(2, 0));
+        out.stego_vs_plain.add(&b.rgb, &a.rgb, w, h, d(2, 1));
+        if out.tiles.is_empty() {
+            out.size = (a.width, a.height);
+            out.tiles = vec![gt, a.rgb, b.rgb];
+        }
+    }
+    Ok(out)
+}
+
+/// Runs the pairs experiment and writes its report into `cfg.out`.
+pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
+    if opts.pairs.is_empty() {
+        return Err(Error::Config("pairs: no cover/hidden pair given".into()));
+    }
+    if let Some(m) = opts.minutes
+        && !(m > 0.0 && m.is_finite())
+    {
+        return Err(Error::Config(format!(
+            "--minutes must be positive, not {m}"
+        )));
+    }
+    // Every scene must exist before hours of training start.
+    let pairs = opts
+        .pairs
+        .iter()
+        .map(|p| Ok((canonical(&p.cover)?, canonical(&p.hidden)?)))
+        .collect::<Result<Vec<_>>>()?;
+    let models_dir = cfg.out.join("models");
+    std::fs::create_dir_all(&models_dir).map_err(|e| Error::io(&models_dir, e))?;
+    let lp = opts.lpips.then(Lpips::embedded);
+    let mut models = Models {
+        cfg,
+        dir: models_dir,
+        trained: 0,
+        reused: 0,
+    };
+    let pi = Key::reference();
+    let mut per_pair = Table::new("Per pair: held-out views against ground truth");
+    let mut imperceptibility = Table::new(
+        "Stego against plain: the stego model's renders scored against the plain model's",
+    );
+    let mut budgets = Table::new("Budget and training time per model");
+    let mut report = Report {
+        name: Experiment::Pairs.to_string(),
+        ..Default::default()
+    };
+    // Sums for Table 1: [plain cover, stego cover, plain hidden, stego hidden].
+    let mut table1 = [Scores::default(); 4];
+    let t_all = std::time::Instant::now();
+    for (k, (cover_dir, hidden_dir)) in pairs.iter().enumerate() {
+        let (cl, hl) = (scene_label(cover_dir), scene_label(hidden_dir));
+        if cfg.verbose {
+            eprintln!("pair {}/{}: {cl} : {hl}", k + 1, pairs.len());
+        }
+        let cover = load_scene(cover_dir, cfg.downscale, None)?;
+        let box_scale = cover.train.aabb_scale;
+        let hidden = load_scene(hidden_dir, cfg.hidden_downscale, Some(box_scale))?;
+        let config = ModelConfig {
+            grid: cfg.grid,
+            aabb_scale: box_scale,
+        };
+        let base = models.base_config(box_scale);
+        let budget_json = match opts.minutes {
+            Some(m) => json!({"minutes": m.to_string()}),
+            None => json!({"steps": cfg.steps}),
+        };
+        let plain_c = models.get(
+            &format!("plain-{cl}"),
+            json!({"base": base, "role": "plain", "scene": cover_dir, "downscale": cfg.downscale, "budget": budget_json}),
+            || {
+                let budget = match opts.minutes {
+                    Some(m) => Budget::Seconds(m * 60.0),
+                    None => Budget::Steps(cfg.steps),
+                };
+                let t = train_scenes(cfg, config, &[(&cover, &pi)], budget, &format!("plain {cl}"))?;
+                Ok((t.model, t.steps, t.seconds))
+            },
+        )?;
+        let steps = plain_c.steps;
+        if steps == 0 {
+            return Err(Error::Other(format!(
+                "the plain model of {} has no recorded step count; delete it to retrain",
+                cover_dir.display()
+            )));
+        }
+        let plain_h = models.get(
+            &format!("plain-{hl}"),
+            json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps}),
+            || {
+                let t = train_scenes(cfg, config, &[(&hidden, &pi)], Budget::Steps(steps), &format!("plain {hl}"))?;
+                Ok((t.model, t.steps, t.seconds))
+            },
+        )?;
+        // The key is a function of the pair and the seed, so reordering pairs reuses models.
+        let which = fnv64(&format!(
+            "{}\0{}",
+            cover_dir.display(),
+            hidden_dir.display()
+        ));
+        let key = experiment_key(cfg.scheme, 1, cfg.seed, which, &hidden)?;
+        let mut stego_config = json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
+        "steps": steps, "scheme": cfg.scheme.name(), "key": which,
+        "schedule": format!("{:?}", cfg.training.schedule),
+        // A stealth model trained before stealth paced the table, before its optimizer
+        // kept the cover's clock, or before the cover's density was capped, is not reused.
+        "stealth": match (cfg.stealth(), cfg.trains_cover_only_mlp()) {
+            (false, _) => json!(false),
+            (true, false) => json!("paced on the cover's clock, density capped, left entries bounded"),
+            (true, true) => json!(
+                "paced on the cover's clock, density capped, left entries bounded, cover-only MLP"
+            ),
+        }});
+        cfg.record_hidden_options(&mut stego_config);
+        if cfg.stealth() {
+            cfg.record_density_cap(&mut stego_config);
+        }
+        let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, || {
+            let t = train_scenes(
+                cfg,
+                config,
+                &[(&cover, &pi), (&hidden, &key)],
+                Budget::Steps(steps),
+                &format!("stego {cl} + {hl}"),
+            )?;
+            Ok((t.model, t.steps, t.seconds))
+        })?;
+        let t_eval = std::time::Instant::now();
+        let sc = score_scene(cfg, &cover, &plain_c.model, &stego.model, &pi, lp)?;
+        let sh = score_scene(cfg, &hidden, &plain_h.model, &stego.model, &key, lp)?;
+        let eval_s = t_eval.elapsed().as_secs_f64();
+        for (acc, s) in table1
+            .iter_mut()
+            .zip([&sc.plain, &sc.stego, &sh.plain, &sh.stego])
+        {
+            acc.push_means(s);
+        }
+        let row = |label: &str, s: &Scores| {
+            let m = s.mean();
+            json!({"pair": format!("{cl} : {hl}"), "scene": label,
+                   "PSNR": m["psnr"], "SSIM": m["ssim"], "LPIPS": m["lpips"], "views": s.n})
+        };
+        per_pair.push(row("cover, plain", &sc.plain));
+        per_pair.push(row("cover, stego", &sc.stego));
+        per_pair.push(row("hidden, plain", &sh.plain));
+        per_pair.push(row("hidden, stego", &sh.stego));
+        imperceptibility.push(row("cover", &sc.stego_vs_plain));
+        imperceptibility.push(row("hidden", &sh.stego_vs_plain));
+        for (label, m) in [
+            ("plain cover", &plain_c),
+            ("plain hidden", &plain_h),
+            ("stego", &stego),
+        ] {
+            budgets.push(json!({"pair": format!("{cl} : {hl}"), "model": label,
+                "steps per scene": m.steps, "train s": round(m.train_s, 1),
+                "reused": m.reused}));
+        }
+        budgets.push(
+            json!({"pair": format!("{cl} : {hl}"), "model": "scoring (all four scenes)",
+            "train s": round(eval_s, 1)}),
+        );
+        for (scene, s) in [("cover", &sc), ("hidden", &sh)] {
+            let file = format!("pair{}_{scene}.png", k + 1);
+            save_grid(&cfg.out.join(&file), &s.tiles, s.size.0, s.size.1, 3)?;
+            report.figures.push((
+                file,
+                format!(
+                    "pair {} ({cl} : {hl}), {scene}: ground truth | plain | stego",
+                    k + 1
+                ),
+            ));
+        }
+    }
+    let mut t1 = Table::new("Table 1: averages over pairs (held-out views, against ground truth)");
+    for (method, c, h) in [
+        ("Instant-NGP (plain)", &table1[0], &table1[2]),
+        ("StegoNGP", &table1[1], &table1[3]),
+    ] {
+        let (cm, hm) = (c.mean(), h.mean());
+        t1.push(json!({"method": method,
+            "cover PSNR": cm["psnr"], "cover SSIM": cm["ssim"], "cover LPIPS": cm["lpips"],
+            "hidden PSNR": hm["psnr"], "hidden SSIM": hm["ssim"], "hidden LPIPS": hm["lpips"],
+            "pairs": c.n}));
+    }
+    report.setup = json!({
+        "pairs": pairs.iter().map(|(c, h)| json!({"cover": c, "hidden": h})).collect::<Vec<_>>(),
+        "budget": match opts.minutes { Some(m) => json!({"minutes_of_plain_cover": m}), None => json!({"steps_per_scene": cfg.steps}) },
+        "batch_samples_per_scene": cfg.batch, "seed": cfg.seed, "eval_views": cfg.eval_views,
+        "occupancy_fraction": cfg.occupancy_fraction, "levels": cfg.grid.n_levels,
+        "features": cfg.grid.n_features, "log2_hashmap_size": cfg.grid.log2_hashmap_size,
+        "scheme": cfg.scheme.name(), "schedule": format!("{:?}", cfg.training.schedule),
+        "stealth": cfg.stealth(), "hidden_from_step": cfg.training.hidden_from,
+        "hidden_loss_weight": cfg.training.hidden_weight, "lpips": opts.lpips,
+        "models_trained": models.trained, "models_reused": models.reused,
+        "seconds": round(t_all.elapsed().as_secs_f64(), 1),
+        "threads": rayon::current_num_threads(),
+    });
+    report.notes.push(format!(
+        "Every pair: a plain model of the cover, a plain model of the hidden scene (in the \
+         cover's box) and a stego model of both, {} per scene; the cover is scored without a \
+         key, the hidden scene through its key ({} m = 1, occupancy grid rebuilt as a key \
+         holder does). LPIPS: AlexNet, v0.1 linear layers. {} models trained, {} reused.",
+        match opts.minutes {
+            Some(m) => format!("the steps the plain cover reached in {m} min"),
+            None => format!("{} steps", cfg.steps),
+        },
+        cfg.scheme.name(),
+        models.trained,
+        models.reused
+    ));
+    report.tables = vec![t1, per_pair, imperceptibility, budgets];
+    report.write(&cfg.out)?;
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pair_specs_parse_at_the_last_colon() {
+        let p: PairSpec = "a/lego:b/text".parse().unwrap();
+        assert_eq!(p.cover, PathBuf::from("a/lego"));
+        assert_eq!(p.hidden, PathBuf::from("b/text"));
+        let p: PairSpec = "C:/data/lego:text".parse().unwrap();
+        assert_eq!(p.cover, PathBuf::from("C:/data/lego"));
+        assert!("lego".parse::<PairSpec>().is_err());
+        assert!("lego:".parse::<PairSpec>().is_err());
+        assert!(":text".parse::<PairSpec>().is_err());
+    }
+
+    #[test]
+    fn pairs_files_take_strings_objects_and_relative_paths() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("pairs.json");
+        std::fs::write(
+            &f,
+            r#"{"pairs": ["lego:text", {"cover": "/abs/fox", "hidden": "logo"}]}"#,
+        )
+        .unwrap();
+        let p = read_pairs_file(&f).unwrap();
+        assert_eq!(p.len(), 2);
+        assert_eq!(p[0].cover, dir.path().join("lego"));
+        assert_eq!(p[0].hidden, dir.path().join("text"));
+        assert_eq!(p[1].cover, PathBuf::from("/abs/fox"));
+        for bad in [
+            "[]",
+            "{\"x\": 1}",
+            "[{\"cover\": \"a\"}]",
+            "[3]",
+            "not json",
+        ] {
+            std::fs::write(&f, bad).unwrap();
+            let e = read_pairs_file(&f).unwrap_err().to_string();
+            assert!(e.contains("pairs.json"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn fnv_is_the_published_function() {
+        // FNV-1a 64 test vectors (Fowler/Noll/Vo): "" and "a".
+        assert_eq!(fnv64(""), 0xcbf2_9ce4_8422_2325);
+        assert_eq!(fnv64("a"), 0xaf63_dc4c_8601_ec8c);
+    }
+}

@@ -1,0 +1,490 @@
+//! What every experiment shares: the experiments' names, their configuration, the scenes
+//! they load, their keys, and training and scoring one model through the one recipe
+//! ([`stego::recipe`]).
+
+use backend::Device;
+use ngp::data::{Dataset, LoadOptions, Split};
+use ngp::encoding::GridConfig;
+use ngp::error::{Error, Result};
+use ngp::eval::{EvalResult, evaluate_on, spread_views};
+use ngp::lpips::Lpips;
+use ngp::model::Model;
+use ngp::network::ModelConfig;
+use ngp::render::image::RenderOptions;
+use ngp::rng::Pcg32;
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+pub use stego::recipe::Budget;
+use stego::recipe::{HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss};
+use stego::{Key, SchemeKind, generate_with, open_scene_on};
+
+/// One of the experiments, named as `stegongp experiment NAME` takes it; the name is also
+/// its report's folder and its report's `experiment` field.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Experiment {
+    Fidelity,
+    KeySensitivity,
+    PartialKeys,
+    MultiHidden,
+    TableSize,
+    KeyStrength,
+    Detectability,
+    Pairs,
+}
+
+impl Experiment {
+    /// Every experiment, in the order the CLI lists them.
+    pub const ALL: [Experiment; 8] = [
+        Experiment::Fidelity,
+        Experiment::KeySensitivity,
+        Experiment::PartialKeys,
+        Experiment::MultiHidden,
+        Experiment::TableSize,
+        Experiment::KeyStrength,
+        Experiment::Detectability,
+        Experiment::Pairs,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Experiment::Fidelity => "fidelity",
+            Experiment::KeySensitivity => "key-sensitivity",
+            Experiment::PartialKeys => "partial-keys",
+            Experiment::MultiHidden => "multi-hidden",
+            Experiment::TableSize => "table-size",
+            Experiment::KeyStrength => "key-strength",
+            Experiment::Detectability => "detectability",
+            Experiment::Pairs => "pairs",
+        }
+    }
+}
+
+impl std::fmt::Display for Experiment {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Experiment {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Experiment::ALL
+            .into_iter()
+            .find(|e| e.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<&str> = Experiment::ALL.iter().map(|e| e.name()).collect();
+                Error::Config(format!(
+                    "unknown experiment '{s}' (one of: {})",
+                    names.join(", ")
+                ))
+            })
+    }
+}
+
+/// An experiment's key number `which` of `kind` for `m` groups, for `hidden`: drawn from the
+/// run's seed, so a report can be reproduced exactly (these keys protect nothing). Like
+/// `keygen --aabb-scale`, the key names the hidden scene's own box, so that a key holder's
+/// grid (and a wrong key's) is cut to it inside a larger cover's box.
+pub(crate) fn experiment_key(
+    kind: SchemeKind,
+    m: usize,
+    seed: u64,
+    which: u64,
+    hidden: &Scene,
+) -> Result<Key> {
+    let mut rng = Pcg32::new(seed ^ 0x6b65_7973, (which << 8) | m as u64);
+    let next = move || Ok(((rng.next_u32() as u64) << 32) | rng.next_u32() as u64);
+    generate_with(kind, m, next)?.with_scene_box(Some(hidden.own_box))
+}
+
+/// What every experiment shares.
+#[derive(Clone, Debug)]
+pub struct ExpConfig {
+    pub out: PathBuf,
+    pub cover: PathBuf,
+    /// Hidden scenes; experiments that need more than given reuse them cyclically.
+    pub hidden: Vec<PathBuf>,
+    /// Downscale of the cover's images.
+    pub downscale: u32,
+    /// Downscale of the hidden scenes' images (each scene has its own native resolution).
+    pub hidden_downscale: u32,
+    /// Training steps of every model (a stego model trains each scene this many steps).
+    pub steps: u32,
+    /// Samples per scene per step.
+    pub batch: u32,
+    pub seed: u64,
+    pub eval_views: usize,
+    pub occupancy_fraction: f32,
+    pub grid: GridConfig,
+    pub scheme: SchemeKind,
+    /// How every model with hidden scenes trains them: schedule, weight, the cover's
+    /// warm-up, stealth (models without hidden scenes train plain; see
+    /// [`HiddenOptions::applied`]). Detectability's stealth options are its stealth arm's.
+    pub training: HiddenOptions,
+    /// Score LPIPS beside PSNR and SSIM (the `--no-lpips` flag turns it off).
+    pub lpips: bool,
+    /// Progress lines on stderr.
+    pub verbose: bool,
+    /// Where every model trains and renders (shared: one device for the whole run).
+    pub device: Arc<Device>,
+}
+
+impl ExpConfig {
+    /// Whether this configuration's models learn their MLP from the cover alone: only
+    /// stealth training does.
+    pub fn trains_cover_only_mlp(&self) -> bool {
+        self.training.stealth.enabled && self.training.stealth.cover_only_mlp
+    }
+
+    /// Whether the models with hidden scenes train with stealth.
+    pub fn stealth(&self) -> bool {
+        self.training.stealth.enabled
+    }
+
+    /// Adds to a model-with-hidden-scenes sidecar config the training options that are not
+    /// at their defaults (warm-up, hidden weight), and nothing else: a model trained before
+    /// an option existed keeps a sidecar that still matches, and is reused.
+    pub(crate) fn record_hidden_options(&self, config: &mut serde_json::Value) {
+        if self.training.hidden_from > 0 {
+            config["hidden_from_step"] = json!(self.training.hidden_from);
+        }
+        if self.training.hidden_weight != 1.0 {
+            // A string: serde_json's float parsing does not round-trip every f64 exactly.
+            config["hidden_loss_weight"] = json!(self.training.hidden_weight.to_string());
+        }
+    }
+
+    /// Adds a stealth model's cap to its sidecar when not the default (so that models
+    /// trained at the default stay reusable).
+    pub(crate) fn record_density_cap(&self, config: &mut serde_json::Value) {
+        if let Some(c) = self.training.stealth.density_cap {
+            config["density_cap"] = json!(c.to_string());
+        }
+    }
+}
+
+pub(crate) struct Scene {
+    pub train: Arc<Dataset>,
+    pub test: Dataset,
+    pub name: String,
+    /// The scene's own box (its aabb_scale as loaded, before it took the cover's).
+    pub own_box: u32,
+}
+
+/// Loads a scene's splits, placed in the box of `aabb_scale` when given (hidden scenes take
+/// the cover's: every model of an experiment shares the cover's box).
+pub(crate) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) -> Result<Scene> {
+    let opts = LoadOptions {
+        downscale,
+        ..Default::default()
+    };
+    let mut train = Dataset::load(dir, Split::Train, &opts)?;
+    let mut test = Dataset::load(dir, Split::Test, &opts)?;
+    let own_box = train.aabb_scale;
+    if let Some(a) = aabb_scale {
+        train.fit_into_box(a, None)?;
+        test.fit_into_box(a, None)?;
+    }
+    Ok(Scene {
+        train: Arc::new(train),
+        test,
+        name: dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| dir.display().to_string()),
+        own_box,
+    })
+}
+
+/// An experiment's loaded scenes, and what it does with them.
+pub(crate) struct Ctx<'a> {
+    pub(crate) cfg: &'a ExpConfig,
+    pub(crate) cover: Scene,
+    pub(crate) hidden: Vec<Scene>,
+}
+
+/// A trained model and how long its training took.
+pub(crate) struct Trained {
+    pub model: Model,
+    pub seconds: f64,
+    pub samples_per_s: f64,
+    /// Steps per scene (a random-scene schedule ran this many times the scene count).
+    pub steps: u32,
+}
+
+/// Trains one model of `config` on `scenes` (dataset, key; the cover first, under the
+/// reference key) with the experiment's batch, seed and training options, through the one
+/// recipe. `Budget::Steps(n)` gives every scene n steps, whatever the schedule.
+pub(crate) fn train_scenes(
+    cfg: &ExpConfig,
+    config: ModelConfig,
+    scenes: &[(&Scene, &Key)],
+    budget: Budget,
+    label: &str,
+) -> Result<Trained> {
+    let Some(((cover, _), hidden)) = scenes.split_first() else {
+        return Err(Error::Config(format!("{label}: no scene to train")));
+    };
+    let options = cfg.training.applied(hidden.len());
+    let n_scenes = scenes.len();
+    let per_round = options.steps_per_round(n_scenes);
+    let recipe = Recipe {
+        model: config,
+        cover: cover.train.clone(),
+        hidden: hidden
+            .iter()
+            .map(|(s, k)| HiddenScene {
+                dataset: s.train.clone(),
+                key: (*k).clone(),
+                key_name: format!("the key of {}", s.name),
+            })
+            .collect(),
+        steps: StepOptions {
+            seed: cfg.seed,
+            batch: cfg.batch,
+            occupancy_fraction: cfg.occupancy_fraction,
+            workers: 0,
+        },
+        options,
+        budget: match budget {
+            Budget::Steps(n) => Budget::Steps(options.steps_for(n, n_scenes)),
+            b => b,
+        },
+        stored_loss: StoredLoss::Last,
+    };
+    let in_label = |e: Error| Error::Other(format!("{label}: {e}"));
+    let mut training = recipe.start(&cfg.device).map_err(in_label)?;
+    training.run(|_, _| Ok(()))?;
+    let trained = training.finish().map_err(in_label)?;
+    let t = trained.totals;
+    if cfg.verbose {
+        eprintln!(
+            "  trained {label}: {} steps in {:.1} s ({:.0} k samples/s), loss {:.5}",
+            t.steps,
+            t.seconds,
+            t.samples_per_second() / 1e3,
+            trained.model.loss
+        );
+    }
+    Ok(Trained {
+        model: trained.model,
+        seconds: t.seconds,
+        samples_per_s: t.samples_per_second(),
+        steps: t.steps / per_round,
+    })
+}
+
+impl Ctx<'_> {
+    pub(crate) fn model_config(&self, grid: GridConfig) -> ModelConfig {
+        ModelConfig {
+            grid,
+            aabb_scale: self.cover.train.aabb_scale,
+        }
+    }
+
+    pub(crate) fn log(&self, msg: &str) {
+        if self.cfg.verbose {
+            eprintln!("{msg}");
+        }
+    }
+
+    /// Trains one model on `scenes` (dataset, key) for `cfg.steps` steps per scene — the
+    /// cover uses the reference key.
+    pub(crate) fn train(
+        &self,
+        grid: GridConfig,
+        scenes: &[(&Scene, &Key)],
+        label: &str,
+    ) -> Result<Trained> {
+        train_scenes(
+            self.cfg,
+            self.model_config(grid),
+            scenes,
+            Budget::Steps(self.cfg.steps),
+            label,
+        )
+    }
+
+    pub(crate) fn render_opts(&self) -> RenderOptions {
+        RenderOptions::default()
+    }
+
+    /// Scores `model` seen through `key` on `scene`'s held-out views; the occupancy grid is
+    /// the stored one for the reference key, otherwise rebuilt from the network with the key
+    /// (what a key holder — or an attacker trying a key — does). Returns the scores and the
+    /// rendering of the first evaluated view.
+    pub(crate) fn score(
+        &self,
+        model: &Model,
+        key: &Key,
+        scene: &Scene,
+    ) -> Result<(EvalResult, Vec<f32>)> {
+        let device = &self.cfg.device;
+        let opened = open_scene_on(device, model, Some(key), self.cfg.stealth(), self.cfg.seed)?;
+        let mut renderer = opened.renderer(device, model)?;
+        let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
+        let mut first = None;
+        let r = evaluate_on(
+            renderer.as_mut(),
+            &scene.test,
+            &self.render_opts(),
+            Some(&which),
+            self.cfg.lpips.then(Lpips::embedded),
+            |_, img, _| {
+                if first.is_none() {
+                    first = Some(img.rgb.clone());
+                }
+            },
+        )?;
+        Ok((r, first.unwrap_or_default()))
+    }
+
+    pub(crate) fn gt(&self, scene: &Scene) -> Vec<f32> {
+        let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
+        ngp::eval::ground_truth(&scene.test, which[0], [1.0; 3])
+    }
+
+    pub(crate) fn size(&self) -> (u32, u32) {
+        (self.cover.test.width, self.cover.test.height)
+    }
+
+    pub(crate) fn hidden(&self, i: usize) -> &Scene {
+        &self.hidden[i % self.hidden.len()]
+    }
+}
+
+/// The report's record of the configuration.
+pub(crate) fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
+    json!({
+        "cover": cfg.cover, "hidden": cfg.hidden, "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
+        "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
+        "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
+        "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
+        "log2_hashmap_size": cfg.grid.log2_hashmap_size, "scheme": cfg.scheme.name(),
+        "schedule": format!("{:?}", cfg.training.schedule), "stealth": cfg.stealth(),
+        "cover_only_mlp": cfg.trains_cover_only_mlp(), "hidden_from_step": cfg.training.hidden_from,
+        "hidden_loss_weight": cfg.training.hidden_weight, "density_cap": cfg.training.stealth.density_cap, "lpips": cfg.lpips,
+        "threads": rayon::current_num_threads(), "device": cfg.device.report(),
+    })
+}
+
+/// One model of an experiment that trains many scene pairs (detectability), with its
+/// held-out scores.
+pub(crate) struct PairRun {
+    pub model: Model,
+    pub train_seconds: f64,
+    /// Scoring both scenes (for the hidden one, rebuilding its occupancy grid first).
+    pub eval_seconds: f64,
+    pub cover: EvalResult,
+    pub hidden: Option<EvalResult>,
+}
+
+/// Trains `cfg.cover` alone (`key: None`), or with `cfg.hidden[0]` under key number `key`
+/// of `cfg.scheme` (m = 1, drawn from `cfg.seed`), and scores the cover without a key and
+/// the hidden scene with its key on held-out views: the same training (schedule, stealth)
+/// and viewing as every other experiment, one scene pair at a time.
+pub(crate) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Result<PairRun> {
+    let cover = load_scene(&cfg.cover, cfg.downscale, None)?;
+    let box_scale = Some(cover.train.aabb_scale);
+    let hidden = match (key, cfg.hidden.first()) {
+        (None, _) => Vec::new(),
+        (Some(_), Some(h)) => vec![load_scene(h, cfg.hidden_downscale, box_scale)?],
+        (Some(_), None) => {
+            return Err(Error::Config("a stego model needs a hidden scene".into()));
+        }
+    };
+    let ctx = Ctx { cfg, cover, hidden };
+    let pi = Key::reference();
+    let key = key
+        .map(|which| experiment_key(cfg.scheme, 1, cfg.seed, which, &ctx.hidden[0]))
+        .transpose()?;
+    let mut scenes = vec![(&ctx.cover, &pi)];
+    if let Some(k) = &key {
+        scenes.push((&ctx.hidden[0], k));
+    }
+    let trained = ctx.train(cfg.grid, &scenes, label)?;
+    let t0 = std::time::Instant::now();
+    let (cover, _) = ctx.score(&trained.model, &pi, &ctx.cover)?;
+    let hidden = key
+        .as_ref()
+        .map(|k| ctx.score(&trained.model, k, &ctx.hidden[0]).map(|r| r.0))
+        .transpose()?;
+    Ok(PairRun {
+        model: trained.model,
+        train_seconds: trained.seconds,
+        eval_seconds: t0.elapsed().as_secs_f64(),
+        cover,
+        hidden,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{Experiment, experiment_key, load_scene};
+    use stego::SchemeKind;
+    use synth::{SceneKind, SynthOptions, generate};
+
+    #[test]
+    fn experiment_keys_name_the_hidden_scenes_own_box() {
+        let d = tempfile::tempdir().unwrap();
+        for (name, aabb_scale) in [("one", 1), ("four", 4)] {
+            generate(
+                &SynthOptions {
+                    scene: SceneKind::Object,
+                    resolution: 8,
+                    n_train: 2,
+                    n_val: 0,
+                    n_test: 1,
+                    seed: 1,
+                    aabb_scale,
+                },
+                &d.path().join(name),
+            )
+            .unwrap();
+        }
+        // In a cover's box of 8, each scene keeps its own box in its key (as `keygen
+        // --aabb-scale` would write it) and the same index as a key of the same number.
+        let one = load_scene(&d.path().join("one"), 1, Some(8)).unwrap();
+        let four = load_scene(&d.path().join("four"), 1, Some(8)).unwrap();
+        assert_eq!((one.train.aabb_scale, four.test.aabb_scale), (8, 8));
+        for scheme in [SchemeKind::Prf, SchemeKind::Primes] {
+            let k1 = experiment_key(scheme, 4, 3, 0, &one).unwrap();
+            let k4 = experiment_key(scheme, 4, 3, 0, &four).unwrap();
+            assert_eq!((k1.scene_box(), k4.scene_box()), (Some(1), Some(4)));
+            assert!(k1.same_index(&k4));
+            assert!(!k1.same_index(&experiment_key(scheme, 4, 3, 1, &one).unwrap()));
+        }
+    }
+
+    #[test]
+    fn experiment_names_read_back_and_name_the_report_folders() {
+        // The names are the CLI's and the report folders' (OUT/NAME/): they must not change.
+        let names: Vec<String> = Experiment::ALL.iter().map(|e| e.to_string()).collect();
+        assert_eq!(
+            names,
+            [
+                "fidelity",
+                "key-sensitivity",
+                "partial-keys",
+                "multi-hidden",
+                "table-size",
+                "key-strength",
+                "detectability",
+                "pairs"
+            ]
+        );
+        for e in Experiment::ALL {
+            assert_eq!(e.to_string().parse::<Experiment>().unwrap(), e);
+            assert_eq!(e.name(), e.to_string());
+        }
+        for bad in ["Fidelity", "key_strength", "", "pair"] {
+            let err = bad.parse::<Experiment>().unwrap_err().to_string();
+            assert!(
+                err.contains(&format!("unknown experiment '{bad}'")),
+                "{err}"
+            );
+            assert!(err.contains(&names.join(", ")), "{err}");
+        }
+    }
+}

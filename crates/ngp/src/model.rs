@@ -1,0 +1,171 @@
+//! A trained model as it is published: architecture, inference (EMA) weights and the cover's
+//! occupancy grid, stored as an instant-ngp snapshot.
+
+use crate::data::Dataset;
+use crate::encoding::LevelIndices;
+use crate::error::{Error, Result};
+use crate::network::ModelConfig;
+use crate::network::nerf::NerfNetwork;
+use crate::occupancy::OccupancyGrid;
+use crate::render::image::SceneView;
+use crate::render::march::Marcher;
+use crate::snapshot::{self, DatasetImage, Lens, Snapshot, SnapshotDataset};
+use crate::train::Trainer;
+use std::path::Path;
+
+pub struct Model {
+    pub config: ModelConfig,
+    pub net: NerfNetwork,
+    pub params: Vec<f32>,
+    /// The cover's occupancy grid (the only one a file holds).
+    pub grid: OccupancyGrid,
+    pub training_step: u32,
+    pub loss: f32,
+    /// The cover's training cameras (what instant-ngp stores under `nerf.dataset`); never a
+    /// hidden scene's.
+    pub dataset: Option<SnapshotDataset>,
+    /// Rays per batch, trained and marched samples of the cover's last step.
+    pub batch_counters: (u32, u32, u32),
+}
+
+impl Model {
+    pub fn from_trainer(t: &Trainer, loss: f32) -> Self {
+        Model::from_parts(
+            t.net.layout.config,
+            t.inference_params(),
+            t.grid(0).clone(),
+            t.weight_steps,
+            loss,
+            t.dataset(0),
+            t.batch_counters(0),
+        )
+        .expect("a trainer's config and parameters are consistent")
+    }
+
+    /// A model from any backend's state: the inference (EMA) weights, the cover's grid and
+    /// its training images' metadata (what [`Self::from_trainer`] takes from a CPU trainer).
+    pub fn from_parts(
+        config: ModelConfig,
+        params: Vec<f32>,
+        grid: OccupancyGrid,
+        training_step: u32,
+        loss: f32,
+        dataset: &Dataset,
+        batch_counters: (u32, u32, u32),
+    ) -> Result<Self> {
+        let net = NerfNetwork::new(config)?;
+        if params.len() != net.layout.n_params {
+            return Err(Error::Config(format!(
+                "{} parameters for a {}-parameter network",
+                params.len(),
+                net.layout.n_params
+            )));
+        }
+        Ok(Model {
+            config,
+            net,
+            params,
+            grid,
+            training_step,
+            loss,
+            dataset: Some(snapshot_dataset(dataset)),
+            batch_counters,
+        })
+    }
+
+    pub fn load(path: &Path) -> Result<Self> {
+        let snap = snapshot::load(path)?;
+        let net = NerfNetwork::new(snap.config)?;
+        if snap.params.len() != net.layout.n_params {
+            return Err(Error::format(
+                path,
+                format!(
+                    "params_binary holds {} parameters, the configuration needs {}",
+                    snap.params.len(),
+                    net.layout.n_params
+                ),
+            ));
+        }
+        // An empty grid means "never populated" to the reference: march everywhere.
+        let grid = if snap.density_grid.is_empty() {
+            OccupancyGrid::new(snap.config.aabb_scale)
+        } else {
+            OccupancyGrid::from_density(snap.density_grid)
+                .ok_or_else(|| Error::format(path, "density_grid_binary has a wrong length"))?
+        };
+        Ok(Model {
+            config: snap.config,
+            net,
+            params: snap.params,
+            grid,
+            training_step: snap.training_step,
+            loss: snap.loss,
+            dataset: snap.dataset,
+            batch_counters: (
+                snap.rays_per_batch,
+                snap.measured_batch_size,
+                snap.measured_batch_size_before_compaction,
+            ),
+        })
+    }
+
+    pub fn to_snapshot(&self) -> Snapshot {
+        let mut s = Snapshot::new(self.config, self.params.clone(), self.grid.density.clone());
+        s.training_step = self.training_step;
+        s.loss = self.loss;
+        s.dataset = self.dataset.clone();
+        (
+            s.rays_per_batch,
+            s.measured_batch_size,
+            s.measured_batch_size_before_compaction,
+        ) = self.batch_counters;
+        s
+    }
+
+    pub fn save(&self, path: &Path) -> Result<()> {
+        snapshot::save(path, &self.to_snapshot())
+    }
+
+    pub fn marcher(&self) -> Marcher {
+        Marcher::new(self.config.aabb_scale)
+    }
+
+    /// A renderable view with the given index functions and occupancy grid.
+    pub fn view<'a>(&'a self, indices: &'a LevelIndices, grid: &'a OccupancyGrid) -> SceneView<'a> {
+        SceneView {
+            net: &self.net,
+            params: &self.params,
+            indices,
+            grid,
+            marcher: self.marcher(),
+        }
+    }
+}
+
+/// What instant-ngp stores about the training images: paths as given in the transforms
+/// file, resolution, focal length, principal point, lens and the ngp-space pose.
+pub fn snapshot_dataset(data: &Dataset) -> SnapshotDataset {
+    let images = data
+        .frames
+        .iter()
+        .map(|f| {
+            let c = &f.camera;
+            let mut img = DatasetImage::new([c.width as i32, c.height as i32], [c.fx, c.fy], c.c2w);
+            img.principal_point = [c.cx / c.width as f32, c.cy / c.height as f32];
+            if let Some(d) = c.distortion {
+                img.lens = Lens::OpenCv {
+                    k1: d.k1,
+                    k2: d.k2,
+                    p1: d.p1,
+                    p2: d.p2,
+                };
+            }
+            img
+        })
+        .collect();
+    let paths = data.frames.iter().map(|f| f.file_path.clone()).collect();
+    let mut ds = SnapshotDataset::new(paths, images, data.aabb_scale);
+    ds.scale = data.scale;
+    ds.offset = data.offset;
+    ds
+}

@@ -1,0 +1,341 @@
+//! Ray marching as instant-ngp does it: fixed steps of `sqrt(3)/1024` inside the unit cube
+//! (exponential steps with cone angle 1/256 for larger aabb scales), samples only in occupied
+//! occupancy-grid cells, empty cells skipped to the next voxel boundary (spec §3.2).
+
+use crate::occupancy::{GRID_SIZE, MIN_CONE_STEPSIZE, OccupancyGrid, mip_from_dt};
+
+/// Most samples along one training ray (`NERF_STEPS`).
+pub const MAX_SAMPLES_PER_RAY: usize = 1024;
+/// The coarsest step: the width of the coarsest cascade's cell.
+pub const MAX_CONE_STEPSIZE: f32 = MIN_CONE_STEPSIZE * 1024.0;
+
+/// Marching parameters of a scene.
+#[derive(Clone, Copy, Debug)]
+pub struct Marcher {
+    pub aabb_min: [f32; 3],
+    pub aabb_max: [f32; 3],
+    /// 0 for aabb_scale 1 (fixed steps), 1/256 otherwise.
+    pub cone_angle: f32,
+    pub max_cascade: u32,
+}
+
+impl Marcher {
+    pub fn new(aabb_scale: u32) -> Self {
+        let s = aabb_scale.clamp(1, 128) as f32;
+        Marcher {
+            aabb_min: [0.5 - s / 2.0; 3],
+            aabb_max: [0.5 + s / 2.0; 3],
+            cone_angle: if aabb_scale <= 1 { 0.0 } else { 1.0 / 256.0 },
+            max_cascade: crate::occupancy::n_cascades(aabb_scale) as u32 - 1,
+        }
+    }
+
+    /// Maps an ngp-space position to the network's [0,1]³ input (`warp_position`).
+    #[inline]
+    pub fn warp(&self, p: [f32; 3]) -> [f32; 3] {
+        let mut w = [0.0; 3];
+        for d in 0..3 {
+            w[d] = (p[d] - self.aabb_min[d]) / (self.aabb_max[d] - self.aabb_min[d]);
+        }
+        w
+    }
+
+    /// Whether a warped position (the network's input) lies in occupancy cascade 0, the
+    /// unit cube of ngp space: the region over which the grid's mean density is measured.
+    #[inline]
+    pub fn in_cascade0(&self, w: [f32; 3]) -> bool {
+        (0..3).all(|d| {
+            let p = self.aabb_min[d] + w[d] * (self.aabb_max[d] - self.aabb_min[d]);
+            (0.0..=1.0).contains(&p)
+        })
+    }
+
+    #[inline]
+    fn contains(&self, p: [f32; 3]) -> bool {
+        (0..3).all(|d| p[d] >= self.aabb_min[d] && p[d] <= self.aabb_max[d])
+    }
+
+    /// Entry and exit distances of a ray through the AABB (slab test), `None` if missed.
+    pub fn intersect(&self, o: [f32; 3], d: [f32; 3]) -> Option<(f32, f32)> {
+        let mut t0 = f32::NEG_INFINITY;
+        let mut t1 = f32::INFINITY;
+        for k in 0..3 {
+            let inv = 1.0 / d[k];
+            let mut a = (self.aabb_min[k] - o[k]) * inv;
+            let mut b = (self.aabb_max[k] - o[k]) * inv;
+            if a > b {
+                std::mem::swap(&mut a, &mut b);
+            }
+            if a.is_nan() || b.is_nan() {
+                // Ray parallel to the slab: inside it or not.
+                if o[k] < self.aabb_min[k] || o[k] > self.aabb_max[k] {
+                    return None;
+                }
+                continue;
+            }
+            t0 = t0.max(a);
+            t1 = t1.min(b);
+        }
+        if t0 > t1 || t1 < 0.0 {
+            None
+        } else {
+            Some((t0.max(0.0), t1))
+        }
+    }
+
+    /// One step from `t`. Never negative: far from the camera, rounding in stepping space
+    /// can put `t` one step on *before* `t` (a negative step would make α < 0 and the
+    /// transmittance grow past 1).
+    #[inline]
+    pub fn calc_dt(&self, t: f32) -> f32 {
+        (advance_n_steps(t, self.cone_angle, 1.0) - t).max(0.0)
+    }
+
+    /// Marches from `t` and appends at most `max_samples` samples (network position, dt,
+    /// distance). Returns the distance to resume from, or `None` once the ray left the box.
+    #[allow(clippy::too_many_arguments)]
+    pub fn march(
+        &self,
+        grid: &OccupancyGrid,
+        o: [f32; 3],
+        d: [f32; 3],
+        mut t: f32,
+        max_samples: usize,
+        pos: &mut Vec<[f32; 3]>,
+        dts: &mut Vec<f32>,
+        ts: &mut Vec<f32>,
+    ) -> Option<f32> {
+        let idir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        let mut n = 0;
+        loop {
+            let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+            if !self.contains(p) {
+                return None;
+            }
+            if n >= max_samples {
+                return Some(t);
+            }
+            let dt = self.calc_dt(t);
+            let mip = mip_from_dt(dt, p, self.max_cascade);
+            let next = if grid.is_occupied(p, mip) {
+                pos.push(self.warp(p));
+                dts.push(dt);
+                ts.push(t);
+                n += 1;
+                t + dt
+            } else {
+                advance_to_next_voxel(t, self.cone_angle, p, d, idir, mip)
+            };
+            // Far from the camera a step can be smaller than the spacing of floats at t
+            // (a camera 10^6 away from a unit box): step to the next float instead of
+            // marching in place for ever.
+            t = if next > t { next } else { t.next_up() };
+        }
+    }
+}
+
+fn to_stepping_space(t: f32, cone_angle: f32) -> f32 {
+    if cone_angle <= 1e-5 {
+        return t / MIN_CONE_STEPSIZE;
+    }
+    let l = (1.0 + cone_angle).ln();
+    let a = (MIN_CONE_STEPSIZE.ln() - l.ln()) / l;
+    let b = (MAX_CONE_STEPSIZE.ln() - l.ln()) / l;
+    let at = (a * l).exp();
+    let bt = (b * l).exp();
+    if t <= at {
+        (t - at) / MIN_CONE_STEPSIZE + a
+    } else if t <= bt {
+        t.ln() / l
+    } else {
+        (t - bt) / MAX_CONE_STEPSIZE + b
+    }
+}
+
+fn from_stepping_space(n: f32, cone_angle: f32) -> f32 {
+    if cone_angle <= 1e-5 {
+        return n * MIN_CONE_STEPSIZE;
+    }
+    let l = (1.0 + cone_angle).ln();
+    let a = (MIN_CONE_STEPSIZE.ln() - l.ln()) / l;
+    let b = (MAX_CONE_STEPSIZE.ln() - l.ln()) / l;
+    let at = (a * l).exp();
+    let bt = (b * l).exp();
+    if n <= a {
+        (n - a) * MIN_CONE_STEPSIZE + at
+    } else if n <= b {
+        (n * l).exp()
+    } else {
+        (n - b) * MAX_CONE_STEPSIZE + bt
+    }
+}
+
+/// `t` advanced by `n` (possibly fractional) steps.
+pub fn advance_n_steps(t: f32, cone_angle: f32, n: f32) -> f32 {
+    from_stepping_space(to_stepping_space(t, cone_angle) + n, cone_angle)
+}
+
+fn distance_to_next_voxel(p: [f32; 3], d: [f32; 3], idir: [f32; 3], res: f32) -> f32 {
+    let mut tmin = f32::INFINITY;
+    for k in 0..3 {
+        let q = res * (p[k] - 0.5);
+        let s = if d[k] > 0.0 {
+            1.0
+        } else if d[k] < 0.0 {
+            -1.0
+        } else {
+            0.0
+        };
+        let tk = ((q + 0.5 + 0.5 * s).floor() - q) * idir[k];
+        // A zero direction component gives ±inf or NaN; it never bounds the step.
+        if tk.is_finite() || tk == f32::INFINITY {
+            tmin = tmin.min(tk);
+        }
+    }
+    (tmin / res).max(0.0)
+}
+
+/// Skips to the next voxel boundary of cascade `mip`, staying on the step lattice.
+pub fn advance_to_next_voxel(
+    t: f32,
+    cone_angle: f32,
+    p: [f32; 3],
+    d: [f32; 3],
+    idir: [f32; 3],
+    mip: u32,
+) -> f32 {
+    let res = GRID_SIZE as f32 / (mip as f32).exp2();
+    let target = t + distance_to_next_voxel(p, d, idir, res);
+    let ts = to_stepping_space(t, cone_angle);
+    let tt = to_stepping_space(target, cone_angle);
+    from_stepping_space(ts + (tt - ts).max(0.5).ceil(), cone_angle)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fixed_steps_in_unit_cube() {
+        let m = Marcher::new(1);
+        assert_eq!(m.cone_angle, 0.0);
+        assert!((m.calc_dt(0.3) - MIN_CONE_STEPSIZE).abs() < 1e-7);
+        let grid = OccupancyGrid::new(1); // all occupied
+        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+        // Along +x through the centre: the cube is 1 long, so 1/step ≈ 591 samples.
+        let (t0, _) = m.intersect([-1.0, 0.5, 0.5], [1.0, 0.0, 0.0]).unwrap();
+        assert!((t0 - 1.0).abs() < 1e-6);
+        let r = m.march(
+            &grid,
+            [-1.0, 0.5, 0.5],
+            [1.0, 0.0, 0.0],
+            t0,
+            2000,
+            &mut p,
+            &mut dt,
+            &mut ts,
+        );
+        assert!(r.is_none());
+        assert_eq!(p.len(), (1.0 / MIN_CONE_STEPSIZE).floor() as usize + 1);
+        assert!(p.iter().all(|q| (0.0..=1.0).contains(&q[0])));
+        // The sample budget is honoured and marching resumes where it stopped.
+        let (mut p2, mut dt2, mut ts2) = (vec![], vec![], vec![]);
+        let r = m.march(
+            &grid,
+            [-1.0, 0.5, 0.5],
+            [1.0, 0.0, 0.0],
+            t0,
+            10,
+            &mut p2,
+            &mut dt2,
+            &mut ts2,
+        );
+        assert_eq!(p2.len(), 10);
+        assert!((r.unwrap() - (t0 + 10.0 * MIN_CONE_STEPSIZE)).abs() < 1e-5);
+    }
+
+    #[test]
+    fn empty_space_is_skipped() {
+        let m = Marcher::new(1);
+        let mut grid = OccupancyGrid::new(1);
+        grid.density.iter_mut().for_each(|d| *d = 0.0);
+        // One occupied cell at x ∈ [64/128, 65/128) on the ray's path.
+        let cell = crate::occupancy::morton3d(64, 64, 64) as usize;
+        grid.density[cell] = 1.0;
+        grid.update_bitfield();
+        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+        m.march(
+            &grid,
+            [-1.0, 0.502, 0.502],
+            [1.0, 0.0, 0.0],
+            1.0,
+            2000,
+            &mut p,
+            &mut dt,
+            &mut ts,
+        );
+        // 1/128 / step = 4.6 → 4 or 5 samples, all inside the cell.
+        assert!((4..=5).contains(&p.len()), "{} samples", p.len());
+        assert!(p.iter().all(|q| q[0] >= 0.5 && q[0] < 65.0 / 128.0));
+    }
+
+    #[test]
+    fn exponential_steps_grow() {
+        let m = Marcher::new(16);
+        assert!(m.cone_angle > 0.0);
+        let near = m.calc_dt(0.01);
+        let far = m.calc_dt(5.0);
+        assert!((near - MIN_CONE_STEPSIZE).abs() < 1e-6);
+        assert!((far - 5.0 / 256.0).abs() / (5.0 / 256.0) < 0.01, "{far}");
+        // Stepping space round-trips.
+        for &t in &[0.001f32, 0.3, 2.0, 50.0, 900.0] {
+            let back = from_stepping_space(to_stepping_space(t, m.cone_angle), m.cone_angle);
+            assert!((back - t).abs() / t < 1e-3, "{t} -> {back}");
+        }
+    }
+
+    #[test]
+    fn marching_from_far_away_terminates() {
+        // At t ≈ 1e6 the fixed step (1.7e-3) is below the float spacing (0.0625): marching
+        // must still advance and leave the box.
+        let m = Marcher::new(1);
+        let grid = OccupancyGrid::new(1);
+        let o = [1.0e6, 0.5, 0.5];
+        let d = [-1.0, 0.0, 0.0];
+        let (t0, _) = m.intersect(o, d).unwrap();
+        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+        let r = m.march(&grid, o, d, t0, 100_000, &mut p, &mut dt, &mut ts);
+        assert!(r.is_none());
+        assert!(!p.is_empty() && p.len() < 100, "{} samples", p.len());
+        assert!(ts.windows(2).all(|w| w[1] > w[0]));
+        assert!(dt.iter().all(|&x| x >= 0.0));
+    }
+
+    #[test]
+    fn cascade0_is_the_unit_cube_after_warping() {
+        // aabb 4: the box is [-1.5, 2.5]^3, so ngp 0 and 1 warp to 0.375 and 0.625.
+        let m = Marcher::new(4);
+        assert!(m.in_cascade0(m.warp([0.5, 0.5, 0.5])));
+        assert!(m.in_cascade0([0.375, 0.625, 0.5]));
+        assert!(!m.in_cascade0([0.37, 0.5, 0.5]));
+        assert!(!m.in_cascade0([0.5, 0.5, 0.63]));
+        assert!(!m.in_cascade0(m.warp([1.1, 0.5, 0.5])));
+        assert!(!m.in_cascade0(m.warp([0.5, -0.1, 0.5])));
+        // aabb 1: the box is cascade 0, so every sample is in it.
+        let m = Marcher::new(1);
+        assert!(
+            [[0.0; 3], [1.0; 3], [0.3, 0.9, 0.01]]
+                .iter()
+                .all(|&w| m.in_cascade0(w))
+        );
+    }
+
+    #[test]
+    fn aabb_intersection() {
+        let m = Marcher::new(1);
+        assert!(m.intersect([2.0, 2.0, 2.0], [1.0, 0.0, 0.0]).is_none());
+        let (a, b) = m.intersect([0.5, 0.5, 0.5], [0.0, 0.0, 1.0]).unwrap();
+        assert_eq!(a, 0.0);
+        assert!((b - 0.5).abs() < 1e-6);
+    }
+}

@@ -1,0 +1,57 @@
+//! Training: the Adam + EMA optimizer, the schedule both backends follow, the hooks a
+//! training policy acts through, and the trainer that ties rays, marching, the network and
+//! compositing together for one or more scenes sharing one set of weights.
+
+mod held;
+pub mod hooks;
+pub mod loss;
+pub mod optimizer;
+pub mod schedule;
+pub mod trainer;
+mod worker;
+
+pub use hooks::{PolicyOps, PolicyReads, StepInfo, TableBounds, TrainPolicy};
+pub use optimizer::{Optimizer, OptimizerConfig};
+pub use schedule::Schedule;
+pub use trainer::{SceneSpec, StepStats, TrainConfig, Trainer};
+
+use crate::data::Dataset;
+use crate::error::Result;
+use crate::model::Model;
+
+/// What a training loop needs from a trainer, whichever device runs it (the CPU
+/// [`Trainer`], or the wgpu backend's).
+pub trait TrainBackend {
+    /// One training step.
+    fn train_step(&mut self) -> Result<StepStats>;
+    /// Steps taken.
+    fn step(&self) -> u32;
+    fn n_scenes(&self) -> usize;
+    /// The training images of scene `i` (0: the one the model publishes).
+    fn dataset(&self, i: usize) -> &Dataset;
+    /// Installs a [`TrainPolicy`], before the first step.
+    fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> Result<()>;
+    /// The model as it would be published now, with `loss` as its stored loss.
+    fn model(&self, loss: f32) -> Result<Model>;
+}
+
+impl TrainBackend for Trainer {
+    fn train_step(&mut self) -> Result<StepStats> {
+        Ok(Trainer::train_step(self))
+    }
+    fn step(&self) -> u32 {
+        self.step
+    }
+    fn n_scenes(&self) -> usize {
+        Trainer::n_scenes(self)
+    }
+    fn dataset(&self, i: usize) -> &Dataset {
+        Trainer::dataset(self, i)
+    }
+    fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> Result<()> {
+        Trainer::set_policy(self, policy)
+    }
+    fn model(&self, loss: f32) -> Result<Model> {
+        Ok(Model::from_trainer(self, loss))
+    }
+}

@@ -1,0 +1,1003 @@
+//! The trainer: one shared set of weights, one or more scenes, each with its own per-level
+//! index functions and its own occupancy grid. With one scene and the reference index this
+//! is plain Instant-NGP training; the stego layer chooses the scenes and indices, and may
+//! install a [`TrainPolicy`] (its stealth) that acts through the hooks of [`super::hooks`].
+//!
+//! A step: refresh the occupancy grids on the reference schedule, draw rays (equal chunks per
+//! image, uniform pixels at their centres, random background for RGBA data), march them,
+//! run the network, composite, take the Huber loss, backpropagate, one Adam step. Rays are
+//! split into one fixed range per worker, each with its own gradient buffer, summed in a
+//! fixed order: the result is deterministic for a seed and worker count.
+
+use super::held::{HoldBack, KeptMlp};
+use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
+use super::loss::{DENSITY_PULL_UP, ray_loss};
+use super::optimizer::{Optimizer, OptimizerConfig, Touched};
+use super::schedule::{
+    Schedule, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid, step_scenes,
+};
+use super::worker::{RayRec, Worker};
+use crate::data::Dataset;
+use crate::encoding::{LevelIndices, check_indices};
+use crate::error::{Error, Result};
+use crate::network::ModelConfig;
+use crate::network::nerf::{CHUNK, NerfNetwork, Workspace};
+use crate::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
+use crate::render::composite::TRAIN_MIN_TRANSMITTANCE;
+use crate::render::march::{MAX_SAMPLES_PER_RAY, Marcher, advance_n_steps};
+use crate::rng::Pcg32;
+use rayon::prelude::*;
+use std::sync::Arc;
+
+#[derive(Clone, Debug)]
+pub struct TrainConfig {
+    pub seed: u64,
+    /// Target number of trained (compacted) samples per step, per scene in a mixed batch.
+    pub batch_samples: u32,
+    /// Fraction of the reference's occupancy-update sample count (1 = reference).
+    pub occupancy_fraction: f32,
+    /// How the scenes share the steps.
+    pub schedule: Schedule,
+    /// Loss weight of every scene after the first, relative to scene 0's 1. Shared table
+    /// entries settle where the scenes' gradients balance.
+    pub others_weight: f32,
+    /// Steps scene 0 trains alone before the others join (0: all from the start).
+    pub solo_steps: u32,
+    pub optimizer: OptimizerConfig,
+    /// Worker count (gradient partitions); 0 = one per core.
+    pub workers: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            seed: 0,
+            batch_samples: 1 << 18,
+            occupancy_fraction: 1.0,
+            schedule: Schedule::Mixed,
+            others_weight: 1.0,
+            solo_steps: 0,
+            optimizer: OptimizerConfig::default(),
+            workers: 0,
+        }
+    }
+}
+
+/// A scene to train: its training images and the index functions it is stored under.
+pub struct SceneSpec {
+    pub dataset: Arc<Dataset>,
+    pub indices: LevelIndices,
+}
+
+pub(super) struct SceneState {
+    data: Arc<Dataset>,
+    indices: LevelIndices,
+    grid: OccupancyGrid,
+    marcher: Marcher,
+    loss_weight: f32,
+    rays_per_batch: u32,
+    measured_samples: u32,
+    measured_marched: u32,
+}
+
+/// What one step did.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepStats {
+    pub step: u32,
+    /// Mean loss per ray (summed over the scenes trained this step).
+    pub loss: f32,
+    /// Scene 0's mean loss per ray (what a model file stores), `None` if the step did not
+    /// train it.
+    pub primary_loss: Option<f32>,
+    pub n_rays: u64,
+    /// Samples that contributed to the loss (the reference's compacted samples).
+    pub n_samples: u64,
+    /// Samples marched and run through the network (≥ n_samples).
+    pub n_marched: u64,
+    /// Points where a policy's extra density loss ([`PolicyOps::density_loss`]) had a
+    /// gradient this step.
+    pub penalised: u32,
+    pub seconds: f64,
+    /// Time spent refreshing occupancy grids, in rays (march + network + loss), and in the
+    /// optimizer, within `seconds`.
+    pub occupancy_seconds: f64,
+    pub rays_seconds: f64,
+    pub optimizer_seconds: f64,
+}
+
+/// Samples a worker marches before running the network on them.
+const GROUP_SAMPLES: usize = 4 * CHUNK;
+
+pub struct Trainer {
+    pub net: NerfNetwork,
+    pub params: Vec<f32>,
+    pub optimizer: Optimizer,
+    pub config: TrainConfig,
+    scenes: Vec<SceneState>,
+    workers: Vec<Worker>,
+    policy: Option<Box<dyn TrainPolicy>>,
+    mech: Mechanisms,
+    /// Steps taken, updating the weights or not: the schedule's and the rays' clock.
+    pub step: u32,
+    /// Steps that updated the weights (every step unless a policy's clock says otherwise):
+    /// the optimizer's and the occupancy grids' clock, and the step count a model file
+    /// records.
+    pub weight_steps: u32,
+}
+
+/// The state of the hooks' mechanisms, made when a policy first uses them.
+#[derive(Default)]
+struct Mechanisms {
+    hold: Option<HoldBack>,
+    kept: Option<KeptMlp>,
+    bounds: Option<TableBounds>,
+}
+
+impl Trainer {
+    pub fn new(model: ModelConfig, scenes: Vec<SceneSpec>, config: TrainConfig) -> Result<Self> {
+        if scenes.is_empty() {
+            return Err(Error::Config("no scene to train".into()));
+        }
+        let net = NerfNetwork::new(model)?;
+        let n_levels = net.layout.grid.levels.len();
+        let mut states = Vec::new();
+        for s in scenes {
+            if s.indices.len() != n_levels {
+                return Err(Error::Config(format!(
+                    "{} index functions for {} grid levels",
+                    s.indices.len(),
+                    n_levels
+                )));
+            }
+            check_indices(&s.indices, &net.layout.grid)?;
+            if s.dataset.frames.is_empty() {
+                return Err(Error::format(&s.dataset.root, "no training images"));
+            }
+            if s.dataset.aabb_scale != model.aabb_scale {
+                return Err(Error::Config(format!(
+                    "{}: aabb_scale {} differs from the model's {}",
+                    s.dataset.root.display(),
+                    s.dataset.aabb_scale,
+                    model.aabb_scale
+                )));
+            }
+            let grid = starting_grid(model.aabb_scale, &s.dataset);
+            let rays = initial_rays_per_batch(config.batch_samples);
+            states.push(SceneState {
+                data: s.dataset,
+                indices: s.indices,
+                grid,
+                marcher: Marcher::new(model.aabb_scale),
+                loss_weight: if states.is_empty() {
+                    1.0
+                } else {
+                    config.others_weight
+                },
+                rays_per_batch: rays,
+                measured_samples: 0,
+                measured_marched: 0,
+            });
+        }
+        let params = net.init_params(config.seed);
+        let n_workers = if config.workers == 0 {
+            rayon::current_num_threads()
+        } else {
+            config.workers
+        };
+        let workers = (0..n_workers).map(|_| Worker::new(params.len())).collect();
+        let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
+        Ok(Trainer {
+            net,
+            params,
+            optimizer,
+            config,
+            scenes: states,
+            workers,
+            policy: None,
+            mech: Mechanisms::default(),
+            step: 0,
+            weight_steps: 0,
+        })
+    }
+
+    pub fn n_scenes(&self) -> usize {
+        self.scenes.len()
+    }
+
+    /// The occupancy grid of scene `i` (0: the one a model publishes).
+    pub fn grid(&self, i: usize) -> &OccupancyGrid {
+        &self.scenes[i].grid
+    }
+
+    /// The training images of scene `i`.
+    pub fn dataset(&self, i: usize) -> &Dataset {
+        &self.scenes[i].data
+    }
+
+    /// Scene `i`'s (rays per batch, trained samples, marched samples) of the last step.
+    pub fn batch_counters(&self, i: usize) -> (u32, u32, u32) {
+        let s = &self.scenes[i];
+        (s.rays_per_batch, s.measured_samples, s.measured_marched)
+    }
+
+    /// The table's bounds, once a policy has set them ([`PolicyOps::update_bounds`]).
+    pub fn table_bounds(&self) -> Option<&TableBounds> {
+        self.mech.bounds.as_ref()
+    }
+
+    /// The gradient waiting in the buffers, summed over the workers (between steps: what a
+    /// step that did not update the weights left for the next one; zero otherwise).
+    pub fn gradient(&self) -> Vec<f32> {
+        let mut g = vec![0.0f32; self.params.len()];
+        for w in &self.workers {
+            for (s, x) in g.iter_mut().zip(&w.grad) {
+                *s += x;
+            }
+        }
+        g
+    }
+
+    /// The table gradients a gate holds back ([`PolicyOps::hold_back`]), once used.
+    pub fn held_back(&self) -> Option<&[f32]> {
+        self.mech.hold.as_ref().map(|h| h.pending())
+    }
+
+    /// Index functions of scene `i` as trained now.
+    pub fn indices(&self, i: usize) -> &LevelIndices {
+        &self.scenes[i].indices
+    }
+
+    /// Installs a training policy, before the first step, and applies its index functions
+    /// to scene 0's starting grid.
+    pub fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> Result<()> {
+        if self.step > 0 {
+            return Err(Error::Config(
+                "a training policy is installed before the first step".into(),
+            ));
+        }
+        let reads = policy.reads();
+        self.policy = Some(policy);
+        if reads.published {
+            let published = self.optimizer.ema_params(&self.params);
+            let fresh = self.policy_indices(&published);
+            self.set_indices(fresh)?;
+        }
+        Ok(())
+    }
+
+    fn policy_indices(&mut self, published: &[f32]) -> Vec<(usize, LevelIndices)> {
+        match &mut self.policy {
+            Some(p) => p.indices(&self.scenes[0].grid, published),
+            None => Vec::new(),
+        }
+    }
+
+    /// Index functions for the scenes named, all checked before any is used.
+    fn set_indices(&mut self, fresh: Vec<(usize, LevelIndices)>) -> Result<()> {
+        let n_levels = self.net.layout.grid.levels.len();
+        for (i, indices) in &fresh {
+            if *i == 0 || *i >= self.scenes.len() || indices.len() != n_levels {
+                return Err(Error::Config(format!(
+                    "index refresh for scene {i} with {} levels ({} scenes, {n_levels} levels; scene 0 is never refreshed)",
+                    indices.len(),
+                    self.scenes.len()
+                )));
+            }
+            check_indices(indices, &self.net.layout.grid)?;
+        }
+        for (i, indices) in fresh {
+            self.scenes[i].indices = indices;
+        }
+        Ok(())
+    }
+
+    /// Weights to render with and to publish: the debiased EMA.
+    pub fn inference_params(&self) -> Vec<f32> {
+        self.optimizer.ema_params(&self.params)
+    }
+
+    fn update_occupancy(&mut self) {
+        let step = self.weight_steps;
+        let interval = (step / 16).clamp(1, 16);
+        if !step.is_multiple_of(interval) {
+            return;
+        }
+        let fraction = self.config.occupancy_fraction;
+        let seed = self.config.seed;
+        for si in 0..self.scenes.len() {
+            let SceneState {
+                grid,
+                marcher,
+                indices,
+                ..
+            } = &mut self.scenes[si];
+            let (net, params) = (&self.net, &self.params);
+            grid.update(step, fraction, mix(seed, 0x6772_6964 + si as u64), |pos| {
+                let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
+                net.density_batch(params, indices, &warped)
+            });
+            // The policy's indices take effect before the other scenes' grids are updated.
+            if si == 0 && self.policy.is_some() {
+                self.primary_grid_updated();
+            }
+        }
+    }
+
+    /// The policy's hooks after an update of scene 0's grid.
+    fn primary_grid_updated(&mut self) {
+        let Some(policy) = &mut self.policy else {
+            return;
+        };
+        let reads = policy.reads();
+        let published = reads
+            .published
+            .then(|| self.optimizer.ema_params(&self.params));
+        let grid = &self.scenes[0].grid;
+        let mut ops = CpuOps {
+            net: &self.net,
+            params: &self.params,
+            scenes: &self.scenes,
+            workers: &mut self.workers,
+            mech: &mut self.mech,
+            penalised: 0,
+        };
+        policy
+            .grid_updated(reads.grid.then_some(grid), published.as_deref(), &mut ops)
+            .unwrap_or_else(|e| panic!("the training policy failed on the CPU: {e}"));
+        let fresh = match &published {
+            Some(p) => policy.indices(grid, p),
+            None => Vec::new(),
+        };
+        self.set_indices(fresh)
+            .unwrap_or_else(|e| panic!("the training policy gave invalid index functions: {e}"));
+    }
+
+    /// Runs a policy hook on the CPU's mechanisms; returns the points its extra loss
+    /// penalised.
+    fn with_policy(
+        &mut self,
+        hook: impl FnOnce(&mut dyn TrainPolicy, &mut dyn PolicyOps) -> Result<()>,
+    ) -> u32 {
+        let Some(policy) = &mut self.policy else {
+            return 0;
+        };
+        let mut ops = CpuOps {
+            net: &self.net,
+            params: &self.params,
+            scenes: &self.scenes,
+            workers: &mut self.workers,
+            mech: &mut self.mech,
+            penalised: 0,
+        };
+        hook(policy.as_mut(), &mut ops)
+            .unwrap_or_else(|e| panic!("the training policy failed on the CPU: {e}"));
+        ops.penalised
+    }
+
+    fn step_info(&self) -> StepInfo {
+        StepInfo {
+            seed: self.config.seed,
+            step: self.step,
+            weight_steps: self.weight_steps,
+        }
+    }
+
+    /// One training step.
+    pub fn train_step(&mut self) -> StepStats {
+        let t0 = std::time::Instant::now();
+        let step = self.step;
+        let info = self.step_info();
+        let scene_ids = step_scenes(&self.config, step, self.scenes.len());
+        let update = self
+            .policy
+            .as_ref()
+            .is_none_or(|p| p.updates_weights(&scene_ids));
+        if update {
+            self.update_occupancy();
+        }
+        let t_occ = t0.elapsed().as_secs_f64();
+        let mut stats = StepStats {
+            step,
+            ..Default::default()
+        };
+        for &si in &scene_ids {
+            let scene = &self.scenes[si];
+            let n_rays = scene.rays_per_batch as usize;
+            let n_workers = self.workers.len();
+            let seed = mix(mix(self.config.seed, step as u64), si as u64 + 1);
+            let net = &self.net;
+            let params = &self.params;
+            self.workers
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(w, worker)| {
+                    let r0 = n_rays * w / n_workers;
+                    let r1 = n_rays * (w + 1) / n_workers;
+                    worker.loss = 0.0;
+                    worker.n_samples = 0;
+                    worker.n_marched = 0;
+                    worker.n_rays = 0;
+                    train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
+                });
+            let mut loss = 0.0;
+            let (mut used, mut marched) = (0, 0);
+            for w in &self.workers {
+                loss += w.loss;
+                used += w.n_samples;
+                marched += w.n_marched;
+                stats.n_rays += w.n_rays;
+            }
+            stats.n_marched += marched;
+            let scene_loss = (loss / n_rays as f64) as f32;
+            stats.loss += scene_loss;
+            if si == 0 {
+                stats.primary_loss = Some(scene_loss);
+            }
+            stats.n_samples += used;
+            let scene = &mut self.scenes[si];
+            scene.measured_samples = used as u32;
+            scene.measured_marched = marched as u32;
+            // The reference keeps its ray count when nothing was trained.
+            if used > 0 {
+                scene.rays_per_batch =
+                    next_rays_per_batch(n_rays as u32, self.config.batch_samples, used);
+            }
+            stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops));
+        }
+        stats.penalised += self.with_policy(|p, ops| p.before_update(info, ops));
+        let t_rays = t0.elapsed().as_secs_f64();
+        // Without the update, the gradients left in the workers' buffers wait there for the
+        // next step that updates the weights (a gate's held-back ones in its own sum).
+        if update {
+            self.update_weights();
+            self.weight_steps += 1;
+        }
+        self.step += 1;
+        stats.seconds = t0.elapsed().as_secs_f64();
+        stats.occupancy_seconds = t_occ;
+        stats.rays_seconds = t_rays - t_occ;
+        stats.optimizer_seconds = stats.seconds - t_rays;
+        stats
+    }
+
+    /// One optimizer step on the summed gradients of the workers, which it leaves zeroed;
+    /// then the table's bounds.
+    fn update_weights(&mut self) {
+        let mut grads: Vec<Vec<f32>> = self
+            .workers
+            .iter_mut()
+            .map(|w| std::mem::take(&mut w.grad))
+            .collect();
+        let touched: Vec<Touched> = self
+            .workers
+            .iter_mut()
+            .map(|w| std::mem::take(&mut w.touched))
+            .collect();
+        self.optimizer
+            .step(&mut self.params, &mut grads, Some(&touched));
+        if let Some(b) = &self.mech.bounds {
+            b.clamp(&mut self.params[self.net.layout.grid_offset..]);
+        }
+        for ((w, g), mut t) in self.workers.iter_mut().zip(grads).zip(touched) {
+            w.grad = g;
+            t.clear();
+            w.touched = t;
+        }
+    }
+}
+
+/// The CPU's side of [`PolicyOps`]: the mechanisms act on the workers' partial gradients.
+struct CpuOps<'a> {
+    net: &'a NerfNetwork,
+    params: &'a [f32],
+    scenes: &'a [SceneState],
+    workers: &'a mut [Worker],
+    mech: &'a mut Mechanisms,
+    penalised: u32,
+}
+
+impl CpuOps<'_> {
+    fn hold(&mut self) -> &mut HoldBack {
+        let (n, n_matrix) = (self.params.len(), self.net.layout.n_mlp_params());
+        self.mech
+            .hold
+            .get_or_insert_with(|| HoldBack::new(n, n_matrix))
+    }
+
+    fn kept(&mut self) -> &mut KeptMlp {
+        let (n_workers, n_matrix) = (self.workers.len(), self.net.layout.n_mlp_params());
+        self.mech
+            .kept
+            .get_or_insert_with(|| KeptMlp::new(n_workers, n_matrix))
+    }
+}
+
+impl PolicyOps for CpuOps<'_> {
+    fn density_loss(
+        &mut self,
+        scene: usize,
+        points: &[[f32; 3]],
+        d_loss: &(dyn Fn(f32) -> f32 + Sync),
+    ) -> Result<u32> {
+        let Some(s) = self.scenes.get(scene) else {
+            return Err(Error::Config(format!(
+                "a density loss on scene {scene} of {}",
+                self.scenes.len()
+            )));
+        };
+        let n = density_loss(self.net, self.params, s, self.workers, points, d_loss);
+        self.penalised += n;
+        Ok(n)
+    }
+
+    fn open_gate(&mut self) -> Result<()> {
+        self.hold();
+        let hold = self.mech.hold.as_mut().expect("made above");
+        hold.open_gate(self.workers);
+        Ok(())
+    }
+
+    fn hold_back(&mut self) -> Result<()> {
+        self.hold();
+        let Mechanisms { hold, bounds, .. } = &mut *self.mech;
+        hold.as_mut()
+            .expect("made above")
+            .hold_back(self.workers, bounds.as_ref());
+        Ok(())
+    }
+
+    fn keep_mlp(&mut self) -> Result<()> {
+        self.kept();
+        let kept = self.mech.kept.as_mut().expect("made above");
+        kept.keep(self.workers);
+        Ok(())
+    }
+
+    fn restore_mlp(&mut self) -> Result<()> {
+        self.kept();
+        let kept = self.mech.kept.as_mut().expect("made above");
+        kept.restore(self.workers);
+        Ok(())
+    }
+
+    fn update_bounds(&mut self, update: &mut dyn FnMut(&mut TableBounds)) -> Result<()> {
+        let grid = &self.net.layout.grid;
+        let (n_entries, f) = (grid.n_entries as usize, grid.config.n_features as usize);
+        update(
+            self.mech
+                .bounds
+                .get_or_insert_with(|| TableBounds::new(n_entries, f)),
+        );
+        Ok(())
+    }
+}
+
+/// [`PolicyOps::density_loss`] on the CPU: the points split over the workers as rays are,
+/// each worker's through the network forward and back into its own gradient.
+fn density_loss(
+    net: &NerfNetwork,
+    params: &[f32],
+    scene: &SceneState,
+    workers: &mut [Worker],
+    points: &[[f32; 3]],
+    d_loss: &(dyn Fn(f32) -> f32 + Sync),
+) -> u32 {
+    let pos: Vec<[f32; 3]> = points.iter().map(|&p| scene.marcher.warp(p)).collect();
+    let n = pos.len();
+    if n == 0 {
+        return 0;
+    }
+    let n_workers = workers.len();
+    let grid_offset = net.layout.grid_offset;
+    let n_levels = net.layout.grid.levels.len();
+    workers
+        .par_iter_mut()
+        .enumerate()
+        .map(|(w, worker)| {
+            let range = n * w / n_workers..n * (w + 1) / n_workers;
+            if worker.ws.is_empty() {
+                worker.ws.push(net.workspace());
+            }
+            let mut active = 0;
+            for chunk in pos[range].chunks(CHUNK) {
+                let m = chunk.len();
+                // The colour's gradient is zero: any direction does.
+                worker.dir.clear();
+                worker.dir.resize(m, [0.0, 0.0, 1.0]);
+                worker.raw.resize(m, [0.0; 4]);
+                worker.d_raw.resize(m, [0.0; 4]);
+                let ws = &mut worker.ws[0];
+                net.forward(
+                    params,
+                    &scene.indices,
+                    chunk,
+                    &worker.dir,
+                    ws,
+                    &mut worker.raw,
+                );
+                for (d, r) in worker.d_raw.iter_mut().zip(&worker.raw) {
+                    let g = d_loss(r[3]);
+                    active += (g != 0.0) as u32;
+                    *d = [0.0, 0.0, 0.0, g];
+                }
+                net.backward(params, &scene.indices, &worker.d_raw, ws, &mut worker.grad);
+                mark_corners(ws, n_levels, grid_offset, &mut worker.touched);
+            }
+            active
+        })
+        .sum()
+}
+
+/// Tells the optimizer which grid entries the last backward on `ws` may have given a
+/// gradient: every corner its samples read.
+fn mark_corners(ws: &Workspace, n_levels: usize, grid_offset: usize, touched: &mut Touched) {
+    for level in 0..n_levels {
+        for smp in 0..ws.len() {
+            for &off in ws.grid_corner_offsets(level, smp) {
+                touched.mark(grid_offset + off as usize);
+            }
+        }
+    }
+}
+
+/// Samples evaluated per live ray per density wave.
+const WAVE: usize = 12;
+
+/// Finds where each ray of the group stops (transmittance < 1e-4) with density-only
+/// evaluations in waves along the rays, so that the full network forward and backward run
+/// only on samples that reach the loss — the reference's compaction, without evaluating
+/// every marched sample. Leaves the number of used samples in `ray_state[r].1`.
+fn find_termination(net: &NerfNetwork, params: &[f32], scene: &SceneState, w: &mut Worker) {
+    w.ray_state.clear();
+    w.ray_state
+        .extend(w.rays.iter().map(|_| (1.0f32, 0usize, false)));
+    if w.ws.is_empty() {
+        w.ws.push(net.workspace());
+    }
+    loop {
+        w.wave_pos.clear();
+        w.wave_owner.clear();
+        for (r, ray) in w.rays.iter().enumerate() {
+            let (_, next, done) = w.ray_state[r];
+            if done {
+                continue;
+            }
+            let m = WAVE.min(ray.n - next);
+            let s = ray.start + next;
+            w.wave_pos.extend_from_slice(&w.pos[s..s + m]);
+            w.wave_owner.push((r, m));
+        }
+        if w.wave_pos.is_empty() {
+            break;
+        }
+        w.wave_dens.resize(w.wave_pos.len(), 0.0);
+        for (k, chunk) in w.wave_pos.chunks(CHUNK).enumerate() {
+            let o = k * CHUNK;
+            net.density(
+                params,
+                &scene.indices,
+                chunk,
+                &mut w.ws[0],
+                &mut w.wave_dens[o..o + chunk.len()],
+            );
+        }
+        let mut at = 0;
+        for &(r, m) in &w.wave_owner {
+            let ray = w.rays[r];
+            let st = &mut w.ray_state[r];
+            for j in 0..m {
+                let sigma = w.wave_dens[at + j].exp();
+                let alpha = 1.0 - (-sigma * w.dt[ray.start + st.1]).exp();
+                st.0 *= 1.0 - alpha;
+                st.1 += 1;
+                if st.0 < TRAIN_MIN_TRANSMITTANCE {
+                    st.2 = true;
+                    break;
+                }
+            }
+            if st.1 == ray.n {
+                st.2 = true;
+            }
+            at += m;
+        }
+    }
+}
+
+/// Keeps only each ray's used samples, moving them down in place.
+fn compact(w: &mut Worker) {
+    let mut out = 0;
+    for (r, ray) in w.rays.iter_mut().enumerate() {
+        let used = w.ray_state[r].1;
+        for j in 0..used {
+            let (from, to) = (ray.start + j, out + j);
+            w.pos[to] = w.pos[from];
+            w.dir[to] = w.dir[from];
+            w.dt[to] = w.dt[from];
+            w.dist[to] = w.dist[from];
+        }
+        ray.start = out;
+        ray.n = used;
+        out += used;
+    }
+    w.pos.truncate(out);
+    w.dir.truncate(out);
+    w.dt.truncate(out);
+    w.dist.truncate(out);
+}
+
+/// Marches, evaluates and backpropagates rays `range` of a batch of `n_rays` into the
+/// worker's gradient buffer.
+fn train_rays(
+    net: &NerfNetwork,
+    params: &[f32],
+    scene: &SceneState,
+    seed: u64,
+    range: std::ops::Range<usize>,
+    n_rays: usize,
+    w: &mut Worker,
+) {
+    let n_images = scene.data.frames.len();
+    let n_levels = net.layout.grid.levels.len();
+    let grid_offset = net.layout.grid_offset;
+    // The reference differentiates the per-channel loss summed over channels (the reported
+    // loss is their mean), divided by the ray count.
+    let loss_norm = scene.loss_weight / n_rays as f32;
+    let pull_up = if scene.grid.mean < MIN_OPTICAL_THICKNESS {
+        DENSITY_PULL_UP
+    } else {
+        0.0
+    };
+    let mut next = range.start;
+    while next < range.end {
+        w.pos.clear();
+        w.dir.clear();
+        w.dt.clear();
+        w.dist.clear();
+        w.rays.clear();
+        while next < range.end && w.pos.len() < GROUP_SAMPLES {
+            let i = next;
+            next += 1;
+            let mut rng = Pcg32::new(seed, i as u64);
+            let img = i * n_images / n_rays;
+            let frame = &scene.data.frames[img];
+            let (wd, ht) = (frame.image.width, frame.image.height);
+            let x = rng.below(wd);
+            let y = rng.below(ht);
+            // A random background for every dataset, as the reference: on opaque images it
+            // is the target of nothing, which teaches rays to end (T → 0) where the photo
+            // shows something, instead of leaning on a fixed colour behind the scene.
+            let bg = [rng.next_f32(), rng.next_f32(), rng.next_f32()];
+            let ray = frame.camera.ray(x as f32 + 0.5, y as f32 + 0.5);
+            let Some((tmin, _)) = scene.marcher.intersect(ray.o, ray.d) else {
+                continue;
+            };
+            let t = advance_n_steps(tmin, scene.marcher.cone_angle, rng.next_f32());
+            let start = w.pos.len();
+            scene.marcher.march(
+                &scene.grid,
+                ray.o,
+                ray.d,
+                t,
+                MAX_SAMPLES_PER_RAY,
+                &mut w.pos,
+                &mut w.dt,
+                &mut w.dist,
+            );
+            let n = w.pos.len() - start;
+            if n == 0 {
+                continue;
+            }
+            w.dir.extend(std::iter::repeat_n(ray.d, n));
+            let target = frame.image.target_on(x, y, bg);
+            w.rays.push(RayRec {
+                start,
+                n,
+                bg,
+                target,
+            });
+        }
+        if w.pos.is_empty() {
+            continue;
+        }
+        let marched = w.pos.len();
+        find_termination(net, params, scene, w);
+        compact(w);
+        w.n_marched += marched as u64;
+        let total = w.pos.len();
+        let n_chunks = total.div_ceil(CHUNK);
+        while w.ws.len() < n_chunks {
+            w.ws.push(net.workspace());
+        }
+        w.raw.resize(total, [0.0; 4]);
+        w.d_raw.resize(total, [0.0; 4]);
+        for k in 0..n_chunks {
+            let r = k * CHUNK..((k + 1) * CHUNK).min(total);
+            net.forward(
+                params,
+                &scene.indices,
+                &w.pos[r.clone()],
+                &w.dir[r.clone()],
+                &mut w.ws[k],
+                &mut w.raw[r],
+            );
+        }
+        for ray in &w.rays {
+            let r = ray.start..ray.start + ray.n;
+            let pos = &w.pos[r.clone()];
+            let c = ray_loss(
+                &w.raw[r.clone()],
+                &w.dt[r.clone()],
+                &w.dist[r.clone()],
+                |j| scene.marcher.in_cascade0(pos[j]),
+                ray.bg,
+                ray.target,
+                loss_norm,
+                pull_up,
+                &mut w.d_raw[r],
+            );
+            w.loss += c.loss as f64;
+            w.n_samples += c.n_used as u64;
+            w.n_rays += 1;
+        }
+        for k in 0..n_chunks {
+            let r = k * CHUNK..((k + 1) * CHUNK).min(total);
+            net.backward(
+                params,
+                &scene.indices,
+                &w.d_raw[r],
+                &mut w.ws[k],
+                &mut w.grad,
+            );
+            mark_corners(&w.ws[k], n_levels, grid_offset, &mut w.touched);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::{LoadOptions, Split};
+    use crate::encoding::{GridConfig, reference_indices};
+    use crate::network::NerfLayout;
+    use serde_json::json;
+
+    /// A small NeRF-synthetic scene written by hand: `n` views of 16×16 noise on a ring of
+    /// cameras looking at the origin.
+    fn tiny_scene(dir: &std::path::Path, n: usize) -> Arc<Dataset> {
+        std::fs::create_dir_all(dir.join("train")).unwrap();
+        let mut rng = Pcg32::new(4, 4);
+        let mut frames = Vec::new();
+        for i in 0..n {
+            let a = i as f32 * std::f32::consts::TAU / n as f32;
+            let (s, c) = a.sin_cos();
+            // Camera at (4c, 4s, 1) looking at the origin (OpenGL: −z forward, +y up).
+            let pos = [4.0 * c, 4.0 * s, 1.0f32];
+            let len = (pos[0] * pos[0] + pos[1] * pos[1] + pos[2] * pos[2]).sqrt();
+            let z = pos.map(|p| p / len);
+            let x = [-s, c, 0.0];
+            let y = [
+                z[1] * x[2] - z[2] * x[1],
+                z[2] * x[0] - z[0] * x[2],
+                z[0] * x[1] - z[1] * x[0],
+            ];
+            frames.push(json!({
+                "file_path": format!("./train/r_{i}"),
+                "transform_matrix": [
+                    [x[0], y[0], z[0], pos[0]],
+                    [x[1], y[1], z[1], pos[1]],
+                    [x[2], y[2], z[2], pos[2]],
+                    [0, 0, 0, 1]
+                ],
+            }));
+            let rgb: Vec<f32> = (0..16 * 16 * 3).map(|_| rng.next_f32()).collect();
+            crate::data::save_png_rgb(&dir.join(format!("train/r_{i}.png")), 16, 16, &rgb).unwrap();
+        }
+        let transforms = json!({"camera_angle_x": 0.7, "frames": frames});
+        std::fs::write(
+            dir.join("transforms_train.json"),
+            serde_json::to_string(&transforms).unwrap(),
+        )
+        .unwrap();
+        Arc::new(Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap())
+    }
+
+    /// [`PolicyOps::density_loss`]'s gradient through the network and the grid equals
+    /// finite differences of its loss, on the table entries and MLP weights it moves most.
+    /// The loss is the stego layer's density cap: a hinge on the raw log-density,
+    /// `w/n · max(0, ld − c)²`, with the cap below the untrained field's so that most
+    /// points lie above it.
+    #[test]
+    fn a_density_losss_gradient_matches_finite_differences() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = tiny_scene(dir.path(), 6);
+        let model = ModelConfig {
+            grid: GridConfig {
+                n_levels: 4,
+                n_features: 2,
+                log2_hashmap_size: 10,
+                base_resolution: 16,
+            },
+            aabb_scale: 1,
+        };
+        let layout = NerfLayout::new(model).unwrap();
+        let spec = SceneSpec {
+            dataset: data,
+            indices: reference_indices(&layout.grid),
+        };
+        let tc = TrainConfig {
+            seed: 2,
+            batch_samples: 1 << 11,
+            occupancy_fraction: 0.05,
+            workers: 2,
+            ..Default::default()
+        };
+        let mut t = Trainer::new(model, vec![spec], tc).unwrap();
+        for _ in 0..20 {
+            t.train_step();
+        }
+        for w in &mut t.workers {
+            w.grad.fill(0.0);
+        }
+        // ln(0.0015 / (√3/1024)): the cap's 0.0015 per finest step as a raw log-density.
+        let (cap, weight) = ((0.0015f32 / (3f32.sqrt() / 1024.0)).ln(), 1.0f32);
+        let mut rng = Pcg32::new(9, 1);
+        let points: Vec<[f32; 3]> = (0..512)
+            .map(|_| [0.3, 0.3, 0.3].map(|c: f32| c + 0.4 * rng.next_f32()))
+            .collect();
+        let n = points.len();
+        let hinge = |ld: f32| {
+            let excess = ld - cap;
+            let w = weight / n as f32;
+            if excess > 0.0 {
+                (2.0 * w * excess, w * excess * excess)
+            } else {
+                (0.0, 0.0)
+            }
+        };
+        let active = density_loss(
+            &t.net,
+            &t.params,
+            &t.scenes[0],
+            &mut t.workers,
+            &points,
+            &|ld| hinge(ld).0,
+        );
+        let grad: Vec<f64> = t.gradient().iter().map(|&g| g as f64).collect();
+        let scene = &t.scenes[0];
+        let pos: Vec<[f32; 3]> = points.iter().map(|&p| scene.marcher.warp(p)).collect();
+        assert!(
+            active as usize > n / 4,
+            "{active} of {n} points above the cap"
+        );
+        let loss = |params: &[f32]| -> f64 {
+            t.net
+                .density_batch(params, &scene.indices, &pos)
+                .iter()
+                .map(|&ld| hinge(ld).1 as f64)
+                .sum()
+        };
+        let grid_offset = t.net.layout.grid_offset;
+        let top = |range: std::ops::Range<usize>| {
+            let mut ids: Vec<usize> = range.collect();
+            ids.sort_by(|&a, &b| grad[b].abs().total_cmp(&grad[a].abs()));
+            ids.truncate(4);
+            ids
+        };
+        let mut checked = top(grid_offset..t.params.len());
+        checked.extend(top(0..grid_offset));
+        for i in checked {
+            let h = 1e-3 * t.params[i].abs().max(1e-1);
+            let mut p = t.params.clone();
+            p[i] += h;
+            let up = loss(&p);
+            p[i] -= 2.0 * h;
+            let down = loss(&p);
+            let fd = (up - down) / (2.0 * h as f64);
+            assert!(
+                (fd - grad[i]).abs() <= 0.03 * grad[i].abs() + 1e-7,
+                "parameter {i}: finite differences {fd}, gradient {}",
+                grad[i]
+            );
+        }
+    }
+}

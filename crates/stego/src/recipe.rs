@@ -1,0 +1,519 @@
+//! The one training recipe: a cover, hidden scenes each under its own key, the options of
+//! how they train (schedule, weight, warm-up, stealth), a budget and a device give a model
+//! as it will be published. `train`, the demo, every experiment and the benchmarks train
+//! through it, so a model trains the same way whoever asks for it.
+//!
+//! [`Recipe::check`] validates every option before anything is trained or written;
+//! [`Recipe::start`] builds the trainer on the device (the cover under the reference index,
+//! each hidden scene under its key's, the stealth policy when asked); [`Training::step`]
+//! runs it to the budget, keeping the totals and the loss a model file stores; and
+//! [`Training::finish`] refuses a model whose hidden scenes never trained.
+
+use crate::keys::Key;
+use crate::stealth::{Stealth, StealthOptions};
+use backend::{Device, TrainBackend};
+use ngp::data::{Dataset, LoadOptions, Split};
+use ngp::encoding::{GridConfig, reference_indices};
+use ngp::error::{Error, Result};
+use ngp::model::Model;
+use ngp::network::{ModelConfig, NerfLayout};
+use ngp::train::{SceneSpec, Schedule, StepStats, TrainConfig};
+use std::path::Path;
+use std::sync::Arc;
+
+#[cfg(feature = "clap")]
+use crate::options::choice;
+
+/// The model's hash grid.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+pub struct GridOptions {
+    /// Hash-grid levels.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 16))]
+    pub levels: u32,
+    /// Features per level.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 2))]
+    pub features: u32,
+    /// log2 of the hash table size T.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 19))]
+    pub log2_t: u32,
+}
+
+impl Default for GridOptions {
+    fn default() -> Self {
+        GridOptions {
+            levels: 16,
+            features: 2,
+            log2_t: 19,
+        }
+    }
+}
+
+impl GridOptions {
+    /// The grid (base resolution 16, the reference's).
+    pub fn grid(&self) -> GridConfig {
+        GridConfig {
+            n_levels: self.levels,
+            n_features: self.features,
+            log2_hashmap_size: self.log2_t,
+            base_resolution: 16,
+        }
+    }
+}
+
+/// How every step trains.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+pub struct StepOptions {
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
+    pub seed: u64,
+    /// Target trained samples per step (the reference's 2^18 by default).
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1 << 18))]
+    pub batch: u32,
+    /// Fraction of the reference's occupancy-grid update samples.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1.0))]
+    pub occupancy_fraction: f32,
+    /// Worker threads (gradient partitions); 0 = one per core.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
+    pub workers: usize,
+}
+
+impl Default for StepOptions {
+    fn default() -> Self {
+        StepOptions {
+            seed: 0,
+            batch: 1 << 18,
+            occupancy_fraction: 1.0,
+            workers: 0,
+        }
+    }
+}
+
+/// How hidden scenes train beside the cover.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "clap", derive(clap::Args))]
+pub struct HiddenOptions {
+    /// How the cover and the hidden scenes share the steps.
+    #[cfg_attr(
+        feature = "clap",
+        arg(long, value_parser = choice::<Schedule>(), default_value_t = Schedule::Mixed)
+    )]
+    pub schedule: Schedule,
+    /// Loss weight of each hidden scene relative to the cover's 1: where the scenes share
+    /// table entries, a larger weight moves quality from the cover to the hidden scenes.
+    #[cfg_attr(feature = "clap", arg(long, default_value_t = 1.0))]
+    pub hidden_weight: f32,
+    /// Steps the cover trains alone before the hidden scenes join (they train for the
+    /// remaining steps). A real capture's first steps settle its occupancy grid and its
+    /// background; a few hundred steps of it alone keep most of the quality a hidden scene
+    /// otherwise costs it (fox: −0.3 dB against −2.1 dB at 600 steps; benchmarks/stego.md,
+    /// "A cover warm-up").
+    #[cfg_attr(feature = "clap", arg(long, value_name = "N", default_value_t = 0))]
+    pub hidden_from: u32,
+    #[cfg_attr(feature = "clap", command(flatten))]
+    pub stealth: StealthOptions,
+}
+
+impl Default for HiddenOptions {
+    fn default() -> Self {
+        HiddenOptions {
+            schedule: Schedule::Mixed,
+            hidden_weight: 1.0,
+            hidden_from: 0,
+            stealth: StealthOptions::default(),
+        }
+    }
+}
+
+impl HiddenOptions {
+    /// The checks that need no scene: a weight that is a positive number, stealth's own.
+    pub fn check(&self) -> Result<()> {
+        if !(self.hidden_weight.is_finite() && self.hidden_weight > 0.0) {
+            return Err(Error::Config(
+                "--hidden-weight must be a positive number".into(),
+            ));
+        }
+        self.stealth.check(self.stealth.enabled)
+    }
+
+    /// Refuses a cover warm-up that leaves the hidden scenes none of `steps` steps.
+    pub fn check_steps(&self, steps: u32) -> Result<()> {
+        if self.hidden_from >= steps {
+            return Err(Error::Config(format!(
+                "--hidden-from {} leaves the hidden scenes none of the {steps} training steps",
+                self.hidden_from
+            )));
+        }
+        Ok(())
+    }
+
+    /// The options as they apply to a model of `n_hidden` hidden scenes: none without one
+    /// (a plain model trains plain), and stealth's own only with stealth.
+    pub fn applied(&self, n_hidden: usize) -> HiddenOptions {
+        if n_hidden == 0 {
+            return HiddenOptions::default();
+        }
+        let mut o = *self;
+        if !o.stealth.enabled {
+            o.stealth = StealthOptions::default();
+        }
+        o
+    }
+
+    /// Trainer steps a run of `n_steps` (per scene, as the experiments count them) takes:
+    /// the random-scene schedule trains one scene a step.
+    pub fn steps_for(&self, n_steps: u32, n_scenes: usize) -> u32 {
+        n_steps.saturating_mul(self.steps_per_round(n_scenes))
+    }
+
+    /// Trainer steps in which every scene trains once, on average.
+    pub fn steps_per_round(&self, n_scenes: usize) -> u32 {
+        match self.schedule {
+            Schedule::Mixed => 1,
+            Schedule::RandomScene => n_scenes.max(1) as u32,
+        }
+    }
+}
+
+/// How long a model trains.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Budget {
+    /// Trainer steps.
+    Steps(u32),
+    /// Seconds of training (the steps' own time: setup and evaluations excluded), ending on
+    /// a whole round of steps (under the random-scene schedule, a multiple of the scene
+    /// count).
+    Seconds(f64),
+}
+
+/// What the model file's `loss` field records.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum StoredLoss {
+    /// The cover's loss smoothed over the steps (an EMA of 0.95), as instant-ngp's GUI
+    /// shows and `train` has always written.
+    #[default]
+    Smoothed,
+    /// The cover's loss at its last step, as the experiments and the demo have always
+    /// written (their earlier models, and the detector fitted on them, stay comparable).
+    Last,
+}
+
+/// A hidden scene and its key.
+pub struct HiddenScene {
+    pub dataset: Arc<Dataset>,
+    pub key: Key,
+    /// How messages name the scene's key (its file, say).
+    pub key_name: String,
+}
+
+impl HiddenScene {
+    /// Loads `dir`'s training images as a hidden scene under `key` (named `key_name` in
+    /// messages), placed in the cover's box of `cover_box`; refused when the scene is larger
+    /// than its key's box or than the cover's.
+    pub fn load(
+        dir: &Path,
+        key: Key,
+        key_name: &str,
+        opts: &LoadOptions,
+        cover_box: u32,
+    ) -> Result<HiddenScene> {
+        let mut data = Dataset::load(dir, Split::Train, opts)?;
+        data.fit_into_box(cover_box, key.scene_box())
+            .map_err(|e| Error::Other(format!("{e} (placing it with its key {key_name})")))?;
+        Ok(HiddenScene {
+            dataset: Arc::new(data),
+            key,
+            key_name: key_name.to_string(),
+        })
+    }
+}
+
+/// Everything one model's training needs.
+pub struct Recipe {
+    /// The architecture; its `aabb_scale` is the cover's box, every scene's.
+    pub model: ModelConfig,
+    /// The cover's training images (trained under the reference index).
+    pub cover: Arc<Dataset>,
+    pub hidden: Vec<HiddenScene>,
+    pub steps: StepOptions,
+    pub options: HiddenOptions,
+    pub budget: Budget,
+    pub stored_loss: StoredLoss,
+}
+
+impl Recipe {
+    /// A plain model of `cover`: no hidden scene, no stealth.
+    pub fn plain(
+        model: ModelConfig,
+        cover: Arc<Dataset>,
+        steps: StepOptions,
+        budget: Budget,
+    ) -> Self {
+        Recipe {
+            model,
+            cover,
+            hidden: Vec::new(),
+            steps,
+            options: HiddenOptions::default(),
+            budget,
+            stored_loss: StoredLoss::default(),
+        }
+    }
+
+    /// Every check, before anything is trained or written.
+    pub fn check(&self) -> Result<()> {
+        self.options.check()?;
+        let layout = NerfLayout::new(self.model)?;
+        if self.steps.batch == 0 {
+            return Err(Error::Config("--batch must be at least 1".into()));
+        }
+        if !(self.steps.occupancy_fraction.is_finite() && self.steps.occupancy_fraction > 0.0) {
+            return Err(Error::Config(
+                "--occupancy-fraction must be a positive number".into(),
+            ));
+        }
+        match self.budget {
+            Budget::Steps(0) => return Err(Error::Config("a budget of 0 steps".into())),
+            Budget::Seconds(s) if !(s.is_finite() && s > 0.0) => {
+                return Err(Error::Config(
+                    "a training time must be a positive number of minutes".into(),
+                ));
+            }
+            _ => {}
+        }
+        if self.hidden.is_empty() {
+            if self.options.stealth.enabled {
+                return Err(Error::Config(
+                    "--stealth needs at least one --hidden scene".into(),
+                ));
+            }
+            if self.options.hidden_from > 0 {
+                return Err(Error::Config(
+                    "--hidden-from needs at least one --hidden scene".into(),
+                ));
+            }
+        }
+        if let Budget::Steps(steps) = self.budget
+            && !self.hidden.is_empty()
+        {
+            self.options.check_steps(steps)?;
+        }
+        for (i, h) in self.hidden.iter().enumerate() {
+            h.key.validate_for(&layout.grid).map_err(|e| {
+                Error::Other(format!("{}: key does not fit this model: {e}", h.key_name))
+            })?;
+            if h.key.is_reference() {
+                return Err(Error::Config(format!(
+                    "{}: this key is the reference index Π, which is the cover's: the hidden scene would overwrite it",
+                    h.key_name
+                )));
+            }
+            if let Some(other) = self.hidden[..i].iter().find(|o| o.key.same_index(&h.key)) {
+                return Err(Error::Config(format!(
+                    "{} and {}: two hidden scenes share one key and would overwrite each other",
+                    h.key_name, other.key_name
+                )));
+            }
+        }
+        for data in std::iter::once(&self.cover).chain(self.hidden.iter().map(|h| &h.dataset)) {
+            if data.aabb_scale != self.model.aabb_scale {
+                return Err(Error::Config(format!(
+                    "{}: aabb_scale {} differs from the model's {}",
+                    data.root.display(),
+                    data.aabb_scale,
+                    self.model.aabb_scale
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The engine's configuration of this recipe.
+    pub fn train_config(&self) -> TrainConfig {
+        let with_hidden = !self.hidden.is_empty();
+        TrainConfig {
+            seed: self.steps.seed,
+            batch_samples: self.steps.batch,
+            occupancy_fraction: self.steps.occupancy_fraction,
+            schedule: self.options.schedule,
+            others_weight: self.options.hidden_weight,
+            solo_steps: if with_hidden {
+                self.options.hidden_from
+            } else {
+                0
+            },
+            workers: self.steps.workers,
+            ..Default::default()
+        }
+    }
+
+    /// Checks the recipe and starts its training on `device`.
+    pub fn start<'d>(&self, device: &'d Device) -> Result<Training<'d>> {
+        self.check()?;
+        let layout = NerfLayout::new(self.model)?;
+        let mut scenes = vec![SceneSpec {
+            dataset: self.cover.clone(),
+            indices: reference_indices(&layout.grid),
+        }];
+        scenes.extend(self.hidden.iter().map(|h| SceneSpec {
+            dataset: h.dataset.clone(),
+            indices: h.key.level_indices(&layout.grid),
+        }));
+        let config = self.train_config();
+        let solo = config.solo_steps;
+        let mut trainer = device.trainer(self.model, scenes, config)?;
+        if self.options.stealth.enabled {
+            let keys: Vec<Key> = self.hidden.iter().map(|h| h.key.clone()).collect();
+            let policy = Stealth::new(layout, &keys, &self.options.stealth)?;
+            trainer.set_policy(Box::new(policy))?;
+        }
+        Ok(Training {
+            trainer,
+            budget: self.budget,
+            per_round: self.options.steps_per_round(1 + self.hidden.len()),
+            solo,
+            stored_loss: self.stored_loss,
+            totals: Totals::default(),
+            last_loss: 0.0,
+            smoothed: None,
+            shown: 0.0,
+        })
+    }
+}
+
+/// What a training has done so far.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Totals {
+    pub steps: u32,
+    /// Training time: the steps' own.
+    pub seconds: f64,
+    /// Samples that reached the loss.
+    pub samples: u64,
+    /// Samples marched and run through the network.
+    pub marched: u64,
+    /// The steps' time in occupancy updates, in rays and in the optimizer.
+    pub occupancy_seconds: f64,
+    pub rays_seconds: f64,
+    pub optimizer_seconds: f64,
+}
+
+impl Totals {
+    pub fn samples_per_second(&self) -> f64 {
+        self.samples as f64 / self.seconds.max(1e-9)
+    }
+
+    pub fn marched_per_second(&self) -> f64 {
+        self.marched as f64 / self.seconds.max(1e-9)
+    }
+
+    pub fn steps_per_second(&self) -> f64 {
+        self.steps as f64 / self.seconds.max(1e-9)
+    }
+}
+
+/// A recipe's training in progress.
+pub struct Training<'d> {
+    trainer: Box<dyn TrainBackend + 'd>,
+    budget: Budget,
+    per_round: u32,
+    solo: u32,
+    stored_loss: StoredLoss,
+    totals: Totals,
+    last_loss: f32,
+    smoothed: Option<f32>,
+    shown: f32,
+}
+
+/// A finished training: the model as published, and what it took.
+pub struct Trained {
+    pub model: Model,
+    pub totals: Totals,
+}
+
+impl Training<'_> {
+    /// Whether the budget is spent.
+    pub fn done(&self) -> bool {
+        let steps = self.trainer.step();
+        match self.budget {
+            Budget::Steps(n) => steps >= n,
+            Budget::Seconds(s) => self.totals.seconds >= s && steps.is_multiple_of(self.per_round),
+        }
+    }
+
+    /// One step, or `None` once the budget is spent.
+    pub fn step(&mut self) -> Result<Option<StepStats>> {
+        if self.done() {
+            return Ok(None);
+        }
+        let st = self.trainer.train_step()?;
+        let t = &mut self.totals;
+        t.steps = self.trainer.step();
+        t.seconds += st.seconds;
+        t.samples += st.n_samples;
+        t.marched += st.n_marched;
+        t.occupancy_seconds += st.occupancy_seconds;
+        t.rays_seconds += st.rays_seconds;
+        t.optimizer_seconds += st.optimizer_seconds;
+        self.shown = if t.steps == 1 {
+            st.loss
+        } else {
+            0.95 * self.shown + 0.05 * st.loss
+        };
+        if let Some(c) = st.primary_loss {
+            self.last_loss = c;
+            self.smoothed = Some(self.smoothed.map_or(c, |e| 0.95 * e + 0.05 * c));
+        }
+        Ok(Some(st))
+    }
+
+    /// Runs to the budget, calling `each` after every step.
+    pub fn run(&mut self, mut each: impl FnMut(&Self, &StepStats) -> Result<()>) -> Result<()> {
+        while let Some(st) = self.step()? {
+            each(self, &st)?;
+        }
+        Ok(())
+    }
+
+    pub fn totals(&self) -> &Totals {
+        &self.totals
+    }
+
+    /// Every scene's loss, smoothed over the steps (what a progress line shows).
+    pub fn shown_loss(&self) -> f32 {
+        self.shown
+    }
+
+    /// The loss the model file stores (the cover's alone, as a plain model's).
+    pub fn stored_loss(&self) -> f32 {
+        match self.stored_loss {
+            StoredLoss::Smoothed => self.smoothed.unwrap_or(0.0),
+            StoredLoss::Last => self.last_loss,
+        }
+    }
+
+    pub fn trainer(&self) -> &dyn TrainBackend {
+        self.trainer.as_ref()
+    }
+
+    /// The model as it would be published now.
+    pub fn model(&self) -> Result<Model> {
+        self.trainer.model(self.stored_loss())
+    }
+
+    /// The model as published; refused when the budget ended inside the cover's warm-up,
+    /// so that the hidden scenes never trained.
+    pub fn finish(self) -> Result<Trained> {
+        if self.trainer.n_scenes() > 1 && self.trainer.step() <= self.solo {
+            return Err(Error::Config(format!(
+                "training stopped at step {} with --hidden-from {}: the hidden scenes never \
+                 trained (give more time or a smaller --hidden-from)",
+                self.trainer.step(),
+                self.solo
+            )));
+        }
+        Ok(Trained {
+            model: self.model()?,
+            totals: self.totals,
+        })
+    }
+}

@@ -1,0 +1,99 @@
+//! Opening a published model for viewing: with no key, the cover (reference index, stored
+//! grid); with a key, the hidden scene it unlocks (the key's index functions, confined to the
+//! cover's reachable entries for a stealth model, and an occupancy grid rebuilt from the
+//! network, since a hidden scene's grid is never stored, cut to the key's box). One recipe for the CLI, the demo,
+//! the experiments and the tests.
+
+use super::keys::Key;
+use super::stealth::hidden_indices;
+use backend::{Device, RenderBackend};
+use ngp::encoding::{LevelIndices, reference_indices};
+use ngp::error::Result;
+use ngp::model::Model;
+use ngp::occupancy::OccupancyGrid;
+use ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy_in_box};
+use std::convert::Infallible;
+
+/// What renders: index functions and, for a key, the rebuilt grid.
+pub struct OpenedScene {
+    pub indices: LevelIndices,
+    /// `None`: the model's stored grid (the cover's).
+    pub rebuilt: Option<OccupancyGrid>,
+}
+
+impl OpenedScene {
+    pub fn view<'a>(&'a self, model: &'a Model) -> SceneView<'a> {
+        model.view(&self.indices, self.grid(model))
+    }
+
+    /// The occupancy grid to march through: the rebuilt one, else the model's stored one.
+    pub fn grid<'a>(&'a self, model: &'a Model) -> &'a OccupancyGrid {
+        self.rebuilt.as_ref().unwrap_or(&model.grid)
+    }
+
+    /// A renderer of this scene on `device`.
+    pub fn renderer<'a>(
+        &'a self,
+        device: &'a Device,
+        model: &'a Model,
+    ) -> Result<Box<dyn RenderBackend + 'a>> {
+        device.renderer(model, &self.indices, self.grid(model))
+    }
+}
+
+/// Opens `model` as seen through `key` (`None` or the reference key: the cover). `stealth`
+/// says the model was trained with `train --stealth`; `seed` draws the rebuild's samples.
+pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) -> OpenedScene {
+    let rebuild = |indices: &LevelIndices, scene_box: Option<u32>| {
+        Ok::<_, Infallible>(rebuild_occupancy_in_box(
+            &model.net,
+            &model.params,
+            indices,
+            model.config.aabb_scale,
+            scene_box,
+            KEY_HOLDER_SAMPLES_PER_CELL,
+            seed,
+        ))
+    };
+    let Ok(opened) = open_with(model, key, stealth, rebuild);
+    opened
+}
+
+/// [`open_scene`] with a key holder's grid rebuilt on `device` (the same grid as the CPU's
+/// up to cells at the threshold).
+pub fn open_scene_on(
+    device: &Device,
+    model: &Model,
+    key: Option<&Key>,
+    stealth: bool,
+    seed: u64,
+) -> Result<OpenedScene> {
+    open_with(model, key, stealth, |indices, scene_box| {
+        device.rebuild_occupancy(model, indices, scene_box, KEY_HOLDER_SAMPLES_PER_CELL, seed)
+    })
+}
+
+fn open_with<E>(
+    model: &Model,
+    key: Option<&Key>,
+    stealth: bool,
+    rebuild: impl FnOnce(&LevelIndices, Option<u32>) -> std::result::Result<OccupancyGrid, E>,
+) -> std::result::Result<OpenedScene, E> {
+    let layout = &model.net.layout.grid;
+    Ok(match key {
+        Some(k) if !k.is_reference() => {
+            let indices = hidden_indices(k, &model.net.layout, &model.params, stealth);
+            // Cut to the box the scene was trained in: outside it, its index meets only
+            // the cover's entries, whose density would render as haze.
+            let rebuilt = rebuild(&indices, k.scene_box())?;
+            OpenedScene {
+                indices,
+                rebuilt: Some(rebuilt),
+            }
+        }
+        _ => OpenedScene {
+            indices: reference_indices(layout),
+            rebuilt: None,
+        },
+    })
+}
