@@ -64,7 +64,6 @@ use ngp::train::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
 use ngp::train::loss::DENSITY_PULL_UP;
 use ngp::train::schedule::{
     MAX_RAYS_PER_BATCH, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid,
-    step_scenes,
 };
 use ngp::train::{SceneSpec, StepStats, TrainConfig};
 use std::sync::Arc;
@@ -510,7 +509,7 @@ impl<'c> GpuTrainer<'c> {
             step,
             weight_steps: self.weight_steps,
         };
-        let ids = step_scenes(&self.config, step, self.scenes.len());
+        let ids = self.config.step_scenes(step, self.scenes.len());
         let update = self.policy.as_ref().is_none_or(|p| p.updates_weights(&ids));
         if update {
             self.update_occupancy()?;

@@ -10,7 +10,6 @@ use crate::occupancy::OccupancyGrid;
 use crate::render::image::SceneView;
 use crate::render::march::Marcher;
 use crate::snapshot::{self, DatasetImage, Lens, Snapshot, SnapshotDataset};
-use crate::train::Trainer;
 use std::path::Path;
 
 pub struct Model {
@@ -29,21 +28,8 @@ pub struct Model {
 }
 
 impl Model {
-    pub fn from_trainer(t: &Trainer, loss: f32) -> Self {
-        Model::from_parts(
-            t.net.layout.config,
-            t.inference_params(),
-            t.grid(0).clone(),
-            t.weight_steps,
-            loss,
-            t.dataset(0),
-            t.batch_counters(0),
-        )
-        .expect("a trainer's config and parameters are consistent")
-    }
-
-    /// A model from any backend's state: the inference (EMA) weights, the cover's grid and
-    /// its training images' metadata (what [`Self::from_trainer`] takes from a CPU trainer).
+    /// A model from any backend's state: the inference (EMA) weights, scene 0's grid and
+    /// its training images' metadata (what `Model::from_trainer` takes from a CPU trainer).
     pub fn from_parts(
         config: ModelConfig,
         params: Vec<f32>,

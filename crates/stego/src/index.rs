@@ -63,3 +63,10 @@ pub fn level_indices(key: &Key, layout: &GridLayout) -> LevelIndices {
         .map(|lv| level_index(&key.group_for_level(lv.level as usize), key.dense(), lv))
         .collect()
 }
+
+impl Key {
+    /// The key's index function on every level of `layout`.
+    pub fn level_indices(&self, layout: &GridLayout) -> LevelIndices {
+        level_indices(self, layout)
+    }
+}

@@ -3,8 +3,8 @@
 
 use super::prf::combine_secrets;
 use super::primes::{self, is_prime};
+use ngp::encoding::GridLayout;
 use ngp::encoding::index::REFERENCE_PRIMES;
-use ngp::encoding::{GridLayout, LevelIndices};
 use ngp::error::{Error, Result};
 use ngp::rng::Pcg32;
 
@@ -392,10 +392,6 @@ impl Key {
             )));
         }
         Ok(())
-    }
-
-    pub fn level_indices(&self, layout: &GridLayout) -> LevelIndices {
-        super::index::level_indices(self, layout)
     }
 
     /// Partial disclosure (paper §Multi-Key ablation): the first `round(p·m)` of the m keys

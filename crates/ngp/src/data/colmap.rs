@@ -91,13 +91,7 @@ pub struct ColmapImage {
     pub name: String,
 }
 
-/// Count and bounding box of a model's 3D points (COLMAP world coordinates).
-#[derive(Clone, Debug, PartialEq)]
-pub struct PointsSummary {
-    pub count: u64,
-    pub min: [f64; 3],
-    pub max: [f64; 3],
-}
+pub use super::colmap2nerf::PointsSummary;
 
 #[derive(Clone, Debug)]
 pub struct ColmapModel {

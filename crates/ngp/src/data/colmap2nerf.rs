@@ -24,7 +24,6 @@ use std::path::{Component, Path, PathBuf};
 use serde_json::{Value, json};
 
 use super::DatasetFormat;
-use super::colmap::PointsSummary;
 use super::image::image_size;
 use crate::error::{Error, Result};
 
@@ -93,6 +92,14 @@ pub struct ImportFrame {
     /// Near and far depth of what this camera sees, where the capture records it (LLFF's
     /// bounds), in the units of `c2w`.
     pub depth_bounds: Option<[f64; 2]>,
+}
+
+/// Count and bounding box of a model's 3D points (COLMAP world coordinates).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointsSummary {
+    pub count: u64,
+    pub min: [f64; 3],
+    pub max: [f64; 3],
 }
 
 /// A real capture as read from disk, before normalisation.

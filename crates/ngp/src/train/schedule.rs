@@ -3,7 +3,6 @@
 //! per batch adapt (the reference's), each scene's starting occupancy grid, and the seed
 //! mixer every stream of a step derives from.
 
-use super::trainer::TrainConfig;
 use crate::data::Dataset;
 use crate::occupancy::OccupancyGrid;
 use crate::rng::Pcg32;
@@ -96,17 +95,23 @@ pub fn mix(a: u64, b: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// The scenes step `step` trains, in order: scene 0 alone before
-/// [`TrainConfig::solo_steps`], then all of them (mixed) or one drawn for the step (random
+/// The scenes step `step` of a trainer seeded `seed` trains, in order: scene 0 alone for
+/// its first `solo_steps` steps, then all of them (mixed) or one drawn for the step (random
 /// scene). Also the GPU trainer's, so both backends train the same scenes.
-pub fn step_scenes(config: &TrainConfig, step: u32, n_scenes: usize) -> Vec<usize> {
-    if step < config.solo_steps {
+pub fn step_scenes(
+    schedule: Schedule,
+    solo_steps: u32,
+    seed: u64,
+    step: u32,
+    n_scenes: usize,
+) -> Vec<usize> {
+    if step < solo_steps {
         return vec![0];
     }
-    match config.schedule {
+    match schedule {
         Schedule::Mixed => (0..n_scenes).collect(),
         Schedule::RandomScene => {
-            let mut r = Pcg32::new(mix(config.seed, step as u64), 0x5ce7e);
+            let mut r = Pcg32::new(mix(seed, step as u64), 0x5ce7e);
             vec![r.below(n_scenes as u32) as usize]
         }
     }

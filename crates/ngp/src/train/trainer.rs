@@ -20,6 +20,7 @@ use super::worker::{RayRec, Worker};
 use crate::data::Dataset;
 use crate::encoding::{LevelIndices, check_indices};
 use crate::error::{Error, Result};
+use crate::model::Model;
 use crate::network::ModelConfig;
 use crate::network::nerf::{CHUNK, NerfNetwork, Workspace};
 use crate::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
@@ -46,6 +47,13 @@ pub struct TrainConfig {
     pub optimizer: OptimizerConfig,
     /// Worker count (gradient partitions); 0 = one per core.
     pub workers: usize,
+}
+
+impl TrainConfig {
+    /// The scenes step `step` trains ([`step_scenes`]).
+    pub fn step_scenes(&self, step: u32, n_scenes: usize) -> Vec<usize> {
+        step_scenes(self.schedule, self.solo_steps, self.seed, step, n_scenes)
+    }
 }
 
 impl Default for TrainConfig {
@@ -387,7 +395,7 @@ impl Trainer {
         let t0 = std::time::Instant::now();
         let step = self.step;
         let info = self.step_info();
-        let scene_ids = step_scenes(&self.config, step, self.scenes.len());
+        let scene_ids = self.config.step_scenes(step, self.scenes.len());
         let update = self
             .policy
             .as_ref()
@@ -483,6 +491,22 @@ impl Trainer {
             t.clear();
             w.touched = t;
         }
+    }
+}
+
+impl Model {
+    /// The model a CPU trainer would publish now, with `loss` as its stored loss.
+    pub fn from_trainer(t: &Trainer, loss: f32) -> Self {
+        Model::from_parts(
+            t.net.layout.config,
+            t.inference_params(),
+            t.grid(0).clone(),
+            t.weight_steps,
+            loss,
+            t.dataset(0),
+            t.batch_counters(0),
+        )
+        .expect("a trainer's config and parameters are consistent")
     }
 }
 

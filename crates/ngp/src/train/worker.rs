@@ -1,6 +1,6 @@
 //! A worker's scratch for a training step: its share of the rays' samples and its partial
 //! gradient, allocated once and reused every step. The trainer sums the partials in a fixed
-//! order; the hooks' mechanisms ([`super::held`]) act on them before it does.
+//! order; the hooks' mechanisms act on them before it does.
 
 use super::optimizer::Touched;
 use crate::network::nerf::Workspace;
