@@ -17,10 +17,11 @@ use stegongp::ngp::occupancy::{GRID_SIZE, N_CELLS, OccupancyGrid, morton3d_inver
 use stegongp::ngp::render::image::{
     RenderOptions, RenderedImage, SceneView, rebuild_occupancy, render_image,
 };
-use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
-use stegongp::rng::Pcg32;
-use stegongp::stego::{SchemeKind, generate_with};
+use stegongp::stego::SchemeKind;
+use stegongp::stego::recipe::StepOptions;
 use stegongp::synth::SceneKind;
+use testkit::keys::seeded_key;
+use testkit::models::trained;
 use testkit::scenes::generated;
 
 /// CPU training steps of the fixture: enough that both scenes have surfaces, opaque and
@@ -59,38 +60,18 @@ fn fixture() -> Option<&'static Fixture> {
         let mut cfg = ModelConfig::default();
         cfg.grid.log2_hashmap_size = 16;
         let layout = stegongp::ngp::network::NerfLayout::new(cfg).unwrap();
-        let mut rng = Pcg32::new(42, 1);
-        let key = generate_with(SchemeKind::Prf, 1, || {
-            Ok((rng.next_u32() as u64) << 32 | rng.next_u32() as u64)
-        })
-        .unwrap();
+        let key = seeded_key(SchemeKind::Prf, 1, 42, 1);
         let reference = reference_indices(&layout.grid);
-        let key = key.level_indices(&layout.grid);
         let t0 = Instant::now();
-        let mut trainer = Trainer::new(
-            cfg,
-            vec![
-                SceneSpec {
-                    dataset: Arc::new(cover_train),
-                    indices: reference.clone(),
-                },
-                SceneSpec {
-                    dataset: Arc::new(hidden_train),
-                    indices: key.clone(),
-                },
-            ],
-            TrainConfig {
-                seed: 7,
-                batch_samples: 1 << 12,
-                occupancy_fraction: 1.0 / 128.0,
-                ..Default::default()
-            },
-        )
-        .unwrap();
-        for _ in 0..STEPS {
-            trainer.train_step();
-        }
-        let model = Model::from_trainer(&trainer, 0.0);
+        let steps = StepOptions {
+            seed: 7,
+            batch: 1 << 12,
+            occupancy_fraction: 1.0 / 128.0,
+            workers: 0,
+        };
+        let hidden = vec![(Arc::new(hidden_train), key.clone())];
+        let model = trained(cfg, Arc::new(cover_train), hidden, steps, STEPS);
+        let key = key.level_indices(&layout.grid);
         eprintln!("CPU training: {:.1} s", t0.elapsed().as_secs_f64());
 
         let t0 = Instant::now();

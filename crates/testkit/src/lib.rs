@@ -1,7 +1,8 @@
 //! What StegoNGP's tests share, so that each test file holds its own assertions only:
 //! generated scenes loaded as datasets ([`scenes`]), keys drawn from a seed ([`keys`]), the
-//! `stegongp` program run as a user runs it ([`cli`]), comparisons of two backends' weights
-//! ([`compare`]), and the geometry that writing a COLMAP capture needs ([`geometry`]).
+//! `stegongp` program run as a user runs it ([`cli`]), small models trained through the
+//! recipe ([`models`]), comparisons of two backends' weights ([`compare`]), and the geometry
+//! that writing a COLMAP capture needs ([`geometry`]).
 //!
 //! A dev-dependency of the workspace's root package (its integration tests); it sits above
 //! every library crate, so their own unit tests cannot use it.
@@ -10,4 +11,5 @@ pub mod cli;
 pub mod compare;
 pub mod geometry;
 pub mod keys;
+pub mod models;
 pub mod scenes;
