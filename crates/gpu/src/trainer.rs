@@ -456,45 +456,40 @@ impl<'c> GpuTrainer<'c> {
         Ok(())
     }
 
-    /// Runs a policy hook on the device's mechanisms, submitting what it recorded; returns
-    /// the points its extra loss penalised. `finish` records more work into the same
-    /// submission (the optimizer's step after [`TrainPolicy::before_update`]).
-    fn with_policy_then(
+    /// Runs a policy hook (if a policy is installed) on the device's mechanisms: the points
+    /// its extra loss penalised, and the encoder holding what it recorded, if anything.
+    fn run_policy(
         &mut self,
         hook: impl FnOnce(&mut dyn TrainPolicy, &mut dyn PolicyOps) -> ngp::Result<()>,
-        finish: impl FnOnce(&mut Self, &mut wgpu::CommandEncoder) -> GpuResult<()>,
-    ) -> GpuResult<u32> {
-        let mut policy = self.policy.take();
+    ) -> GpuResult<(u32, Option<wgpu::CommandEncoder>)> {
+        let Some(mut policy) = self.policy.take() else {
+            return Ok((0, None));
+        };
         let mut ops = GpuOps {
             t: self,
             encoder: None,
             penalised: 0,
         };
-        let run = match &mut policy {
-            Some(p) => hook(p.as_mut(), &mut ops).map_err(|e| GpuError::Input(e.to_string())),
-            None => Ok(()),
-        };
+        let run = hook(policy.as_mut(), &mut ops).map_err(|e| GpuError::Input(e.to_string()));
         let GpuOps {
             encoder, penalised, ..
         } = ops;
-        self.policy = policy;
+        self.policy = Some(policy);
         run?;
-        let ctx = self.ctx;
-        let mut encoder =
-            encoder.unwrap_or_else(|| ctx.device.create_command_encoder(&Default::default()));
-        finish(self, &mut encoder)?;
-        ctx.scoped("policy", || ctx.queue.submit([encoder.finish()]))?;
-        Ok(penalised)
+        Ok((penalised, encoder))
     }
 
+    /// [`Self::run_policy`], submitting what the hook recorded.
     fn with_policy(
         &mut self,
         hook: impl FnOnce(&mut dyn TrainPolicy, &mut dyn PolicyOps) -> ngp::Result<()>,
     ) -> GpuResult<u32> {
-        if self.policy.is_none() {
-            return Ok(0);
+        let (penalised, encoder) = self.run_policy(hook)?;
+        if let Some(e) = encoder {
+            let ctx = self.ctx;
+            ctx.scoped("policy", || ctx.queue.submit([e.finish()]))?;
         }
-        self.with_policy_then(hook, |_, _| Ok(()))
+        Ok(penalised)
     }
 
     /// One training step: the occupancy updates due, the scenes of the step's schedule one
@@ -524,23 +519,23 @@ impl<'c> GpuTrainer<'c> {
             stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops))?;
         }
         let t_rays = t0.elapsed().as_secs_f64();
-        // The CPU steps the optimizer even when nothing was trained (its MLP weights still
-        // take L2 and momentum).
-        stats.penalised += self.with_policy_then(
-            |p, ops| p.before_update(info, ops),
-            |t, encoder| {
-                if update {
-                    let ctx = t.ctx;
-                    t.optimizer
-                        .encode_step(ctx, encoder, &t.field.params, &t.grad)?;
-                    if let (Some(_), Some(h)) = (&t.bounds, &t.hold) {
-                        h.encode_clamp(ctx, encoder, &t.field.params)?;
-                    }
-                    t.weight_steps += 1;
-                }
-                Ok(())
-            },
-        )?;
+        // The policy's work before the update and the optimizer's go in one submission. The
+        // CPU steps the optimizer even when nothing was trained (its MLP weights still take
+        // L2 and momentum).
+        let (penalised, encoder) = self.run_policy(|p, ops| p.before_update(info, ops))?;
+        stats.penalised += penalised;
+        let ctx = self.ctx;
+        let mut encoder =
+            encoder.unwrap_or_else(|| ctx.device.create_command_encoder(&Default::default()));
+        if update {
+            self.optimizer
+                .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
+            if let (Some(_), Some(h)) = (&self.bounds, &self.hold) {
+                h.encode_clamp(ctx, &mut encoder, &self.field.params)?;
+            }
+            self.weight_steps += 1;
+        }
+        ctx.scoped("optimizer", || ctx.queue.submit([encoder.finish()]))?;
         // Without the update the gradient buffer keeps what the policy left in it for the
         // next step that updates the weights.
         self.ctx.wait()?;

@@ -328,20 +328,16 @@ impl Recipe {
         Ok(())
     }
 
-    /// The engine's configuration of this recipe.
+    /// The engine's configuration of this recipe (a checked one: without hidden scenes
+    /// there is no warm-up).
     pub fn train_config(&self) -> TrainConfig {
-        let with_hidden = !self.hidden.is_empty();
         TrainConfig {
             seed: self.steps.seed,
             batch_samples: self.steps.batch,
             occupancy_fraction: self.steps.occupancy_fraction,
             schedule: self.options.schedule,
             others_weight: self.options.hidden_weight,
-            solo_steps: if with_hidden {
-                self.options.hidden_from
-            } else {
-                0
-            },
+            solo_steps: self.options.hidden_from,
             workers: self.steps.workers,
             ..Default::default()
         }

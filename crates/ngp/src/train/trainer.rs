@@ -521,18 +521,22 @@ struct CpuOps<'a> {
 }
 
 impl CpuOps<'_> {
-    fn hold(&mut self) -> &mut HoldBack {
+    /// The gate (made on first use), the table's bounds and the workers it acts on.
+    fn held(&mut self) -> (&mut HoldBack, Option<&TableBounds>, &mut [Worker]) {
         let (n, n_matrix) = (self.params.len(), self.net.layout.n_mlp_params());
-        self.mech
-            .hold
-            .get_or_insert_with(|| HoldBack::new(n, n_matrix))
+        let Mechanisms { hold, bounds, .. } = &mut *self.mech;
+        let hold = hold.get_or_insert_with(|| HoldBack::new(n, n_matrix));
+        (hold, bounds.as_ref(), self.workers)
     }
 
-    fn kept(&mut self) -> &mut KeptMlp {
+    /// The kept MLP gradient (made on first use) and the workers it acts on.
+    fn kept(&mut self) -> (&mut KeptMlp, &mut [Worker]) {
         let (n_workers, n_matrix) = (self.workers.len(), self.net.layout.n_mlp_params());
-        self.mech
+        let kept = self
+            .mech
             .kept
-            .get_or_insert_with(|| KeptMlp::new(n_workers, n_matrix))
+            .get_or_insert_with(|| KeptMlp::new(n_workers, n_matrix));
+        (kept, self.workers)
     }
 }
 
@@ -555,32 +559,26 @@ impl PolicyOps for CpuOps<'_> {
     }
 
     fn open_gate(&mut self) -> Result<()> {
-        self.hold();
-        let hold = self.mech.hold.as_mut().expect("made above");
-        hold.open_gate(self.workers);
+        let (hold, _, workers) = self.held();
+        hold.open_gate(workers);
         Ok(())
     }
 
     fn hold_back(&mut self) -> Result<()> {
-        self.hold();
-        let Mechanisms { hold, bounds, .. } = &mut *self.mech;
-        hold.as_mut()
-            .expect("made above")
-            .hold_back(self.workers, bounds.as_ref());
+        let (hold, bounds, workers) = self.held();
+        hold.hold_back(workers, bounds);
         Ok(())
     }
 
     fn keep_mlp(&mut self) -> Result<()> {
-        self.kept();
-        let kept = self.mech.kept.as_mut().expect("made above");
-        kept.keep(self.workers);
+        let (kept, workers) = self.kept();
+        kept.keep(workers);
         Ok(())
     }
 
     fn restore_mlp(&mut self) -> Result<()> {
-        self.kept();
-        let kept = self.mech.kept.as_mut().expect("made above");
-        kept.restore(self.workers);
+        let (kept, workers) = self.kept();
+        kept.restore(workers);
         Ok(())
     }
 
