@@ -71,6 +71,7 @@ fn trained(res: u32) -> (Model, Camera) {
         seed: 7,
         batch: 1 << 13,
         occupancy_fraction: 1.0 / 16.0,
+        occupancy_budget: None,
         workers: 0,
     };
     let mut recipe = Recipe::plain(cfg, Arc::new(train), steps, Budget::Steps(100));

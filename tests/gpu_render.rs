@@ -67,6 +67,8 @@ fn fixture() -> Option<&'static Fixture> {
             seed: 7,
             batch: 1 << 12,
             occupancy_fraction: 1.0 / 128.0,
+            // The fixture is built by hand on the reference's schedule.
+            occupancy_budget: Some(0.0),
             workers: 0,
         };
         let hidden = vec![(Arc::new(hidden_train), key.clone())];

@@ -78,6 +78,9 @@ impl std::fmt::Display for DeviceReport {
     }
 }
 
+/// Density evaluations per trained sample the CPU's occupancy updates spend by default.
+pub const CPU_OCCUPANCY_BUDGET: f32 = 1.0;
+
 /// An opened device.
 pub enum Device {
     Cpu {
@@ -150,6 +153,20 @@ impl Device {
                     fallback: None,
                 }
             }
+        }
+    }
+
+    /// The occupancy-update budget a training on this device uses unless told otherwise
+    /// ([`GridUpdates`](ngp::train::GridUpdates)). On the CPU one density evaluation per
+    /// trained sample: a whole update of a capture's five cascades (10.5 M evaluations)
+    /// costs seconds there, and the reference's 67 in the first 256 steps took most of the
+    /// first minutes (benchmarks/engine.md, "The first minutes of a real capture"). A GPU
+    /// keeps the reference's schedule, where an update costs a millisecond.
+    pub fn default_occupancy_budget(&self) -> Option<f32> {
+        match self {
+            Device::Cpu { .. } => Some(CPU_OCCUPANCY_BUDGET),
+            #[cfg(feature = "gpu")]
+            Device::Gpu(_) => None,
         }
     }
 

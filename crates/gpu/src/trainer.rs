@@ -65,7 +65,7 @@ use ngp::train::loss::DENSITY_PULL_UP;
 use ngp::train::schedule::{
     MAX_RAYS_PER_BATCH, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid,
 };
-use ngp::train::{SceneSpec, StepStats, TrainConfig};
+use ngp::train::{GridUpdates, SceneSpec, StepStats, TrainConfig};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -266,6 +266,12 @@ impl<'c> GpuTrainer<'c> {
             });
             (pipeline, uniform)
         })?;
+        if config.occupancy_budget.is_some_and(|r| r > 0.0) {
+            return input(
+                "an occupancy budget is for the CPU engine: a GPU keeps the reference's schedule"
+                    .to_string(),
+            );
+        }
         Ok(GpuTrainer {
             ctx,
             config,
@@ -388,14 +394,26 @@ impl<'c> GpuTrainer<'c> {
         self.bounds.as_ref()
     }
 
-    /// The CPU trainer's occupancy schedule: every step for the first 16, then every
-    /// `step / 16` steps up to every 16th; every scene's grid updates on the current
-    /// weights under its own indices, the policy's hooks right after scene 0's.
-    fn update_occupancy(&mut self) -> GpuResult<()> {
+    /// The reference's occupancy schedule ([`GridUpdates::reference_due`]); every scene's
+    /// grid updates on the current weights under its own indices, the policy's hooks right
+    /// after scene 0's. Returns the densities evaluated, `None` when no update was due.
+    fn update_occupancy(&mut self) -> GpuResult<Option<u64>> {
         let step = self.weight_steps;
-        let interval = (step / 16).clamp(1, 16);
-        if !step.is_multiple_of(interval) {
-            return Ok(());
+        let fraction = self.config.occupancy_fraction;
+        // The GPU evaluates every drawn position, culled cells' too.
+        let cost = |nc: u32| {
+            let (nu, nn) = OccupancyGrid::sample_counts(nc as usize, step, fraction);
+            (nu + nn) as u64
+        };
+        let expected: u64 = self
+            .scenes
+            .iter()
+            .map(|s| cost(s.occupancy.n_cascades))
+            .sum();
+        // The GPU keeps the reference's schedule: whole updates, where an update costs it
+        // a millisecond.
+        if !GridUpdates::reference_due(step) {
+            return Ok(None);
         }
         let ctx = self.ctx;
         for si in 0..self.scenes.len() {
@@ -428,7 +446,7 @@ impl<'c> GpuTrainer<'c> {
                 self.primary_grid_updated()?;
             }
         }
-        Ok(())
+        Ok(Some(expected))
     }
 
     /// The policy's hooks after an update of scene 0's grid; its indices take effect
@@ -506,12 +524,16 @@ impl<'c> GpuTrainer<'c> {
         };
         let ids = self.config.step_scenes(step, self.scenes.len());
         let update = self.policy.as_ref().is_none_or(|p| p.updates_weights(&ids));
-        if update {
-            self.update_occupancy()?;
-        }
+        let occupancy = if update {
+            self.update_occupancy()?
+        } else {
+            None
+        };
         let t_occ = t0.elapsed().as_secs_f64();
         let mut stats = StepStats {
             step,
+            occupancy_updates: occupancy.is_some() as u32,
+            occupancy_evaluations: occupancy.unwrap_or(0),
             ..Default::default()
         };
         for si in ids {

@@ -2,6 +2,7 @@
 //! training policy acts through, and the trainer that ties rays, marching, the network and
 //! compositing together for one or more scenes sharing one set of weights.
 
+pub mod grid_updates;
 mod held;
 pub mod hooks;
 pub mod loss;
@@ -10,6 +11,7 @@ pub mod schedule;
 pub mod trainer;
 mod worker;
 
+pub use grid_updates::GridUpdates;
 pub use hooks::{PolicyOps, PolicyReads, StepInfo, TableBounds, TrainPolicy};
 pub use optimizer::{Optimizer, OptimizerConfig};
 pub use schedule::Schedule;

@@ -9,6 +9,7 @@
 //! split into one fixed range per worker, each with its own gradient buffer, summed in a
 //! fixed order: the result is deterministic for a seed and worker count.
 
+use super::grid_updates::GridUpdates;
 use super::held::{HoldBack, KeptMlp};
 use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
 use super::loss::{DENSITY_PULL_UP, ray_loss};
@@ -37,6 +38,9 @@ pub struct TrainConfig {
     pub batch_samples: u32,
     /// Fraction of the reference's occupancy-update sample count (1 = reference).
     pub occupancy_fraction: f32,
+    /// Density evaluations per trained sample the occupancy updates may spend, which spaces
+    /// them out ([`GridUpdates`]); `None` for the reference's schedule.
+    pub occupancy_budget: Option<f32>,
     /// How the scenes share the steps.
     pub schedule: Schedule,
     /// Loss weight of every scene after the first, relative to scene 0's 1. Shared table
@@ -62,6 +66,7 @@ impl Default for TrainConfig {
             seed: 0,
             batch_samples: 1 << 18,
             occupancy_fraction: 1.0,
+            occupancy_budget: None,
             schedule: Schedule::Mixed,
             others_weight: 1.0,
             solo_steps: 0,
@@ -111,6 +116,9 @@ pub struct StepStats {
     pub occupancy_seconds: f64,
     pub rays_seconds: f64,
     pub optimizer_seconds: f64,
+    /// Occupancy-grid updates this step made (0 or 1) and the densities they evaluated.
+    pub occupancy_updates: u32,
+    pub occupancy_evaluations: u64,
 }
 
 /// Samples a worker marches before running the network on them.
@@ -125,6 +133,7 @@ pub struct Trainer {
     workers: Vec<Worker>,
     policy: Option<Box<dyn TrainPolicy>>,
     mech: Mechanisms,
+    grid_updates: GridUpdates,
     /// Steps taken, updating the weights or not: the schedule's and the rays' clock.
     pub step: u32,
     /// Steps that updated the weights (every step unless a policy's clock says otherwise):
@@ -194,6 +203,7 @@ impl Trainer {
         };
         let workers = (0..n_workers).map(|_| Worker::new(params.len())).collect();
         let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
+        let grid_updates = GridUpdates::new(config.occupancy_budget);
         Ok(Trainer {
             net,
             params,
@@ -203,6 +213,7 @@ impl Trainer {
             workers,
             policy: None,
             mech: Mechanisms::default(),
+            grid_updates,
             step: 0,
             weight_steps: 0,
         })
@@ -304,14 +315,22 @@ impl Trainer {
         self.optimizer.ema_params(&self.params)
     }
 
-    fn update_occupancy(&mut self) {
+    /// Refreshes every scene's occupancy grid when an update is due ([`GridUpdates`]);
+    /// `n_trained` scenes train this step. Returns the densities evaluated, `None` when no
+    /// update was due.
+    fn update_occupancy(&mut self, n_trained: usize) -> Option<u64> {
         let step = self.weight_steps;
-        let interval = (step / 16).clamp(1, 16);
-        if !step.is_multiple_of(interval) {
-            return;
-        }
         let fraction = self.config.occupancy_fraction;
+        let step_samples = self.config.batch_samples as u64 * n_trained as u64;
+        let scenes = &self.scenes;
+        let share = self.grid_updates.due(step, step_samples, || {
+            scenes
+                .iter()
+                .map(|s| s.grid.expected_update_cost(step, fraction))
+                .sum()
+        })?;
         let seed = self.config.seed;
+        let mut evaluated = 0;
         for si in 0..self.scenes.len() {
             let SceneState {
                 grid,
@@ -320,7 +339,8 @@ impl Trainer {
                 ..
             } = &mut self.scenes[si];
             let (net, params) = (&self.net, &self.params);
-            grid.update(step, fraction, mix(seed, 0x6772_6964 + si as u64), |pos| {
+            let seed = mix(seed, 0x6772_6964 + si as u64);
+            evaluated += grid.update_share(step, fraction, share, seed, |pos| {
                 let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
                 net.density_batch(params, indices, &warped)
             });
@@ -329,6 +349,7 @@ impl Trainer {
                 self.primary_grid_updated();
             }
         }
+        Some(evaluated as u64)
     }
 
     /// The policy's hooks after an update of scene 0's grid.
@@ -400,12 +421,16 @@ impl Trainer {
             .policy
             .as_ref()
             .is_none_or(|p| p.updates_weights(&scene_ids));
-        if update {
-            self.update_occupancy();
-        }
+        let occupancy = if update {
+            self.update_occupancy(scene_ids.len())
+        } else {
+            None
+        };
         let t_occ = t0.elapsed().as_secs_f64();
         let mut stats = StepStats {
             step,
+            occupancy_updates: occupancy.is_some() as u32,
+            occupancy_evaluations: occupancy.unwrap_or(0),
             ..Default::default()
         };
         for &si in &scene_ids {
