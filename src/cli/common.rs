@@ -11,6 +11,16 @@ use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::stego::options::choice;
 use stegongp::stego::{KeyVariant, OpenedScene};
 
+/// A transmittance in [0, 1).
+fn transmittance(s: &str) -> std::result::Result<f32, String> {
+    let t: f32 = s.parse().map_err(|e| format!("{e}"))?;
+    if (0.0..1.0).contains(&t) {
+        Ok(t)
+    } else {
+        Err(format!("{t} is not in [0, 1)"))
+    }
+}
+
 /// What `render` and `eval` both take: a model, seen through an optional key, and the
 /// cameras of a dataset's split.
 #[derive(clap::Args, Debug)]
@@ -33,6 +43,11 @@ pub struct ViewArgs {
     pub views: usize,
     #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
+    /// A ray stops below this transmittance: 1e-4 is what instant-ngp evaluates with; its
+    /// interactive viewer stops at 0.01, fewer samples behind surfaces for a change the eye
+    /// hardly sees.
+    #[arg(long, default_value_t = 1e-4, value_parser = transmittance)]
+    pub min_transmittance: f32,
     /// Key file: the hidden scene it unlocks instead of the cover.
     #[arg(long)]
     pub key: Option<PathBuf>,
@@ -108,6 +123,7 @@ impl ViewArgs {
             scene,
             opts: RenderOptions {
                 background: self.background.rgb(),
+                min_transmittance: self.min_transmittance,
                 ..Default::default()
             },
             which,

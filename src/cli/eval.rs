@@ -39,6 +39,7 @@ pub fn run(a: Args) -> Result<()> {
         ensure_dir(dir)?;
     }
     let mut io_err = None;
+    let mut done = 0;
     let lpips = (!a.no_lpips).then(Lpips::embedded);
     let r = evaluate_on(
         renderer.as_mut(),
@@ -67,14 +68,26 @@ pub fn run(a: Args) -> Result<()> {
                     io_err.get_or_insert(e);
                 }
             }
+            done += 1;
             if !a.json {
+                let profile = if img.profile.n_rays > 0 {
+                    format!(
+                        ", {:.0} samples a ray; {}",
+                        v.samples_per_ray,
+                        img.profile.split()
+                    )
+                } else {
+                    String::new()
+                };
                 eprintln!(
-                    "view {i:3}: PSNR {:.2} dB, SSIM {:.4}{}",
+                    "[{done}/{}] view {i:3}: PSNR {:.2} dB, SSIM {:.4}{} ({:.2} s{profile})",
+                    which.len(),
                     v.psnr,
                     v.ssim,
                     v.lpips
                         .map(|l| format!(", LPIPS {l:.4}"))
-                        .unwrap_or_default()
+                        .unwrap_or_default(),
+                    v.render_seconds,
                 );
             }
         },

@@ -323,6 +323,7 @@ impl<'c> GpuRenderer<'c> {
             depth: vec![0.0; n],
             opacity: vec![0.0; n],
             n_samples: 0,
+            profile: Default::default(),
         };
         if n_pixels == 0 {
             return Ok(out);

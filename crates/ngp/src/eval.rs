@@ -21,6 +21,11 @@ pub struct ViewScore {
     /// LPIPS (AlexNet, v0.1; lower is better). `None` when skipped or when the view is
     /// smaller than 31 pixels in either direction.
     pub lpips: Option<f64>,
+    /// Seconds the view took to render.
+    pub render_seconds: f64,
+    /// Network samples per ray that entered the scene's box (the CPU renderer's count; 0
+    /// where the renderer does not count rays).
+    pub samples_per_ray: f64,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -133,7 +138,9 @@ fn evaluate_by<E>(
     let mut blank_features: Option<LpipsFeatures> = None;
     for &i in which {
         let frame = &data.frames[i];
+        let t_render = std::time::Instant::now();
         let img = render(&frame.camera, opts)?;
+        let render_seconds = t_render.elapsed().as_secs_f64();
         let gt = ground_truth(data, i, opts.background);
         let (w, h) = (img.width as usize, img.height as usize);
         let p = psnr(&img.rgb, &gt);
@@ -165,6 +172,12 @@ fn evaluate_by<E>(
             psnr: p,
             ssim: s,
             lpips: lp,
+            render_seconds,
+            samples_per_ray: if img.profile.n_rays > 0 {
+                img.n_samples as f64 / img.profile.n_rays as f64
+            } else {
+                0.0
+            },
         };
         on_view(&score, &img, &gt);
         views.push(score);

@@ -9,6 +9,7 @@ use crate::encoding::LevelIndices;
 use crate::network::nerf::{CHUNK, NerfNetwork};
 use crate::occupancy::OccupancyGrid;
 use rayon::prelude::*;
+use std::time::Instant;
 
 /// The background a rendering is composited over (instant-ngp's test-time white or black).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -56,7 +57,10 @@ pub struct RenderOptions {
     pub background: [f32; 3],
     /// A ray stops below this transmittance (instant-ngp's run.py evaluates with 1e-4).
     pub min_transmittance: f32,
-    /// Samples marched per live ray per wave.
+    /// Samples marched per live ray per wave. (The reference's GPU renderer marches
+    /// `clamp(rays / live rays, 1, 8)` between compactions; on the CPU the smaller waves'
+    /// overhead cost more than the samples they save: 25.9 s against 22.9 s for three
+    /// fox-colmap views, benchmarks/engine.md.)
     pub samples_per_wave: usize,
 }
 
@@ -81,6 +85,42 @@ pub struct RenderedImage {
     pub opacity: Vec<f32>,
     /// Network samples evaluated.
     pub n_samples: u64,
+    /// Where the rendering's time went (the CPU renderer's; zero elsewhere).
+    pub profile: RenderProfile,
+}
+
+/// Where a CPU rendering's time went: seconds summed over the threads, so the phases' shares
+/// are what counts, and how many rays entered the box.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RenderProfile {
+    /// Rays that entered the scene's box.
+    pub n_rays: u64,
+    /// Waves of samples marched.
+    pub n_waves: u64,
+    pub march_seconds: f64,
+    pub network_seconds: f64,
+    pub composite_seconds: f64,
+}
+
+impl RenderProfile {
+    fn add(&mut self, o: &RenderProfile) {
+        self.n_rays += o.n_rays;
+        self.n_waves += o.n_waves;
+        self.march_seconds += o.march_seconds;
+        self.network_seconds += o.network_seconds;
+        self.composite_seconds += o.composite_seconds;
+    }
+
+    /// "march 10% · network 85% · composite 5%".
+    pub fn split(&self) -> String {
+        let total = (self.march_seconds + self.network_seconds + self.composite_seconds).max(1e-12);
+        format!(
+            "march {:.0}% · network {:.0}% · composite {:.0}%",
+            100.0 * self.march_seconds / total,
+            100.0 * self.network_seconds / total,
+            100.0 * self.composite_seconds / total
+        )
+    }
 }
 
 /// Everything needed to render one scene of a model.
@@ -111,27 +151,17 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
     let mut depth = vec![0.0f32; n];
     let mut opacity = vec![0.0f32; n];
     let rows = ROWS_PER_TASK as usize * w as usize;
-    let counts: Vec<u64> = rgb
+    let profiles: Vec<(u64, RenderProfile)> = rgb
         .par_chunks_mut(rows * 3)
         .zip(depth.par_chunks_mut(rows))
         .zip(opacity.par_chunks_mut(rows))
         .enumerate()
         .map_init(
-            || {
-                (
-                    view.net.workspace(),
-                    Vec::new(),
-                    Vec::new(),
-                    Vec::new(),
-                    Vec::new(),
-                    Vec::new(),
-                    Vec::new(),
-                    Vec::new(),
-                )
-            },
-            |(ws, live, pos, dir, dts, dist, raw, owner), (task, ((rgb, depth), opacity))| {
+            || (view.net.workspace(), WaveBuffers::default()),
+            |(ws, b), (task, ((rgb, depth), opacity))| {
+                let mut prof = RenderProfile::default();
                 let first = task * rows;
-                live.clear();
+                b.live.clear();
                 for k in 0..depth.len() {
                     let p = first + k;
                     let (x, y) = ((p % w as usize) as f32 + 0.5, (p / w as usize) as f32 + 0.5);
@@ -141,7 +171,7 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                         // round to just outside it and end the ray at once (the reference
                         // also starts at a fractional step).
                         let t = advance_n_steps(t0, view.marcher.cone_angle, 0.5);
-                        live.push(LiveRay {
+                        b.live.push(LiveRay {
                             pixel: k,
                             o: ray.o,
                             d: ray.d,
@@ -153,26 +183,34 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                     }
                     rgb[k * 3..k * 3 + 3].copy_from_slice(&opts.background);
                 }
+                let n_rays = b.live.len();
+                prof.n_rays = n_rays as u64;
                 let mut n_samples = 0u64;
-                while !live.is_empty() {
+                while !b.live.is_empty() {
+                    let t_march = Instant::now();
+                    let per_ray = opts.samples_per_wave.max(1);
+                    let WaveBuffers {
+                        live,
+                        pos,
+                        dir,
+                        dts,
+                        dist,
+                        raw,
+                        owner,
+                        done,
+                    } = b;
                     pos.clear();
                     dir.clear();
                     dts.clear();
                     dist.clear();
                     owner.clear();
-                    let mut done = vec![false; live.len()];
+                    done.clear();
+                    done.resize(live.len(), false);
                     for (li, r) in live.iter_mut().enumerate() {
                         let start = pos.len();
-                        let next = view.marcher.march(
-                            view.grid,
-                            r.o,
-                            r.d,
-                            r.t,
-                            opts.samples_per_wave,
-                            pos,
-                            dts,
-                            dist,
-                        );
+                        let next = view
+                            .marcher
+                            .march(view.grid, r.o, r.d, r.t, per_ray, pos, dts, dist);
                         let got = pos.len() - start;
                         dir.extend(std::iter::repeat_n(r.d, got));
                         owner.push((li, start, got));
@@ -181,6 +219,7 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                             None => done[li] = true,
                         }
                     }
+                    let t_net = Instant::now();
                     raw.resize(pos.len(), [0.0f32; 4]);
                     for (k, (p, d)) in pos.chunks(CHUNK).zip(dir.chunks(CHUNK)).enumerate() {
                         let s = k * CHUNK;
@@ -193,6 +232,7 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                             &mut raw[s..s + p.len()],
                         );
                     }
+                    let t_comp = Instant::now();
                     n_samples += pos.len() as u64;
                     for &(li, start, got) in owner.iter() {
                         let r = &mut live[li];
@@ -228,19 +268,43 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                         }
                         keep
                     });
+                    let t_end = Instant::now();
+                    prof.n_waves += 1;
+                    prof.march_seconds += (t_net - t_march).as_secs_f64();
+                    prof.network_seconds += (t_comp - t_net).as_secs_f64();
+                    prof.composite_seconds += (t_end - t_comp).as_secs_f64();
                 }
-                n_samples
+                (n_samples, prof)
             },
         )
         .collect();
+    let mut profile = RenderProfile::default();
+    for (_, p) in &profiles {
+        profile.add(p);
+    }
     RenderedImage {
         width: w,
         height: h,
         rgb,
         depth,
         opacity,
-        n_samples: counts.iter().sum(),
+        n_samples: profiles.iter().map(|(n, _)| n).sum(),
+        profile,
     }
+}
+
+/// A rendering thread's buffers, reused from wave to wave and task to task.
+#[derive(Default)]
+struct WaveBuffers {
+    live: Vec<LiveRay>,
+    pos: Vec<[f32; 3]>,
+    dir: Vec<[f32; 3]>,
+    dts: Vec<f32>,
+    dist: Vec<f32>,
+    raw: Vec<[f32; 4]>,
+    /// (live ray, first sample, samples) of the wave.
+    owner: Vec<(usize, usize, usize)>,
+    done: Vec<bool>,
 }
 
 /// Density samples per cell when a key holder rebuilds a hidden scene's grid. Measured on
