@@ -39,6 +39,20 @@ enum Cmd {
     Detect(cli::detect::Args),
 }
 
+/// Mesa's device-select Vulkan layer, which the loader runs in every program that opens
+/// Vulkan, looks for a desktop session to pick the default GPU, and without one (a server,
+/// a container, CI) prints "error: XDG_RUNTIME_DIR is invalid or not set" while `--device
+/// auto` merely probes. With no session there is nothing for it to select by, so it is
+/// turned off by its own switch, unless the user set that switch or asked the layer for a
+/// device.
+fn quiet_device_select() {
+    let unset = |k: &str| std::env::var_os(k).is_none();
+    if unset("XDG_RUNTIME_DIR") && unset("NODEVICE_SELECT") && unset("MESA_VK_DEVICE_SELECT") {
+        // SAFETY: no other thread exists yet to read the environment.
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
+}
+
 fn main() {
     // Rust ignores SIGPIPE, which turns a closed pipe (`stegongp detect M | head`) into a
     // panic in println!; a command-line tool should end quietly, as others do.
@@ -47,6 +61,7 @@ fn main() {
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
+    quiet_device_select();
     let cli = Cli::parse();
     let result = match cli.cmd {
         Cmd::Synth(a) => cli::synth::run(a),

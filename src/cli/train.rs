@@ -78,6 +78,16 @@ struct Checkpoint {
     step: u32,
     psnr: f64,
     ssim: f64,
+    /// The training so far: its phase times (cumulative), to split a run by step range.
+    occupancy_seconds: f64,
+    rays_seconds: f64,
+    optimizer_seconds: f64,
+    occupancy_updates: u32,
+    occupancy_evaluations: u64,
+    /// How long this checkpoint's evaluation took (not counted in the training's time).
+    eval_seconds: f64,
+    /// Seconds per evaluated view.
+    seconds_per_view: f64,
 }
 
 #[derive(Serialize)]
@@ -94,6 +104,12 @@ struct Summary {
     occupancy_seconds: f64,
     rays_seconds: f64,
     optimizer_seconds: f64,
+    /// Occupancy-grid updates made and the densities they evaluated.
+    occupancy_updates: u32,
+    occupancy_evaluations: u64,
+    /// The budget that sized the updates (evaluations per trained sample); null for the
+    /// reference's schedule.
+    occupancy_budget: Option<f32>,
     checkpoints: Vec<Checkpoint>,
 }
 
@@ -165,9 +181,22 @@ pub fn run(a: Args) -> Result<()> {
         )
     };
     let device = a.device.open()?;
+    let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
     if !a.json {
         eprintln!("device: {}", device.report());
+        eprintln!(
+            "occupancy updates: {}",
+            match (occupancy_budget, a.step.occupancy_budget) {
+                (Some(r), None) => format!(
+                    "the reference's steps, each sized to {r} density evaluation(s) per trained sample (this device's default; --occupancy-budget 0 for the reference's)"
+                ),
+                (Some(r), Some(_)) => format!(
+                    "the reference's steps, each sized to {r} density evaluation(s) per trained sample"
+                ),
+                (None, _) => "the reference's schedule".to_string(),
+            }
+        );
         let trainer = training.trainer();
         for i in 0..trainer.n_scenes() {
             let d = trainer.dataset(i);
@@ -204,11 +233,12 @@ pub fn run(a: Args) -> Result<()> {
             Budget::Steps(_) => pb.set_position(t.steps as u64),
         }
         pb.set_message(format!(
-            "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s",
+            "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s {}",
             t.steps,
             training.shown_loss(),
             t.steps_per_second(),
-            t.samples_per_second() / 1e3
+            t.samples_per_second() / 1e3,
+            t.phase_split()
         ));
         while let Some(&m) = pending.first() {
             if t.seconds < m * 60.0 {
@@ -216,6 +246,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             pending.remove(0);
             let data = eval_data.as_ref().expect("loaded with checkpoints");
+            let t_eval = std::time::Instant::now();
             let model = training.model()?;
             let idx = reference_indices(&grid);
             let mut renderer = device.renderer(&model, &idx, &model.grid)?;
@@ -232,9 +263,16 @@ pub fn run(a: Args) -> Result<()> {
                 Some(Lpips::embedded()),
                 |_, _, _| {},
             )?;
+            let eval_seconds = t_eval.elapsed().as_secs_f64();
+            let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
             let line = format!(
-                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views)",
-                t.steps, r.psnr, r.ssim, r.n_views
+                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views, {:.2} s a view); {}",
+                t.steps,
+                r.psnr,
+                r.ssim,
+                r.n_views,
+                seconds_per_view,
+                t.phase_split()
             );
             // A hidden bar (no terminal) swallows println: write the line ourselves.
             if pb.is_hidden() {
@@ -247,6 +285,13 @@ pub fn run(a: Args) -> Result<()> {
                 step: t.steps,
                 psnr: r.psnr,
                 ssim: r.ssim,
+                occupancy_seconds: t.occupancy_seconds,
+                rays_seconds: t.rays_seconds,
+                optimizer_seconds: t.optimizer_seconds,
+                occupancy_updates: t.occupancy_updates,
+                occupancy_evaluations: t.occupancy_evaluations,
+                eval_seconds,
+                seconds_per_view,
             });
         }
     }
@@ -269,18 +314,22 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_seconds: t.occupancy_seconds,
         rays_seconds: t.rays_seconds,
         optimizer_seconds: t.optimizer_seconds,
+        occupancy_updates: t.occupancy_updates,
+        occupancy_evaluations: t.occupancy_evaluations,
+        occupancy_budget,
         checkpoints,
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         eprintln!(
-            "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s), loss {:.5}; wrote {}",
+            "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s; {}), loss {:.5}; wrote {}",
             summary.steps,
             summary.device.kind,
             summary.train_seconds,
             summary.steps_per_second,
             summary.samples_per_second / 1e3,
+            t.phase_split(),
             summary.final_loss,
             a.out.display()
         );
