@@ -935,7 +935,7 @@ mod tests {
         for (i, d) in g.density.iter_mut().enumerate() {
             // One cell in eight kept, at random (a pattern in step with the reference's hash
             // of the ten tries would skew how often they find one).
-            if crate::train::schedule::mix(3, i as u64) % 8 != 0 {
+            if !crate::train::schedule::mix(3, i as u64).is_multiple_of(8) {
                 *d = -1.0;
             }
         }
