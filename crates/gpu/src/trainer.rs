@@ -399,22 +399,13 @@ impl<'c> GpuTrainer<'c> {
     /// after scene 0's. Returns the densities evaluated, `None` when no update was due.
     fn update_occupancy(&mut self) -> GpuResult<Option<u64>> {
         let step = self.weight_steps;
-        let fraction = self.config.occupancy_fraction;
-        // The GPU evaluates every drawn position, culled cells' too.
-        let cost = |nc: u32| {
-            let (nu, nn) = OccupancyGrid::sample_counts(nc as usize, step, fraction);
-            (nu + nn) as u64
-        };
-        let expected: u64 = self
-            .scenes
-            .iter()
-            .map(|s| cost(s.occupancy.n_cascades))
-            .sum();
         // The GPU keeps the reference's schedule: whole updates, where an update costs it
         // a millisecond.
         if !GridUpdates::reference_due(step) {
             return Ok(None);
         }
+        // The GPU evaluates every drawn position, culled cells' too.
+        let mut evaluated = 0u64;
         let ctx = self.ctx;
         for si in 0..self.scenes.len() {
             let scene = &mut self.scenes[si];
@@ -427,6 +418,7 @@ impl<'c> GpuTrainer<'c> {
                 (Ok(a), Ok(b)) => (a, b),
                 _ => return input(format!("occupancy: {nu} + {nn} samples")),
             };
+            evaluated += nu as u64 + nn as u64;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             // Scene si's update seed on the CPU.
             let seed = mix(self.config.seed, 0x6772_6964 + si as u64);
@@ -446,7 +438,7 @@ impl<'c> GpuTrainer<'c> {
                 self.primary_grid_updated()?;
             }
         }
-        Ok(Some(expected))
+        Ok(Some(evaluated))
     }
 
     /// The policy's hooks after an update of scene 0's grid; its indices take effect

@@ -39,11 +39,6 @@ impl GridUpdates {
         step.is_multiple_of((step / 16).clamp(1, 16))
     }
 
-    /// The budget, if any: density evaluations per trained sample.
-    pub fn per_sample(&self) -> Option<f32> {
-        self.per_sample
-    }
-
     /// Once per weight-updating step, before its rays: the share of the reference's update
     /// to make now (1 = all of it), or `None`. The step trains `step_samples` samples (its
     /// target); the reference's update would evaluate about `full()` densities (asked only
