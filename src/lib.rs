@@ -4,12 +4,13 @@
 //! "Layout"): [`ngp`] the engine (knows nothing of keys or devices), [`gpu`] its wgpu
 //! backend, [`backend`] the device boundary (`--device`), [`synth`] generated scenes,
 //! [`stego`] keys, the training recipe, stealth and [`steganalysis`], and
-//! [`experiments`] (the `lab` crate).
+//! [`experiments`] (the `lab` crate), [`show`] camera paths, video and the viewer.
 
 pub use backend;
 pub use lab as experiments;
 pub use ngp;
 pub use ngp::{Error, Result, error, rng, util};
+pub use show;
 pub use stego;
 pub use stego::steganalysis;
 pub use synth;

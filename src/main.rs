@@ -37,6 +37,12 @@ enum Cmd {
     Convert(cli::convert::Args),
     /// Steganalysis: statistics of a model file that could betray a hidden scene, and a score.
     Detect(cli::detect::Args),
+    /// Render a camera path (orbit, spiral, or a nerfstudio / instant-ngp path file) to an
+    /// MP4 or PNG frames: the cover, a hidden scene with its key, or both beside a wrong key.
+    Video(cli::video::Args),
+    /// A local web viewer: orbit the cover, enter a key to see the hidden scene, record a
+    /// camera path for `video`.
+    View(cli::view::Args),
 }
 
 /// Mesa's device-select Vulkan layer, which the loader runs in every program that opens
@@ -74,6 +80,8 @@ fn main() {
         Cmd::Experiment(a) => cli::experiment::run(a),
         Cmd::Convert(a) => cli::convert::run(a),
         Cmd::Detect(a) => cli::detect::run(a),
+        Cmd::Video(a) => cli::video::run(a),
+        Cmd::View(a) => cli::view::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -11,6 +11,8 @@ pub mod keygen;
 pub mod render;
 pub mod synth;
 pub mod train;
+pub mod video;
+pub mod view;
 
 use anyhow::{Context, Result, bail};
 use std::path::Path;

@@ -1,0 +1,341 @@
+//! `stegongp video`: a camera path rendered from a model, as the cover, as the hidden scene of
+//! a key, or both beside a wrong key's, to an H.264 MP4 and/or numbered PNGs.
+
+use super::common::{DeviceArg, check_parent_dir, ensure_dir, progress};
+use anyhow::{Context, Result, bail};
+use std::path::{Path, PathBuf};
+use stegongp::ngp::data::{DatasetFormat, LoadOptions, Split};
+use stegongp::ngp::model::Model;
+use stegongp::ngp::render::image::{Background, RenderOptions};
+use stegongp::show::frame::Rgb8;
+use stegongp::show::path::{
+    CameraPath, DEFAULT_FPS, MAX_FRAMES, MAX_SIDE, NerfFrame, PathCamera, SceneRig, model_cameras,
+    model_frame_size, read_path, write_nerfstudio,
+};
+use stegongp::show::video::Mp4Video;
+use stegongp::stego::options::choice;
+use stegongp::stego::{Key, KeyVariant, open_scene_on};
+
+/// Where a scene's cameras come from, shared by `video` and `view`.
+#[derive(clap::Args, Debug, Clone)]
+pub struct SceneCameras {
+    /// Dataset whose cameras place generated paths (centre, distance, elevation, spread), and
+    /// whose frame nerfstudio path files are read and written in. Without it, the cameras
+    /// the model keeps (instant-ngp stores the cover's training cameras).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// COLMAP / LLFF data: the image folder (sizes only; no pixel is read).
+    #[arg(long)]
+    pub images: Option<String>,
+    #[arg(long, value_parser = choice::<Split>(), default_value_t = Split::Train)]
+    pub split: Split,
+}
+
+/// A scene's cameras, the frame its path files use, and whether it faces forward (LLFF).
+pub struct Rig {
+    pub cameras: Vec<PathCamera>,
+    pub frame: NerfFrame,
+    pub size: Option<(u32, u32)>,
+    pub forward_facing: bool,
+    pub rig: SceneRig,
+}
+
+impl SceneCameras {
+    pub fn open(&self, model: &Model) -> Result<Rig> {
+        let (cameras, frame, size, forward_facing) = match &self.data {
+            Some(dir) => {
+                let (cams, meta) = stegongp::ngp::data::Dataset::load_cameras(
+                    dir,
+                    self.split,
+                    &LoadOptions {
+                        images: self.images.clone(),
+                        ..Default::default()
+                    },
+                )?;
+                let size = cams.first().map(|c| (c.width, c.height));
+                (
+                    cams.iter().map(PathCamera::of).collect::<Vec<_>>(),
+                    NerfFrame {
+                        scale: meta.scale,
+                        offset: meta.offset,
+                    },
+                    size,
+                    meta.format == DatasetFormat::Llff,
+                )
+            }
+            None => (
+                model_cameras(model),
+                NerfFrame::of_model(model),
+                model_frame_size(model),
+                false,
+            ),
+        };
+        let rig = SceneRig::of(&cameras, [0.5; 3]).unwrap_or_else(SceneRig::default_object);
+        Ok(Rig {
+            cameras,
+            frame,
+            size,
+            forward_facing,
+            rig,
+        })
+    }
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Model file (.ingp or .msgpack).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// Key file: render the hidden scene it unlocks instead of the cover.
+    #[arg(long)]
+    pub key: Option<PathBuf>,
+    /// Diagnostic variant of --key (as `render`'s).
+    #[arg(long)]
+    pub key_variant: Option<KeyVariant>,
+    /// The model was trained with `train --stealth`.
+    #[arg(long)]
+    pub stealth: bool,
+    /// Three labelled panels: the cover (no key), the hidden scene (--key) and a wrong key's
+    /// view of the same file.
+    #[arg(long, requires = "key")]
+    pub side_by_side: bool,
+    #[command(flatten)]
+    pub cameras: SceneCameras,
+    /// orbit (around the scene's centre at the cameras' mean distance and elevation), spiral
+    /// (LLFF's forward-facing path), auto (spiral for LLFF data, else orbit), or a path file:
+    /// nerfstudio's camera_path.json or instant-ngp's base_cam.json.
+    #[arg(long, default_value = "auto")]
+    pub path: String,
+    /// Frames of a generated path or of an instant-ngp path's spline (default 120; a
+    /// nerfstudio file lists its own frames).
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Frames per second (default: the path file's, else 24).
+    #[arg(long)]
+    pub fps: Option<u32>,
+    /// Frame width in pixels (default: the path file's, else the cameras', else 400).
+    #[arg(long)]
+    pub width: Option<u32>,
+    #[arg(long)]
+    pub height: Option<u32>,
+    #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
+    pub background: Background,
+    /// A ray stops below this transmittance (1e-4: as `render`; 0.01: faster, as a viewer).
+    #[arg(long, default_value_t = 1e-4)]
+    pub min_transmittance: f32,
+    /// The MP4 to write (H.264, yuv420p).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Also (or instead) write the frames as frame_00000.png … into this folder.
+    #[arg(long)]
+    pub frames_dir: Option<PathBuf>,
+    /// Write the path rendered as nerfstudio's camera_path.json.
+    #[arg(long)]
+    pub write_path: Option<PathBuf>,
+    /// Seed of the wrong key in --side-by-side and of a key holder's grid rebuild.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Print a JSON summary.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub device: DeviceArg,
+}
+
+fn dimension(v: u32, name: &str) -> Result<u32> {
+    if !(1..=MAX_SIDE).contains(&v) {
+        bail!("{name} {v}: not in 1..={MAX_SIDE}");
+    }
+    Ok(v)
+}
+
+/// The path asked for: generated from the rig, or read from a file.
+pub fn make_path(spec: &str, frames: Option<usize>, rig: &Rig) -> Result<CameraPath> {
+    let n = frames.unwrap_or(120);
+    if n == 0 || n > MAX_FRAMES {
+        bail!("--frames {n}: not in 1..={MAX_FRAMES}");
+    }
+    let generated = |cams| CameraPath {
+        cameras: cams,
+        fps: DEFAULT_FPS,
+        size: None,
+    };
+    Ok(match spec {
+        "orbit" => generated(rig.rig.orbit(n)),
+        "spiral" => generated(rig.rig.spiral(n)),
+        "auto" if rig.forward_facing => generated(rig.rig.spiral(n)),
+        "auto" => generated(rig.rig.orbit(n)),
+        file => read_path(Path::new(file), frames, &rig.frame)?,
+    })
+}
+
+pub fn run(a: Args) -> Result<()> {
+    if a.out.is_none() && a.frames_dir.is_none() {
+        bail!("say where the frames go: --out VIDEO.mp4 and/or --frames-dir DIR");
+    }
+    if let Some(out) = &a.out {
+        if out.extension().and_then(|e| e.to_str()) != Some("mp4") {
+            bail!("{}: the video file must end in .mp4", out.display());
+        }
+        check_parent_dir(out)?;
+    }
+    if let Some(p) = &a.write_path {
+        check_parent_dir(p)?;
+    }
+    if !(0.0..1.0).contains(&a.min_transmittance) {
+        bail!("--min-transmittance {}: not in [0, 1)", a.min_transmittance);
+    }
+    let model = Model::load(&a.model)?;
+    let rig = a.cameras.open(&model)?;
+    let path = make_path(&a.path, a.frames, &rig)?;
+    let (w, h) = match (a.width, a.height) {
+        (Some(w), Some(h)) => (dimension(w, "--width")?, dimension(h, "--height")?),
+        (Some(_), None) | (None, Some(_)) => bail!("give --width and --height together"),
+        (None, None) => path.size.or(rig.size).unwrap_or((400, 400)),
+    };
+    let fps = match a.fps {
+        Some(f) => f,
+        None => path.fps.round().clamp(1.0, 240.0) as u32,
+    };
+    let device = a.device.open()?;
+    eprintln!("device: {}", device.report());
+    // Scenes: the one asked for, or cover / key / wrong key side by side.
+    let mut keys: Vec<(Option<Key>, &str)> = Vec::new();
+    let key = match &a.key {
+        Some(kp) => {
+            let mut k = super::keygen::load_key_reporting(kp)?;
+            k.validate_for(&model.net.layout.grid)
+                .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
+            if let Some(v) = a.key_variant {
+                k = v.apply(&k);
+            }
+            Some(k)
+        }
+        None => {
+            if a.key_variant.is_some() {
+                bail!("--key-variant needs --key");
+            }
+            if a.stealth {
+                bail!("--stealth needs --key");
+            }
+            None
+        }
+    };
+    if a.side_by_side {
+        let k = key.clone().expect("clap requires --key");
+        let wrong = Key::wrong(a.seed ^ 0x5eed, &k);
+        keys.push((None, "cover (no key)"));
+        keys.push((Some(k), "hidden scene (key)"));
+        keys.push((Some(wrong), "wrong key"));
+    } else {
+        keys.push((key, ""));
+    }
+    let scenes = keys
+        .iter()
+        .map(|(k, _)| open_scene_on(&device, &model, k.as_ref(), a.stealth, a.seed))
+        .collect::<stegongp::Result<Vec<_>>>()?;
+    let mut renderers = scenes
+        .iter()
+        .map(|s| s.renderer(&device, &model))
+        .collect::<stegongp::Result<Vec<_>>>()?;
+    let opts = RenderOptions {
+        background: a.background.rgb(),
+        min_transmittance: a.min_transmittance,
+        ..Default::default()
+    };
+    if let Some(dir) = &a.frames_dir {
+        ensure_dir(dir)?;
+    }
+    if let Some(p) = &a.write_path {
+        write_nerfstudio(p, &path, w, h, &rig.frame)?;
+    }
+    let n = path.cameras.len();
+    let panel_w = if a.side_by_side { 3 * w + 2 * GAP } else { w };
+    let (vw, vh) = (panel_w.next_multiple_of(2), h.next_multiple_of(2));
+    let mut video = match &a.out {
+        Some(out) => Some(Mp4Video::create(out, vw, vh, fps)?),
+        None => None,
+    };
+    let pb = progress(
+        n as u64,
+        "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} frames {msg}",
+    );
+    let t0 = std::time::Instant::now();
+    let mut render_seconds = 0.0;
+    for (i, pc) in path.cameras.iter().enumerate() {
+        let camera = pc.camera(w, h);
+        let tr = std::time::Instant::now();
+        let mut panels = Vec::with_capacity(renderers.len());
+        for r in renderers.iter_mut() {
+            let img = r.render(&camera, &opts)?;
+            panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
+        }
+        render_seconds += tr.elapsed().as_secs_f64();
+        let frame = if a.side_by_side {
+            let labelled: Vec<(&Rgb8, &str)> = panels
+                .iter()
+                .zip(&keys)
+                .map(|(p, (_, l))| (p, *l))
+                .collect();
+            Rgb8::side_by_side(&labelled, GAP)
+        } else {
+            panels.pop().expect("one scene")
+        };
+        if let Some(dir) = &a.frames_dir {
+            let p = dir.join(format!("frame_{i:05}.png"));
+            stegongp::util::write_atomic(&p, &frame.png())?;
+        }
+        if let Some(v) = video.as_mut() {
+            v.push(&frame.even())?;
+        }
+        pb.inc(1);
+        pb.set_message(format!(
+            "{:.2} s/frame",
+            t0.elapsed().as_secs_f64() / (i + 1) as f64
+        ));
+    }
+    pb.finish_and_clear();
+    let summary = match video {
+        Some(v) => Some(v.finish()?),
+        None => None,
+    };
+    let total = t0.elapsed().as_secs_f64();
+    if a.json {
+        let report = serde_json::json!({
+            "model": a.model,
+            "device": device.report(),
+            "frames": n,
+            "width": w,
+            "height": h,
+            "fps": fps,
+            "side_by_side": a.side_by_side,
+            "video": summary,
+            "frames_dir": a.frames_dir,
+            "seconds": total,
+            "render_seconds_per_frame": render_seconds / n as f64,
+            "encode_seconds_per_frame": summary.as_ref().map(|s| s.encode_seconds / n as f64),
+        });
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        if let Some(s) = &summary {
+            eprintln!(
+                "wrote {} ({} frames, {}x{}, {} fps, {:.1} MB): {:.2} s/frame rendering, {:.3} s/frame encoding",
+                s.path.display(),
+                s.frames,
+                s.width,
+                s.height,
+                s.fps,
+                s.bytes as f64 / 1e6,
+                render_seconds / n as f64,
+                s.encode_seconds / n as f64
+            );
+        }
+        if let Some(dir) = &a.frames_dir {
+            eprintln!("wrote {n} frames into {}", dir.display());
+        }
+    }
+    Ok(())
+}
+
+/// Black pixels between side-by-side panels.
+const GAP: u32 = 4;
