@@ -1,5 +1,5 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! lab, the lab on the stego layer, the stego layer on the device boundary, that on the
+//! lab and the show layer (paths, video, viewer), those on the stego layer, the stego layer on the device boundary, that on the
 //! engine and its wgpu backend, and the engine on no other crate of ours, nor on wgpu or
 //! clap. Read from `cargo metadata` (the resolved graph, so a dependency of a dependency
 //! counts too).
@@ -10,7 +10,7 @@ use std::process::Command;
 
 /// Each crate of the workspace and the crates of ours it may depend on (normal and build
 /// dependencies; tests may use more).
-const ALLOWED: [(&str, &[&str]); 8] = [
+const ALLOWED: [(&str, &[&str]); 9] = [
     ("stegongp-ngp", &[]),
     ("stegongp-gpu", &["stegongp-ngp"]),
     ("stegongp-backend", &["stegongp-ngp", "stegongp-gpu"]),
@@ -27,6 +27,15 @@ const ALLOWED: [(&str, &[&str]); 8] = [
             "stegongp-backend",
             "stegongp-stego",
             "stegongp-synth",
+        ],
+    ),
+    (
+        "stegongp-show",
+        &[
+            "stegongp-ngp",
+            "stegongp-gpu",
+            "stegongp-backend",
+            "stegongp-stego",
         ],
     ),
     (
@@ -48,6 +57,7 @@ const ALLOWED: [(&str, &[&str]); 8] = [
             "stegongp-stego",
             "stegongp-synth",
             "stegongp-lab",
+            "stegongp-show",
         ],
     ),
 ];

@@ -708,3 +708,32 @@ fn a_browser_plays_the_video() {
         "Chromium's player: {r}"
     );
 }
+
+#[test]
+fn demo_writes_its_side_by_side_video_and_large_figure() {
+    let d = tempfile::tempdir().unwrap();
+    let out = d.path().join("demo");
+    let o = out.to_str().unwrap();
+    let log = ok(&stegongp(&[
+        "demo",
+        "--out",
+        o,
+        "--res",
+        "24",
+        "--steps",
+        "5",
+        "--batch",
+        "4096",
+        "--video-frames",
+        "3",
+        "--figure-size",
+        "40",
+        "--video-size",
+        "20",
+    ]));
+    let large = load_png(&out.join("demo_large.png"));
+    // Three 40-px panels, two 4-px gaps.
+    assert_eq!((large.width, large.height), (128, 40), "{log}");
+    let v = decode_mp4(&out.join("demo.mp4")).unwrap();
+    assert_eq!((v.width, v.height, v.frames.len()), (68, 20, 3));
+}

@@ -11,6 +11,9 @@ use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::RenderOptions;
+use stegongp::show::frame::Rgb8;
+use stegongp::show::path::{PathCamera, SceneRig};
+use stegongp::show::video::Mp4Video;
 use stegongp::stego::recipe::{
     Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
 };
@@ -36,11 +39,30 @@ pub struct Args {
     pub text: String,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Frames of the side-by-side orbit video (cover, key, wrong key) at 12 frames a
+    /// second; 0: no video.
+    #[arg(long, default_value_t = 24)]
+    pub video_frames: usize,
+    /// Side of each panel of the video, in pixels (even). A wrong key's haze fills the whole
+    /// box, so its panel takes several times the cover's time to render.
+    #[arg(long, default_value_t = 128)]
+    pub video_size: u32,
+    /// Side of each panel of the large figure, in pixels (even).
+    #[arg(long, default_value_t = 256)]
+    pub figure_size: u32,
     #[command(flatten)]
     pub device: DeviceArg,
 }
 
 pub fn run(a: Args) -> Result<()> {
+    for (name, v) in [
+        ("--figure-size", a.figure_size),
+        ("--video-size", a.video_size),
+    ] {
+        if v == 0 || !v.is_multiple_of(2) || v > 2048 {
+            anyhow::bail!("{name} {v}: an even number of pixels up to 2048");
+        }
+    }
     let t0 = std::time::Instant::now();
     ensure_dir(&a.out)?;
     let cover_dir = a.out.join("cover");
@@ -78,6 +100,11 @@ pub fn run(a: Args) -> Result<()> {
         ..Default::default()
     };
     let cover = Dataset::load(&cover_dir, Split::Train, &opts)?;
+    let cover_cameras: Vec<PathCamera> = cover
+        .frames
+        .iter()
+        .map(|f| PathCamera::of(&f.camera))
+        .collect();
     let model = ModelConfig::default();
     let hidden = HiddenScene::load(
         &hidden_dir,
@@ -182,6 +209,57 @@ pub fn run(a: Args) -> Result<()> {
     tiles.insert(0, ground_truth(&cover_test, views[0], [1.0; 3]));
     let grid_path = a.out.join("demo.png");
     save_grid(&grid_path, &tiles, cover_test.width, cover_test.height, 3)?;
+
+    // Larger than the training images (a NeRF renders at any size): the figure's first
+    // view, and an orbit video, cover, key and wrong key side by side.
+    let looks: [(Option<&Key>, &str); 3] = [
+        (None, "cover (no key)"),
+        (Some(&key), "hidden (key)"),
+        (Some(&wrong), "wrong key"),
+    ];
+    let opened = looks
+        .iter()
+        .map(|(k, _)| open_scene_on(&device, &model, *k, false, a.seed))
+        .collect::<stegongp::Result<Vec<_>>>()?;
+    let mut renderers = opened
+        .iter()
+        .map(|s| s.renderer(&device, &model))
+        .collect::<stegongp::Result<Vec<_>>>()?;
+    let mut side_by_side = |camera: &PathCamera, size: u32| -> Result<Rgb8> {
+        let mut panels = Vec::new();
+        for r in renderers.iter_mut() {
+            let img = r.render(&camera.camera(size, size), &ropts)?;
+            panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
+        }
+        let labelled: Vec<(&Rgb8, &str)> = panels
+            .iter()
+            .zip(&looks)
+            .map(|(p, (_, l))| (p, *l))
+            .collect();
+        Ok(Rgb8::side_by_side(&labelled, 4))
+    };
+    let large_path = a.out.join("demo_large.png");
+    let large = side_by_side(
+        &PathCamera::of(&cover_test.frames[views[0]].camera),
+        a.figure_size,
+    )?;
+    stegongp::util::write_atomic(&large_path, &large.png())?;
+    let video_path = a.out.join("demo.mp4");
+    if a.video_frames > 0 {
+        let rig = SceneRig::of(&cover_cameras, [0.5; 3]).unwrap_or_else(SceneRig::default_object);
+        let pb = super::common::progress(
+            a.video_frames as u64,
+            "{spinner} video [{elapsed_precise}] {bar:30} {pos}/{len} frames",
+        );
+        let w = (3 * a.video_size + 8).next_multiple_of(2);
+        let mut video = Mp4Video::create(&video_path, w, a.video_size, 12)?;
+        for camera in rig.orbit(a.video_frames) {
+            video.push(&side_by_side(&camera, a.video_size)?)?;
+            pb.inc(1);
+        }
+        pb.finish_and_clear();
+        video.finish()?;
+    }
     println!(
         "\nStegoNGP demo: one Instant-NGP model, {} steps on the {} ({:.0} s training, {:.0}k samples/s)",
         a.steps,
@@ -206,6 +284,18 @@ pub fn run(a: Args) -> Result<()> {
         "figure: {} — cover GT, hidden GT, no key, no key vs text, key, wrong key",
         grid_path.display()
     );
+    println!(
+        "large figure: {} — cover, key and wrong key at {} px",
+        large_path.display(),
+        a.figure_size
+    );
+    if a.video_frames > 0 {
+        println!(
+            "video: {} — {} frames orbiting, cover, key and wrong key",
+            video_path.display(),
+            a.video_frames
+        );
+    }
     println!(
         "images: {}; total {:.0} s",
         images.display(),

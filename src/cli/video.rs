@@ -101,9 +101,11 @@ pub struct Args {
     pub side_by_side: bool,
     #[command(flatten)]
     pub cameras: SceneCameras,
-    /// orbit (around the scene's centre at the cameras' mean distance and elevation), spiral
-    /// (LLFF's forward-facing path), auto (spiral for LLFF data, else orbit), or a path file:
-    /// nerfstudio's camera_path.json or instant-ngp's base_cam.json.
+    /// orbit (around the scene's centre at the cameras' mean distance and elevation), sweep
+    /// (back and forth over the arc the cameras cover, for a capture taken from one side),
+    /// spiral (LLFF's forward-facing path), auto (spiral for LLFF data, sweep where the
+    /// cameras leave a gap wider than 90°, else orbit), or a path file: nerfstudio's
+    /// camera_path.json or instant-ngp's base_cam.json.
     #[arg(long, default_value = "auto")]
     pub path: String,
     /// Frames of a generated path or of an instant-ngp path's spline (default 120; a
@@ -162,8 +164,10 @@ pub fn make_path(spec: &str, frames: Option<usize>, rig: &Rig) -> Result<CameraP
     };
     Ok(match spec {
         "orbit" => generated(rig.rig.orbit(n)),
+        "sweep" => generated(rig.rig.sweep(n)),
         "spiral" => generated(rig.rig.spiral(n)),
         "auto" if rig.forward_facing => generated(rig.rig.spiral(n)),
+        "auto" if !rig.rig.surrounds() => generated(rig.rig.sweep(n)),
         "auto" => generated(rig.rig.orbit(n)),
         file => read_path(Path::new(file), frames, &rig.frame)?,
     })

@@ -163,6 +163,10 @@ pub struct SceneRig {
     pub mean_right: [f32; 3],
     /// 90th percentile of |position − mean| along right, down, forward.
     pub spread: [f32; 3],
+    /// The azimuths the cameras cover about `up`: where the covered arc starts and how wide
+    /// it is (radians; 2π when no gap between neighbouring cameras exceeds 90°).
+    pub arc_start: f32,
+    pub arc_span: f32,
 }
 
 impl SceneRig {
@@ -198,7 +202,7 @@ impl SceneRig {
                 }
             }
         }
-        let up = snap_to_axis(normalize(up));
+        let up = snap_to_axis(level_up(cameras, normalize(up)));
         let mean = scale(mean, 1.0 / n);
         let fwd = normalize(fwd);
         let centre = solve3(a, b, n as f64)
@@ -229,6 +233,27 @@ impl SceneRig {
                 offs[k].push(dot(v, axis).abs());
             }
         }
+        // The covered arc: the circle less its widest gap between neighbouring azimuths.
+        let mut az: Vec<f32> = cameras
+            .iter()
+            .map(|c| {
+                let v = sub(pos(c), centre);
+                dot(v, e2).atan2(dot(v, e1))
+            })
+            .collect();
+        az.sort_by(|a, b| a.total_cmp(b));
+        let tau = std::f32::consts::TAU;
+        let (mut gap, mut gap_end) = (az[0] + tau - az[az.len() - 1], az[0]);
+        for w in az.windows(2) {
+            if w[1] - w[0] > gap {
+                (gap, gap_end) = (w[1] - w[0], w[1]);
+            }
+        }
+        let (arc_start, arc_span) = if gap > tau / 4.0 {
+            (gap_end, tau - gap)
+        } else {
+            (azimuth, tau)
+        };
         let spread = offs.map(|mut v| {
             v.sort_by(|a, b| a.total_cmp(b));
             v[((v.len() - 1) as f32 * 0.9).round() as usize]
@@ -244,6 +269,8 @@ impl SceneRig {
             mean_forward: fwd,
             mean_right: right,
             spread,
+            arc_start,
+            arc_span,
         })
     }
 
@@ -261,27 +288,48 @@ impl SceneRig {
             mean_forward: [0.0, 0.0, 1.0],
             mean_right: [1.0, 0.0, 0.0],
             spread: [0.1; 3],
+            arc_start: 0.0,
+            arc_span: std::f32::consts::TAU,
+        }
+    }
+
+    /// Whether the cameras stand all around the scene (no gap wider than 90°).
+    pub fn surrounds(&self) -> bool {
+        self.arc_span >= std::f32::consts::TAU - 1e-6
+    }
+
+    /// `n` cameras swinging over the arc the cameras cover and back (eased at its ends), at
+    /// the mean distance and elevation: an orbit for a capture taken from one side, which
+    /// a full circle would show from behind, where no camera looked.
+    pub fn sweep(&self, n: usize) -> Vec<PathCamera> {
+        (0..n)
+            .map(|i| {
+                let t = std::f32::consts::TAU * i as f32 / n as f32;
+                let az = self.arc_start + self.arc_span * 0.5 * (1.0 - t.cos());
+                self.camera_at(az)
+            })
+            .collect()
+    }
+
+    fn camera_at(&self, az: f32) -> PathCamera {
+        let (e1, e2) = basis(self.up);
+        let (ce, se) = (self.elevation.cos(), self.elevation.sin());
+        let dir = add(
+            scale(add(scale(e1, az.cos()), scale(e2, az.sin())), ce),
+            scale(self.up, se),
+        );
+        let p = add(self.centre, scale(dir, self.distance));
+        PathCamera {
+            c2w: look_at(p, self.centre, self.up),
+            fov_y_deg: self.fov_y_deg,
         }
     }
 
     /// `n` cameras on a circle about `up` through the centre, at the mean distance and
     /// elevation, starting at the first camera's azimuth, each looking at the centre.
     pub fn orbit(&self, n: usize) -> Vec<PathCamera> {
-        let (e1, e2) = basis(self.up);
         (0..n)
-            .map(|i| {
-                let az = self.azimuth + std::f32::consts::TAU * i as f32 / n as f32;
-                let (ce, se) = (self.elevation.cos(), self.elevation.sin());
-                let dir = add(
-                    scale(add(scale(e1, az.cos()), scale(e2, az.sin())), ce),
-                    scale(self.up, se),
-                );
-                let p = add(self.centre, scale(dir, self.distance));
-                PathCamera {
-                    c2w: look_at(p, self.centre, self.up),
-                    fov_y_deg: self.fov_y_deg,
-                }
-            })
+            .map(|i| self.camera_at(self.azimuth + std::f32::consts::TAU * i as f32 / n as f32))
             .collect()
     }
 
@@ -809,6 +857,39 @@ fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
         a[2] * b[0] - a[0] * b[2],
         a[0] * b[1] - a[1] * b[0],
     ]
+}
+
+/// Up as the direction the cameras' right axes are most nearly perpendicular to (upright
+/// cameras hold their right axis level), found by power iteration from `mean_up`, the mean
+/// of their up axes: that mean leans towards the scene when the cameras look down on it
+/// from one side. Where the right axes are all alike (a forward-facing capture) any level
+/// direction fits and the iteration keeps the mean.
+fn level_up(cameras: &[PathCamera], mean_up: [f32; 3]) -> [f32; 3] {
+    let mut m = [[0.0f32; 3]; 3];
+    for c in cameras {
+        let r = normalize([c.c2w[0][0], c.c2w[1][0], c.c2w[2][0]]);
+        for i in 0..3 {
+            for j in 0..3 {
+                m[i][j] += r[i] * r[j];
+            }
+        }
+    }
+    let tr = m[0][0] + m[1][1] + m[2][2];
+    let mut v = mean_up;
+    for _ in 0..64 {
+        // (tr·I − M) v: its largest eigenvalue belongs to M's smallest.
+        let w = std::array::from_fn(|i| tr * v[i] - dot(m[i], v));
+        let n = norm(w);
+        if n.is_nan() || n <= 0.0 {
+            return mean_up;
+        }
+        v = scale(w, 1.0 / n);
+    }
+    if dot(v, mean_up) < 0.0 {
+        scale(v, -1.0)
+    } else {
+        v
+    }
 }
 
 /// The nearest coordinate axis when `up` is within 10° of it: the loaders orient captures

@@ -290,3 +290,43 @@ fn malformed_paths_name_the_field() {
         assert!(e.contains(says), "{text}: {e} (wanted {says})");
     }
 }
+
+#[test]
+fn a_capture_from_one_side_is_swept_over_its_arc() {
+    // Cameras over 120° of a circle: the sweep stays within it, a full ring surrounds.
+    let full = SceneRig::of(&ring(24, [0.5; 3], 1.0, 20.0), [0.5; 3]).unwrap();
+    assert!(full.surrounds());
+    let part: Vec<PathCamera> = ring(36, [0.5; 3], 1.0, 20.0).into_iter().take(12).collect();
+    let rig = SceneRig::of(&part, [0.5; 3]).unwrap();
+    assert!(!rig.surrounds());
+    assert!(
+        close(rig.arc_span.to_degrees(), 110.0, 0.5),
+        "{}",
+        rig.arc_span.to_degrees()
+    );
+    let inside = |p: [f32; 3]| {
+        part.iter()
+            .map(|c| dist(c.camera(8, 8).position(), p))
+            .fold(f32::INFINITY, f32::min)
+            < 0.2
+    };
+    let sweep = rig.sweep(30);
+    for c in &sweep {
+        let p = c.camera(8, 8).position();
+        assert!(inside(p), "{p:?} is outside the cameras' arc");
+        assert!(close(dist(p, rig.centre), 1.0, 1e-3));
+    }
+    // It reaches both ends of the arc.
+    let ends = [
+        part[0].camera(8, 8).position(),
+        part[11].camera(8, 8).position(),
+    ];
+    for e in ends {
+        assert!(
+            sweep
+                .iter()
+                .any(|c| dist(c.camera(8, 8).position(), e) < 0.05),
+            "{e:?} not reached"
+        );
+    }
+}
