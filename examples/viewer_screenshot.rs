@@ -68,6 +68,7 @@ fn main() {
     );
     b.screenshot(Path::new(&format!("{prefix}-key.png")));
     let _ = child.kill();
+    let _ = child.wait();
     let _ = std::fs::remove_file(&record);
     eprintln!("wrote {prefix}-cover.png and {prefix}-key.png");
 }
