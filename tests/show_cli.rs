@@ -13,7 +13,7 @@ use testkit::browser::{Browser, decode_base64, find_chromium};
 use testkit::cli::{bin, fails_naming, ok, stegongp};
 
 /// A cover object and a hidden text scene in one model, trained on the CPU (≈ 30 s), with
-/// its key and a second, wrong key.
+/// its key.
 struct Fixture {
     dir: PathBuf,
 }
@@ -47,8 +47,33 @@ fn fixture() -> &'static Fixture {
                 &f.p(out),
             ]));
         }
-        ok(&stegongp(&["keygen", "--out", &f.p("k.json")]));
-        ok(&stegongp(&["keygen", "--out", &f.p("wrong.json")]));
+        // A key from a passphrase and salt: the same model on every run.
+        let mut keygen = Command::new(bin())
+            .args([
+                "keygen",
+                "--passphrase",
+                "--salt",
+                "show-cli-fixture",
+                "--out",
+                &f.p("k.json"),
+            ])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        keygen
+            .stdin
+            .take()
+            .unwrap()
+            .write_all(b"the fixture's passphrase\n")
+            .unwrap();
+        let out = keygen.wait_with_output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         ok(&stegongp(&[
             "train",
             &f.p("cover"),
@@ -156,14 +181,14 @@ fn video_frames_match_render_of_the_same_cameras() {
         );
         // 4:2:0 video keeps one chroma sample per 2×2 pixels: on this textured object that
         // alone costs more than 35 dB would allow, so the codec is held to 35 dB or to
-        // within 1 dB of what 4:2:0 without any compression keeps, whichever is lower.
+        // within 1.5 dB of what 4:2:0 without any compression keeps, whichever is lower.
         let bound = rendered.chroma_420_psnr();
         let decoded = video.frames[i].psnr(&rendered);
         eprintln!(
             "frame {i}: decoded MP4 {decoded:.2} dB from render's; 4:2:0 alone {bound:.2} dB"
         );
         assert!(
-            decoded >= 35f64.min(bound - 1.0),
+            decoded >= 35f64.min(bound - 1.5),
             "frame {i}: decoded MP4 frame {decoded:.1} dB from render's (4:2:0 alone: {bound:.1} dB)"
         );
     }
@@ -484,6 +509,8 @@ fn viewer_refuses_requests_without_its_token_or_from_another_host() {
         "c2w=1,2,3&fov=50&w=8&h=8",
         "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=500&w=8&h=8",
         "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=100000&h=100000",
+        // Larger than the viewer's full frame (the fixture's cameras: under 100 px).
+        "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=200&h=200",
         "c2w=NaN,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=8&h=8",
     ] {
         let (status, body) = http_get(s.port, &format!("/frame?{q}&token={}", s.token), &host);

@@ -8,8 +8,8 @@ use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::eval::spread_views;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions};
+use stegongp::stego::OpenedScene;
 use stegongp::stego::options::choice;
-use stegongp::stego::{KeyVariant, OpenedScene};
 
 /// A transmittance in [0, 1).
 fn transmittance(s: &str) -> std::result::Result<f32, String> {
@@ -48,19 +48,8 @@ pub struct ViewArgs {
     /// hardly sees.
     #[arg(long, default_value_t = 1e-4, value_parser = transmittance)]
     pub min_transmittance: f32,
-    /// Key file: the hidden scene it unlocks instead of the cover.
-    #[arg(long)]
-    pub key: Option<PathBuf>,
-    /// Diagnostic variant of --key: partial:P (the first P of the m keys, the rest Π; for
-    /// prf the first P of the secret's m shares, the rest zero), levels:P (the subkeys of the
-    /// first P of the m level groups, the other levels Π), mixed:pi1k2k3, mixed:pi1pi2k3,
-    /// wrong[:SEED].
-    #[arg(long)]
-    pub key_variant: Option<KeyVariant>,
-    /// The model was trained with `train --stealth`: apply --key as stealth training did
-    /// (confined to the cover's reachable table entries, computed from the stored grid).
-    #[arg(long)]
-    pub stealth: bool,
+    #[command(flatten)]
+    pub key: super::KeyArgs,
     #[command(flatten)]
     pub device: DeviceArg,
 }
@@ -108,13 +97,7 @@ impl ViewArgs {
             },
         )?;
         let device = self.device.open()?;
-        let scene = super::scene_for_key(
-            &device,
-            &model,
-            self.key.as_deref(),
-            self.key_variant,
-            self.stealth,
-        )?;
+        let scene = self.key.scene(&device, &model)?;
         let which = spread_views(data.frames.len(), self.views);
         Ok(Viewing {
             device,

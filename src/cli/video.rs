@@ -2,7 +2,7 @@
 //! a key, or both beside a wrong key's, to an H.264 MP4 and/or numbered PNGs.
 
 use super::common::{DeviceArg, check_parent_dir, ensure_dir, progress};
-use anyhow::{Context, Result, bail};
+use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
 use stegongp::ngp::data::{DatasetFormat, LoadOptions, Split};
 use stegongp::ngp::model::Model;
@@ -14,7 +14,7 @@ use stegongp::show::path::{
 };
 use stegongp::show::video::Mp4Video;
 use stegongp::stego::options::choice;
-use stegongp::stego::{Key, KeyVariant, open_scene_on};
+use stegongp::stego::{Key, open_scene_on};
 
 /// Where a scene's cameras come from, shared by `video` and `view`.
 #[derive(clap::Args, Debug, Clone)]
@@ -86,15 +86,8 @@ pub struct Args {
     /// Model file (.ingp or .msgpack).
     #[arg(long)]
     pub model: PathBuf,
-    /// Key file: render the hidden scene it unlocks instead of the cover.
-    #[arg(long)]
-    pub key: Option<PathBuf>,
-    /// Diagnostic variant of --key (as `render`'s).
-    #[arg(long)]
-    pub key_variant: Option<KeyVariant>,
-    /// The model was trained with `train --stealth`.
-    #[arg(long)]
-    pub stealth: bool,
+    #[command(flatten)]
+    pub key: super::KeyArgs,
     /// Three labelled panels: the cover (no key), the hidden scene (--key) and a wrong key's
     /// view of the same file.
     #[arg(long, requires = "key")]
@@ -205,26 +198,7 @@ pub fn run(a: Args) -> Result<()> {
     eprintln!("device: {}", device.report());
     // Scenes: the one asked for, or cover / key / wrong key side by side.
     let mut keys: Vec<(Option<Key>, &str)> = Vec::new();
-    let key = match &a.key {
-        Some(kp) => {
-            let mut k = super::keygen::load_key_reporting(kp)?;
-            k.validate_for(&model.net.layout.grid)
-                .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
-            if let Some(v) = a.key_variant {
-                k = v.apply(&k);
-            }
-            Some(k)
-        }
-        None => {
-            if a.key_variant.is_some() {
-                bail!("--key-variant needs --key");
-            }
-            if a.stealth {
-                bail!("--stealth needs --key");
-            }
-            None
-        }
-    };
+    let key = a.key.load(&model)?;
     if a.side_by_side {
         let k = key.clone().expect("clap requires --key");
         let wrong = Key::wrong(a.seed ^ 0x5eed, &k);
@@ -236,7 +210,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let scenes = keys
         .iter()
-        .map(|(k, _)| open_scene_on(&device, &model, k.as_ref(), a.stealth, a.seed))
+        .map(|(k, _)| open_scene_on(&device, &model, k.as_ref(), a.key.stealth, a.seed))
         .collect::<stegongp::Result<Vec<_>>>()?;
     let mut renderers = scenes
         .iter()

@@ -17,8 +17,8 @@ use std::path::Path;
 pub const DEFAULT_FPS: f32 = 24.0;
 /// instant-ngp's default vertical field of view (degrees).
 pub const DEFAULT_FOV_Y: f32 = 50.625;
-/// Largest frame side a path file may ask for.
-pub const MAX_SIDE: u32 = 16384;
+/// Largest frame side a path file or a command may ask for (8K).
+pub const MAX_SIDE: u32 = 8192;
 /// Most frames a path may hold or a video may ask for.
 pub const MAX_FRAMES: usize = 100_000;
 
@@ -513,6 +513,23 @@ fn check_rotation(m: &[[f32; 4]; 3], field: &str) -> Parse<()> {
     Ok(())
 }
 
+/// The non-empty, bounded array under `field`, of `what`.
+fn entries<'a>(obj: &'a Map<String, Value>, field: &str, what: &str) -> Parse<&'a Vec<Value>> {
+    let list = obj[field]
+        .as_array()
+        .ok_or_else(|| format!("{field}: expected an array of {what}"))?;
+    if list.is_empty() {
+        return Err(format!("{field}: no {what}"));
+    }
+    if list.len() > MAX_FRAMES {
+        return Err(format!(
+            "{field}: {} {what}, more than {MAX_FRAMES}",
+            list.len()
+        ));
+    }
+    Ok(list)
+}
+
 fn parse_nerfstudio(obj: &Map<String, Value>, frame: &NerfFrame) -> Parse<CameraPath> {
     if let Some(t) = obj.get("camera_type").and_then(Value::as_str)
         && !t.eq_ignore_ascii_case("perspective")
@@ -524,18 +541,7 @@ fn parse_nerfstudio(obj: &Map<String, Value>, frame: &NerfFrame) -> Parse<Camera
     let w = side(obj.get("render_width"), "render_width")?;
     let h = side(obj.get("render_height"), "render_height")?;
     let fps = fps_field(obj.get("fps"), "fps")?;
-    let list = obj["camera_path"]
-        .as_array()
-        .ok_or("camera_path: expected an array of cameras")?;
-    if list.is_empty() {
-        return Err("camera_path: no cameras".into());
-    }
-    if list.len() > MAX_FRAMES {
-        return Err(format!(
-            "camera_path: {} cameras, more than {MAX_FRAMES}",
-            list.len()
-        ));
-    }
+    let list = entries(obj, "camera_path", "cameras")?;
     let mut cameras = Vec::with_capacity(list.len());
     for (i, c) in list.iter().enumerate() {
         let field = format!("camera_path[{i}]");
@@ -610,18 +616,7 @@ impl Keyframe {
 }
 
 fn parse_instant_ngp(obj: &Map<String, Value>, frames: Option<usize>) -> Parse<CameraPath> {
-    let list = obj["path"]
-        .as_array()
-        .ok_or("path: expected an array of keyframes")?;
-    if list.is_empty() {
-        return Err("path: no keyframes".into());
-    }
-    if list.len() > MAX_FRAMES {
-        return Err(format!(
-            "path: {} keyframes, more than {MAX_FRAMES}",
-            list.len()
-        ));
-    }
+    let list = entries(obj, "path", "keyframes")?;
     let looped = match obj.get("loop") {
         None | Some(Value::Null) => false,
         Some(v) => v.as_bool().ok_or("loop: expected true or false")?,

@@ -437,8 +437,14 @@ fn frame(
         }
     }
     let pose = parse_pose(&c2w, fov)?;
-    if w == 0 || h == 0 || w.saturating_mul(h) > MAX_PIXELS {
-        return Err(format!("{w}x{h}: not a frame size this viewer renders"));
+    // The page asks for the full size or less; more would only let a request hold the
+    // renderer and its memory for minutes.
+    let most = (ctx.opts.width as u64 * ctx.opts.height as u64).min(MAX_PIXELS as u64);
+    if w == 0 || h == 0 || w as u64 * h as u64 > most {
+        return Err(format!(
+            "{w}x{h}: not a frame size this viewer renders (at most {}x{} pixels)",
+            ctx.opts.width, ctx.opts.height
+        ));
     }
     let opts = RenderOptions {
         background: ctx.opts.background,
