@@ -509,8 +509,8 @@ fn viewer_refuses_requests_without_its_token_or_from_another_host() {
         "c2w=1,2,3&fov=50&w=8&h=8",
         "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=500&w=8&h=8",
         "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=100000&h=100000",
-        // Larger than the viewer's full frame (the fixture's cameras: under 100 px).
-        "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=200&h=200",
+        // Larger than the viewer's full frame (400×400 from the fixture's small cameras).
+        "c2w=1,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=1000&h=1000",
         "c2w=NaN,0,0,0,0,1,0,0,0,0,1,0&fov=50&w=8&h=8",
     ] {
         let (status, body) = http_get(s.port, &format!("/frame?{q}&token={}", s.token), &host);

@@ -30,7 +30,8 @@ pub struct Args {
     /// when --address is not loopback).
     #[arg(long)]
     pub allow_host: Vec<String>,
-    /// Full frame size (default: the cameras' size, at most 800 on the longer side, else 400×400).
+    /// Full frame size (default: the cameras' aspect, 400 to 800 pixels on the longer side
+    /// (their own size where it falls in that range), else 400×400).
     #[arg(long)]
     pub width: Option<u32>,
     #[arg(long)]
@@ -72,7 +73,10 @@ pub fn run(a: Args) -> Result<()> {
         (Some(_), None) | (None, Some(_)) => bail!("give --width and --height together"),
         (None, None) => match rig.size {
             Some((w, h)) => {
-                let s = (800.0 / w.max(h) as f32).min(1.0);
+                // Big enough to look at, small enough to render in about a second on a CPU.
+                let s = (800.0 / w.max(h) as f32)
+                    .min(1.0)
+                    .max(400.0 / w.max(h) as f32);
                 (
                     ((w as f32 * s).round() as u32).max(1),
                     ((h as f32 * s).round() as u32).max(1),
