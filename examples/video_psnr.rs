@@ -6,11 +6,6 @@
 use stegongp::show::frame::Rgb8;
 use stegongp::show::video::decode_mp4;
 
-fn load_png(path: &std::path::Path) -> Rgb8 {
-    let (w, h, rgb) = stegongp::ngp::data::load_png_rgb(path).expect("a PNG frame");
-    Rgb8::from_floats(w, h, &rgb)
-}
-
 fn main() {
     let args: Vec<String> = std::env::args().collect();
     if args.len() != 3 {
@@ -26,7 +21,9 @@ fn main() {
     let mut worst = f64::INFINITY;
     let mut bound = 0.0;
     for (i, frame) in video.frames.iter().enumerate() {
-        let png = load_png(&dir.join(format!("frame_{i:05}.png"))).even();
+        let png = Rgb8::load_png(&dir.join(format!("frame_{i:05}.png")))
+            .expect("a PNG frame")
+            .even();
         let p = frame.psnr(&png);
         sum += p;
         bound += png.chroma_420_psnr();

@@ -97,21 +97,7 @@ fn fixture() -> &'static Fixture {
 }
 
 fn load_png(path: &Path) -> Rgb8 {
-    let dec = png::Decoder::new(BufReader::new(std::fs::File::open(path).unwrap()));
-    let mut r = dec.read_info().unwrap();
-    let mut buf = vec![0; r.output_buffer_size().unwrap()];
-    let info = r.next_frame(&mut buf).unwrap();
-    buf.truncate(info.buffer_size());
-    let data = match info.color_type {
-        png::ColorType::Rgb => buf,
-        png::ColorType::Rgba => buf.chunks(4).flat_map(|p| [p[0], p[1], p[2]]).collect(),
-        c => panic!("{}: unexpected colour type {c:?}", path.display()),
-    };
-    Rgb8 {
-        width: info.width,
-        height: info.height,
-        data,
-    }
+    Rgb8::load_png(path).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// nerfstudio's camera_path.json for a NeRF-synthetic split's first `n` cameras (their

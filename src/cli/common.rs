@@ -11,8 +11,8 @@ use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::stego::OpenedScene;
 use stegongp::stego::options::choice;
 
-/// A transmittance in [0, 1).
-fn transmittance(s: &str) -> std::result::Result<f32, String> {
+/// A transmittance in [0, 1) (`--min-transmittance`).
+pub fn transmittance(s: &str) -> std::result::Result<f32, String> {
     let t: f32 = s.parse().map_err(|e| format!("{e}"))?;
     if (0.0..1.0).contains(&t) {
         Ok(t)
@@ -155,4 +155,21 @@ pub fn check_parent_dir(path: &Path) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// `--width` and `--height`: both or neither, each 1..=`MAX_SIDE` pixels.
+pub fn frame_size(width: Option<u32>, height: Option<u32>) -> Result<Option<(u32, u32)>> {
+    use stegongp::show::path::MAX_SIDE;
+    let side = |v: u32, name: &str| {
+        if (1..=MAX_SIDE).contains(&v) {
+            Ok(v)
+        } else {
+            Err(anyhow::anyhow!("{name} {v}: not in 1..={MAX_SIDE}"))
+        }
+    };
+    match (width, height) {
+        (Some(w), Some(h)) => Ok(Some((side(w, "--width")?, side(h, "--height")?))),
+        (None, None) => Ok(None),
+        _ => bail!("give --width and --height together"),
+    }
 }

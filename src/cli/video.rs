@@ -1,7 +1,7 @@
 //! `stegongp video`: a camera path rendered from a model, as the cover, as the hidden scene of
 //! a key, or both beside a wrong key's, to an H.264 MP4 and/or numbered PNGs.
 
-use super::common::{DeviceArg, check_parent_dir, ensure_dir, progress};
+use super::common::{DeviceArg, check_parent_dir, ensure_dir, frame_size, progress, transmittance};
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
 use stegongp::ngp::data::{DatasetFormat, LoadOptions, Split};
@@ -9,7 +9,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::show::frame::Rgb8;
 use stegongp::show::path::{
-    CameraPath, DEFAULT_FPS, MAX_FRAMES, MAX_SIDE, NerfFrame, PathCamera, SceneRig, model_cameras,
+    CameraPath, DEFAULT_FPS, MAX_FRAMES, NerfFrame, PathCamera, SceneRig, model_cameras,
     model_frame_size, read_path, write_nerfstudio,
 };
 use stegongp::show::video::Mp4Video;
@@ -116,7 +116,7 @@ pub struct Args {
     #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
     /// A ray stops below this transmittance (1e-4: as `render`; 0.01: faster, as a viewer).
-    #[arg(long, default_value_t = 1e-4)]
+    #[arg(long, default_value_t = 1e-4, value_parser = transmittance)]
     pub min_transmittance: f32,
     /// The MP4 to write (H.264, yuv420p).
     #[arg(long)]
@@ -135,13 +135,6 @@ pub struct Args {
     pub json: bool,
     #[command(flatten)]
     pub device: DeviceArg,
-}
-
-fn dimension(v: u32, name: &str) -> Result<u32> {
-    if !(1..=MAX_SIDE).contains(&v) {
-        bail!("{name} {v}: not in 1..={MAX_SIDE}");
-    }
-    Ok(v)
 }
 
 /// The path asked for: generated from the rig, or read from a file.
@@ -179,17 +172,13 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(p) = &a.write_path {
         check_parent_dir(p)?;
     }
-    if !(0.0..1.0).contains(&a.min_transmittance) {
-        bail!("--min-transmittance {}: not in [0, 1)", a.min_transmittance);
-    }
     let model = Model::load(&a.model)?;
     let rig = a.cameras.open(&model)?;
     let path = make_path(&a.path, a.frames, &rig)?;
-    let (w, h) = match (a.width, a.height) {
-        (Some(w), Some(h)) => (dimension(w, "--width")?, dimension(h, "--height")?),
-        (Some(_), None) | (None, Some(_)) => bail!("give --width and --height together"),
-        (None, None) => path.size.or(rig.size).unwrap_or((400, 400)),
-    };
+    let (w, h) = frame_size(a.width, a.height)?
+        .or(path.size)
+        .or(rig.size)
+        .unwrap_or((400, 400));
     let fps = match a.fps {
         Some(f) => f,
         None => path.fps.round().clamp(1.0, 240.0) as u32,

@@ -1,7 +1,7 @@
 //! `stegongp view MODEL`: the local web viewer. Frames are rendered here, on the chosen
 //! device, so the page works over an SSH tunnel to a headless GPU machine.
 
-use super::common::{DeviceArg, check_parent_dir};
+use super::common::{DeviceArg, check_parent_dir, frame_size, transmittance};
 use super::video::SceneCameras;
 use anyhow::{Result, bail};
 use std::io::Write;
@@ -9,7 +9,6 @@ use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::Background;
-use stegongp::show::path::MAX_SIDE;
 use stegongp::show::server::{Viewer, ViewerOptions, ViewerRig};
 use stegongp::stego::options::choice;
 
@@ -44,7 +43,7 @@ pub struct Args {
     /// Transmittance a full frame's rays stop at: 0.01, as instant-ngp's own viewer (1e-4,
     /// as `render` and `eval`, takes ~20 % longer for a change the eye hardly sees).
     /// Interactive frames stop at 0.01 at least.
-    #[arg(long, default_value_t = 0.01)]
+    #[arg(long, default_value_t = 0.01, value_parser = transmittance)]
     pub min_transmittance: f32,
     /// The camera path file the page's record button appends to (nerfstudio's format; an
     /// existing one is continued).
@@ -61,17 +60,12 @@ pub fn run(a: Args) -> Result<()> {
     if !(a.interactive_scale > 0.0 && a.interactive_scale <= 1.0) {
         bail!("--interactive-scale {}: not in (0, 1]", a.interactive_scale);
     }
-    if !(0.0..1.0).contains(&a.min_transmittance) {
-        bail!("--min-transmittance {}: not in [0, 1)", a.min_transmittance);
-    }
     check_parent_dir(&a.record)?;
     let model = Model::load(&a.model)?;
     let rig = a.cameras.open(&model)?;
-    let (width, height) = match (a.width, a.height) {
-        (Some(w), Some(h)) if (1..=MAX_SIDE).contains(&w) && (1..=MAX_SIDE).contains(&h) => (w, h),
-        (Some(_), Some(_)) => bail!("--width and --height: 1..={MAX_SIDE} pixels"),
-        (Some(_), None) | (None, Some(_)) => bail!("give --width and --height together"),
-        (None, None) => match rig.size {
+    let (width, height) = match frame_size(a.width, a.height)? {
+        Some(size) => size,
+        None => match rig.size {
             Some((w, h)) => {
                 // Big enough to look at, small enough to render in about a second on a CPU.
                 let s = (800.0 / w.max(h) as f32)

@@ -126,6 +126,12 @@ impl Rgb8 {
         out
     }
 
+    /// A PNG file's 8-bit RGB (what `--frames-dir` and `render` write; alpha ignored).
+    pub fn load_png(path: &std::path::Path) -> ngp::error::Result<Rgb8> {
+        let (w, h, rgb) = ngp::data::load_png_rgb(path)?;
+        Ok(Rgb8::from_floats(w, h, &rgb))
+    }
+
     /// PNG bytes (fast compression: the viewer sends one per frame).
     pub fn png(&self) -> Vec<u8> {
         let mut out = Vec::new();
@@ -167,34 +173,24 @@ impl Rgb8 {
         let (w, h) = (self.width as usize / 2 * 2, self.height as usize / 2 * 2);
         let px = |x: usize, y: usize| {
             let i = 3 * (y * self.width as usize + x);
-            let (r, g, b) = (
-                self.data[i] as f64,
-                self.data[i + 1] as f64,
-                self.data[i + 2] as f64,
-            );
-            (
-                16.0 + 0.2578125 * r + 0.50390625 * g + 0.09765625 * b,
-                128.0 - 0.1484375 * r - 0.2890625 * g + 0.4375 * b,
-                128.0 + 0.4375 * r - 0.3671875 * g - 0.0703125 * b,
-            )
+            bt601::to_ycbcr([
+                self.data[i] as f32,
+                self.data[i + 1] as f32,
+                self.data[i + 2] as f32,
+            ])
         };
         let mut out = self.clone();
         for by in 0..h / 2 {
             for bx in 0..w / 2 {
                 let quad =
                     [(0, 0), (1, 0), (0, 1), (1, 1)].map(|(dx, dy)| px(2 * bx + dx, 2 * by + dy));
-                let u = quad.iter().map(|q| q.1).sum::<f64>() / 4.0 - 128.0;
-                let v = quad.iter().map(|q| q.2).sum::<f64>() / 4.0 - 128.0;
+                let cb = quad.iter().map(|q| q[1]).sum::<f32>() / 4.0;
+                let cr = quad.iter().map(|q| q[2]).sum::<f32>() / 4.0;
                 for (k, (dx, dy)) in [(0, 0), (1, 0), (0, 1), (1, 1)].into_iter().enumerate() {
-                    let y = 1.164_383_6 * (quad[k].0 - 16.0);
-                    let rgb = [
-                        y + 1.596_026_8 * v,
-                        y - 0.391_762_3 * u - 0.812_967_6 * v,
-                        y + 2.017_232_1 * u,
-                    ];
                     let i = 3 * ((2 * by + dy) * self.width as usize + 2 * bx + dx);
+                    let rgb = bt601::to_rgb([quad[k][0], cb, cr]);
                     for (o, v) in out.data[i..i + 3].iter_mut().zip(rgb) {
-                        *o = v.round().clamp(0.0, 255.0) as u8;
+                        *o = bt601::code(v);
                     }
                 }
             }
@@ -211,6 +207,35 @@ impl Rgb8 {
             out.data[t..t + 3 * w as usize].copy_from_slice(&self.data[s..s + 3 * w as usize]);
         }
         out
+    }
+}
+
+/// BT.601 limited-range Y′CbCr, the colour space our videos are encoded in and say they are.
+pub(crate) mod bt601 {
+    /// (Y, Cb, Cr) codes, offsets included, of 8-bit R′G′B′ codes.
+    pub fn to_ycbcr(p: [f32; 3]) -> [f32; 3] {
+        let dot = |k: [f32; 3]| k[0] * p[0] + k[1] * p[1] + k[2] * p[2];
+        [
+            16.0 + dot([0.2578125, 0.50390625, 0.09765625]),
+            128.0 + dot([-0.1484375, -0.2890625, 0.4375]),
+            128.0 + dot([0.4375, -0.3671875, -0.0703125]),
+        ]
+    }
+
+    /// R′G′B′ codes of (Y, Cb, Cr) codes.
+    pub fn to_rgb([y, cb, cr]: [f32; 3]) -> [f32; 3] {
+        let (l, u, v) = (1.164_383_6 * (y - 16.0), cb - 128.0, cr - 128.0);
+        [
+            l + 1.596_026_8 * v,
+            l - 0.391_762_3 * u - 0.812_967_6 * v,
+            l + 2.017_232_1 * u,
+        ]
+    }
+
+    /// The nearest 8-bit code (the codec crate's own conversions truncate, a bias of about
+    /// one code per channel that costs ~1 dB on a frame).
+    pub fn code(v: f32) -> u8 {
+        (v + 0.5).clamp(0.0, 255.0) as u8
     }
 }
 

@@ -68,24 +68,23 @@ impl Viewer {
     pub fn bind(addr: SocketAddr) -> Result<Self> {
         let server = Server::http(addr)
             .map_err(|e| Error::format(addr.to_string(), format!("cannot listen: {e}")))?;
-        let port = match server.server_addr() {
-            tiny_http::ListenAddr::IP(a) => a.port(),
-            #[allow(unreachable_patterns)]
-            _ => addr.port(),
+        let mut viewer = Viewer {
+            server,
+            token: random_hex(24)?,
+            nonce: random_hex(16)?,
+            hosts: Vec::new(),
         };
-        let mut hosts: Vec<String> = ["127.0.0.1", "localhost", "[::1]"]
+        let port = viewer.port();
+        viewer.hosts = ["127.0.0.1", "localhost", "[::1]"]
             .iter()
             .map(|h| format!("{h}:{port}"))
             .collect();
         if !addr.ip().is_loopback() && !addr.ip().is_unspecified() {
-            hosts.push(SocketAddr::new(addr.ip(), port).to_string());
+            viewer
+                .hosts
+                .push(SocketAddr::new(addr.ip(), port).to_string());
         }
-        Ok(Viewer {
-            server,
-            token: random_hex(24)?,
-            nonce: random_hex(16)?,
-            hosts,
-        })
+        Ok(viewer)
     }
 
     /// Also accept requests that name the server `host` (an address or name it is reached by

@@ -3,7 +3,7 @@
 //! decoder. The file appears under its name only when complete: frames go to a temporary
 //! file beside it, synced and renamed at the end.
 
-use crate::frame::Rgb8;
+use crate::frame::{Rgb8, bt601};
 use mp4::{
     AvcConfig, MediaConfig, Mp4Config, Mp4Reader, Mp4Sample, Mp4Writer, TrackConfig, TrackType,
 };
@@ -86,16 +86,7 @@ impl Mp4Video {
                 format!("{fps} frames per second: not in 1..=240"),
             ));
         }
-        let name = path
-            .file_name()
-            .ok_or_else(|| Error::format(path, "not a file path"))?
-            .to_string_lossy()
-            .into_owned();
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        let tmp = dir.join(format!(".{name}.tmp{}", std::process::id()));
+        let tmp = ngp::util::temp_beside(path)?;
         let file = File::create(&tmp).map_err(|e| Error::io(path, e))?;
         let config = Mp4Config {
             major_brand: "isom".parse().expect("a four-character code"),
@@ -268,23 +259,12 @@ impl Drop for Mp4Video {
     }
 }
 
-// BT.601 limited range, as the stream's VUI says. Rounded both ways: the codec crate's own
-// conversions truncate, a bias of about one code per channel that costs ~1 dB on a frame.
-const KR: [f32; 3] = [0.2578125, 0.50390625, 0.09765625];
-const KU: [f32; 3] = [-0.1484375, -0.2890625, 0.4375];
-const KV: [f32; 3] = [0.4375, -0.3671875, -0.0703125];
-
-fn round_u8(v: f32) -> u8 {
-    (v + 0.5).clamp(0.0, 255.0) as u8
-}
-
 /// I420 planes of an even-sided frame: luma per pixel, chroma of each 2×2 block's mean.
 fn rgb_to_yuv420(f: &Rgb8) -> YUVBuffer {
     let (w, h) = (f.width as usize, f.height as usize);
     let mut yuv = vec![0u8; w * h + 2 * (w / 2) * (h / 2)];
     let (ys, uv) = yuv.split_at_mut(w * h);
     let (us, vs) = uv.split_at_mut((w / 2) * (h / 2));
-    let dot = |k: &[f32; 3], p: [f32; 3]| k[0] * p[0] + k[1] * p[1] + k[2] * p[2];
     for by in 0..h / 2 {
         for bx in 0..w / 2 {
             let mut mean = [0.0f32; 3];
@@ -292,13 +272,14 @@ fn rgb_to_yuv420(f: &Rgb8) -> YUVBuffer {
                 let (x, y) = (2 * bx + dx, 2 * by + dy);
                 let i = 3 * (y * w + x);
                 let p = [f.data[i] as f32, f.data[i + 1] as f32, f.data[i + 2] as f32];
-                ys[y * w + x] = round_u8(16.0 + dot(&KR, p));
+                ys[y * w + x] = bt601::code(bt601::to_ycbcr(p)[0]);
                 for c in 0..3 {
                     mean[c] += 0.25 * p[c];
                 }
             }
-            us[by * (w / 2) + bx] = round_u8(128.0 + dot(&KU, mean));
-            vs[by * (w / 2) + bx] = round_u8(128.0 + dot(&KV, mean));
+            let [_, cb, cr] = bt601::to_ycbcr(mean);
+            us[by * (w / 2) + bx] = bt601::code(cb);
+            vs[by * (w / 2) + bx] = bt601::code(cr);
         }
     }
     YUVBuffer::from_vec(yuv, w, h)
@@ -312,13 +293,12 @@ fn yuv420_to_rgb(yuv: &impl YUVSource) -> Rgb8 {
     let mut data = vec![0u8; 3 * w * h];
     for y in 0..h {
         for x in 0..w {
-            let l = 1.164_383_6 * (yp[y * sy + x] as f32 - 16.0);
-            let u = up[(y / 2) * su + x / 2] as f32 - 128.0;
-            let v = vp[(y / 2) * sv + x / 2] as f32 - 128.0;
+            let (c, r) = ((y / 2) * su + x / 2, (y / 2) * sv + x / 2);
+            let rgb = bt601::to_rgb([yp[y * sy + x] as f32, up[c] as f32, vp[r] as f32]);
             let i = 3 * (y * w + x);
-            data[i] = round_u8(l + 1.596_026_8 * v);
-            data[i + 1] = round_u8(l - 0.391_762_3 * u - 0.812_967_6 * v);
-            data[i + 2] = round_u8(l + 2.017_232_1 * u);
+            for (o, v) in data[i..i + 3].iter_mut().zip(rgb) {
+                *o = bt601::code(v);
+            }
         }
     }
     Rgb8 {
