@@ -2,6 +2,7 @@
 //! Instant-NGP model; the cover renders for everyone, the text only with the key.
 
 use super::common::{DeviceArg, ensure_dir};
+use super::video::{GAP, render_frame};
 use anyhow::Result;
 use std::path::PathBuf;
 use stegongp::experiments::report::save_grid;
@@ -225,18 +226,9 @@ pub fn run(a: Args) -> Result<()> {
         .iter()
         .map(|s| s.renderer(&device, &model))
         .collect::<stegongp::Result<Vec<_>>>()?;
+    let labels: Vec<&str> = looks.iter().map(|(_, l)| *l).collect();
     let mut side_by_side = |camera: &PathCamera, size: u32| -> Result<Rgb8> {
-        let mut panels = Vec::new();
-        for r in renderers.iter_mut() {
-            let img = r.render(&camera.camera(size, size), &ropts)?;
-            panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
-        }
-        let labelled: Vec<(&Rgb8, &str)> = panels
-            .iter()
-            .zip(&looks)
-            .map(|(p, (_, l))| (p, *l))
-            .collect();
-        Ok(Rgb8::side_by_side(&labelled, 4))
+        render_frame(&mut renderers, &labels, &camera.camera(size, size), &ropts)
     };
     let large_path = a.out.join("demo_large.png");
     let large = side_by_side(
@@ -251,7 +243,7 @@ pub fn run(a: Args) -> Result<()> {
             a.video_frames as u64,
             "{spinner} video [{elapsed_precise}] {bar:30} {pos}/{len} frames",
         );
-        let w = (3 * a.video_size + 8).next_multiple_of(2);
+        let w = (3 * a.video_size + 2 * GAP).next_multiple_of(2);
         let mut video = Mp4Video::create(&video_path, w, a.video_size, 12)?;
         for camera in rig.orbit(a.video_frames) {
             video.push(&side_by_side(&camera, a.video_size)?)?;

@@ -4,6 +4,8 @@
 use super::common::{DeviceArg, check_parent_dir, ensure_dir, frame_size, progress, transmittance};
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
+use stegongp::backend::RenderBackend;
+use stegongp::ngp::camera::Camera;
 use stegongp::ngp::data::{DatasetFormat, LoadOptions, Split};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions};
@@ -197,6 +199,11 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         keys.push((key, ""));
     }
+    let labels: Vec<&str> = if a.side_by_side {
+        keys.iter().map(|(_, l)| *l).collect()
+    } else {
+        Vec::new()
+    };
     let scenes = keys
         .iter()
         .map(|(k, _)| open_scene_on(&device, &model, k.as_ref(), a.key.stealth, a.seed))
@@ -232,22 +239,8 @@ pub fn run(a: Args) -> Result<()> {
     for (i, pc) in path.cameras.iter().enumerate() {
         let camera = pc.camera(w, h);
         let tr = std::time::Instant::now();
-        let mut panels = Vec::with_capacity(renderers.len());
-        for r in renderers.iter_mut() {
-            let img = r.render(&camera, &opts)?;
-            panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
-        }
+        let frame = render_frame(&mut renderers, &labels, &camera, &opts)?;
         render_seconds += tr.elapsed().as_secs_f64();
-        let frame = if a.side_by_side {
-            let labelled: Vec<(&Rgb8, &str)> = panels
-                .iter()
-                .zip(&keys)
-                .map(|(p, (_, l))| (p, *l))
-                .collect();
-            Rgb8::side_by_side(&labelled, GAP)
-        } else {
-            panels.pop().expect("one scene")
-        };
         if let Some(dir) = &a.frames_dir {
             let p = dir.join(format!("frame_{i:05}.png"));
             stegongp::util::write_atomic(&p, &frame.png())?;
@@ -305,4 +298,24 @@ pub fn run(a: Args) -> Result<()> {
 }
 
 /// Black pixels between side-by-side panels.
-const GAP: u32 = 4;
+pub const GAP: u32 = 4;
+
+/// One frame at `camera`: the one renderer's image, or each renderer's side by side under
+/// its label (`labels`, one a renderer).
+pub fn render_frame(
+    renderers: &mut [Box<dyn RenderBackend + '_>],
+    labels: &[&str],
+    camera: &Camera,
+    opts: &RenderOptions,
+) -> Result<Rgb8> {
+    let mut panels = Vec::with_capacity(renderers.len());
+    for r in renderers.iter_mut() {
+        let img = r.render(camera, opts)?;
+        panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
+    }
+    if labels.is_empty() {
+        return Ok(panels.pop().expect("one renderer"));
+    }
+    let labelled: Vec<(&Rgb8, &str)> = panels.iter().zip(labels.iter().copied()).collect();
+    Ok(Rgb8::side_by_side(&labelled, GAP))
+}
