@@ -43,6 +43,8 @@ enum Cmd {
     /// A local web viewer: orbit the cover, enter a key to see the hidden scene, record a
     /// camera path for `video`.
     View(cli::view::Args),
+    /// The GPU adapters found, the one `--device gpu` opens and its limits.
+    Devices(cli::devices::Args),
 }
 
 /// Mesa's device-select Vulkan layer, which the loader runs in every program that opens
@@ -82,6 +84,7 @@ fn main() {
         Cmd::Detect(a) => cli::detect::run(a),
         Cmd::Video(a) => cli::video::run(a),
         Cmd::View(a) => cli::view::run(a),
+        Cmd::Devices(a) => cli::devices::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

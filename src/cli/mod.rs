@@ -4,6 +4,7 @@ pub mod common;
 pub mod convert;
 pub mod demo;
 pub mod detect;
+pub mod devices;
 pub mod eval;
 pub mod experiment;
 pub mod inspect;

@@ -78,6 +78,11 @@ struct Checkpoint {
     step: u32,
     psnr: f64,
     ssim: f64,
+    /// The training so far: its time, the samples that reached the loss and those marched
+    /// (differences between checkpoints give the steady rates).
+    train_seconds: f64,
+    samples: u64,
+    marched: u64,
     /// The training so far: its phase times (cumulative), to split a run by step range.
     occupancy_seconds: f64,
     rays_seconds: f64,
@@ -285,6 +290,9 @@ pub fn run(a: Args) -> Result<()> {
                 step: t.steps,
                 psnr: r.psnr,
                 ssim: r.ssim,
+                train_seconds: t.seconds,
+                samples: t.samples,
+                marched: t.marched,
                 occupancy_seconds: t.occupancy_seconds,
                 rays_seconds: t.rays_seconds,
                 optimizer_seconds: t.optimizer_seconds,

@@ -123,6 +123,45 @@ impl std::fmt::Display for AdapterReport {
     }
 }
 
+/// One adapter wgpu finds, as `stegongp devices` lists it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct AdapterEntry {
+    pub name: String,
+    pub backend: String,
+    pub device_type: String,
+    pub driver: String,
+    pub software: bool,
+}
+
+/// Every Vulkan (and Metal) adapter present, in the order wgpu enumerates them.
+pub fn list_adapters() -> Vec<AdapterEntry> {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = BACKENDS;
+    let instance = wgpu::Instance::new(desc);
+    pollster::block_on(instance.enumerate_adapters(BACKENDS))
+        .iter()
+        .map(|a| {
+            let i = a.get_info();
+            AdapterEntry {
+                name: i.name.clone(),
+                backend: format!("{:?}", i.backend),
+                device_type: format!("{:?}", i.device_type),
+                driver: driver_line(&i),
+                software: is_software(&i),
+            }
+        })
+        .collect()
+}
+
+fn driver_line(info: &wgpu::AdapterInfo) -> String {
+    [info.driver.as_str(), info.driver_info.as_str()]
+        .iter()
+        .filter(|s| !s.is_empty())
+        .copied()
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 /// An open device: what every kernel needs.
 pub struct GpuContext {
     pub instance: wgpu::Instance,
@@ -215,12 +254,7 @@ impl GpuContext {
             name: info.name.clone(),
             backend: format!("{:?}", info.backend),
             device_type: format!("{:?}", info.device_type),
-            driver: [info.driver.as_str(), info.driver_info.as_str()]
-                .iter()
-                .filter(|s| !s.is_empty())
-                .copied()
-                .collect::<Vec<_>>()
-                .join(" "),
+            driver: driver_line(&info),
             software: is_software(&info),
             float32_atomics: features.contains(Features::SHADER_FLOAT32_ATOMIC),
             f16: features.contains(Features::SHADER_F16),
@@ -243,6 +277,42 @@ impl GpuContext {
 
     pub fn report(&self) -> &AdapterReport {
         &self.report
+    }
+
+    /// The device's limits that bound what the kernels can do: batch sizes (storage
+    /// bindings, buffers), workgroup shapes and shared memory, subgroup sizes.
+    pub fn limits_report(&self) -> Vec<(&'static str, u64)> {
+        let l = self.device.limits();
+        let info = self.adapter.get_info();
+        vec![
+            ("subgroup_min_size", info.subgroup_min_size as u64),
+            ("subgroup_max_size", info.subgroup_max_size as u64),
+            (
+                "max_storage_buffer_binding_size",
+                l.max_storage_buffer_binding_size,
+            ),
+            ("max_buffer_size", l.max_buffer_size),
+            (
+                "max_storage_buffers_per_shader_stage",
+                l.max_storage_buffers_per_shader_stage as u64,
+            ),
+            (
+                "max_compute_workgroup_storage_size",
+                l.max_compute_workgroup_storage_size as u64,
+            ),
+            (
+                "max_compute_invocations_per_workgroup",
+                l.max_compute_invocations_per_workgroup as u64,
+            ),
+            (
+                "max_compute_workgroups_per_dimension",
+                l.max_compute_workgroups_per_dimension as u64,
+            ),
+            (
+                "max_compute_workgroup_size_x",
+                l.max_compute_workgroup_size_x as u64,
+            ),
+        ]
     }
 
     /// Runs `f` with wgpu's validation and out-of-memory errors captured, so that a bad
