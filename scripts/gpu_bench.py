@@ -263,6 +263,7 @@ class Run:
         return json.loads(p.stdout) if json_out else p.stdout
 
     def setup(self):
+        """The loader and the binary: enough to ask for the adapter."""
         d = Path(self.a.dir)
         debs = sorted((d / "gl").glob("*.deb")) if (d / "gl").is_dir() else []
         if debs and not has_vulkan_loader():
@@ -276,8 +277,12 @@ class Run:
         with lzma.open(d / "stegongp.xz") as f:
             self.bin.write_bytes(f.read())
         self.bin.chmod(0o755)
-        # The hidden scene is generated while the images expand: both cost CPU cores only,
-        # and both are done before anything is timed.
+        self.results["manifest"] = json.loads((d / "manifest.json").read_text())
+
+    def data(self):
+        """lego's images expanded, and the hidden text scene generated meanwhile: both cost
+        CPU cores only, and both are done before anything is timed."""
+        d = Path(self.a.dir)
         res, n_train = (32, 12) if self.a.small else (800, 100)
         synth = subprocess.Popen(
             [str(self.bin), "synth", "--scene", "text", "--res", str(res), "--train",
@@ -288,18 +293,17 @@ class Run:
         if synth.returncode != 0:
             self.log.write(err)
             fail("synth of the text scene failed: " + err[-500:])
-        self.note(f"expanded the binary and {n} images; generated the text scene")
-        self.results["manifest"] = json.loads((d / "manifest.json").read_text())
+        self.note(f"expanded {n} images; generated the text scene")
 
     def run(self):
         a = self.a
         small = a.small
         self.setup()
-
         devices = ["devices", "--json"] + ([] if a.allow_software else ["--require-hardware"])
         self.results["devices"] = self.cmd(*devices, json_out=True)
         opened = self.results["devices"]["opened"]
         print(self.cmd("devices"), file=sys.stderr)
+        self.data()
         self.save()
 
         lego = self.work / "lego"
@@ -313,6 +317,10 @@ class Run:
             "--checkpoints", ",".join(map(str, marks)), *common, json_out=True)
         self.results["lego"]["steady"] = steady(self.results["lego"])
         self.save()
+        if a.lego_only:
+            shutil.rmtree(self.work, ignore_errors=True)
+            print(json.dumps(lego_summary(self.results, opened), indent=1))
+            return
 
         text = self.work / "text"
         key = self.work / "keys" / "text.key"
@@ -365,15 +373,24 @@ def steady(train):
     }
 
 
-def summary(r, opened):
+def lego_summary(r, opened):
     lego = r["lego"]
-    pair = r["pair"]
-    s = {
+    return {
         "adapter": opened["adapter"] if opened else None,
         "lego_psnr_by_minute": {str(c["minutes"]): round(c["psnr"], 2) for c in lego["checkpoints"]},
         "lego_steps": lego["steps"],
         "lego_samples_per_second": round(lego["samples_per_second"]),
         "lego_steady": lego.get("steady"),
+        "lego_per_step": {k: lego.get(k) for k in (
+            "trained_per_step", "marched_per_step", "network_per_step", "dropped_rays",
+            "host_waits_per_step", "submissions_per_step")},
+    }
+
+
+def summary(r, opened):
+    pair = r["pair"]
+    s = {
+        **lego_summary(r, opened),
         "pair_steps": pair["steps"],
         "pair_cover_psnr": round(pair["checkpoints"][-1]["psnr"], 2) if pair["checkpoints"] else None,
         "pair_hidden_psnr_key": round(r["pair_hidden_key"]["psnr"], 2),
@@ -403,6 +420,8 @@ def main():
                     help="accept a software adapter (llvmpipe): the CI test only")
     pr.add_argument("--lego-minutes", type=float, default=None)
     pr.add_argument("--pair-minutes", type=float, default=None)
+    pr.add_argument("--lego-only", action="store_true",
+                    help="lego alone (a second, shorter run on the same machine)")
     a = p.parse_args()
     if a.what == "prepare":
         prepare(a)

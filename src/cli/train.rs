@@ -83,6 +83,7 @@ struct Checkpoint {
     train_seconds: f64,
     samples: u64,
     marched: u64,
+    network: u64,
     /// The training so far: its phase times (cumulative), to split a run by step range.
     occupancy_seconds: f64,
     rays_seconds: f64,
@@ -106,6 +107,17 @@ struct Summary {
     samples_per_second: f64,
     marched_samples_per_second: f64,
     steps_per_second: f64,
+    /// Per step: samples that reached the loss (trained), marched, and run through the
+    /// whole network (forward passes counted separately).
+    trained_per_step: f64,
+    marched_per_step: f64,
+    network_per_step: f64,
+    /// Rays that trained nothing because a device buffer was full (0 on the CPU).
+    dropped_rays: u64,
+    /// Times the host waited for the device, and command submissions, per step (0 on the
+    /// CPU).
+    host_waits_per_step: f64,
+    submissions_per_step: f64,
     occupancy_seconds: f64,
     rays_seconds: f64,
     optimizer_seconds: f64,
@@ -293,6 +305,7 @@ pub fn run(a: Args) -> Result<()> {
                 train_seconds: t.seconds,
                 samples: t.samples,
                 marched: t.marched,
+                network: t.network,
                 occupancy_seconds: t.occupancy_seconds,
                 rays_seconds: t.rays_seconds,
                 optimizer_seconds: t.optimizer_seconds,
@@ -310,6 +323,7 @@ pub fn run(a: Args) -> Result<()> {
         .map_err(|e| anyhow::anyhow!("{e}; nothing written"))?;
     trained.model.save(&a.out)?;
     let t = trained.totals;
+    let steps = t.steps.max(1) as f64;
     let summary = Summary {
         model: a.out.clone(),
         device: device.report(),
@@ -319,6 +333,12 @@ pub fn run(a: Args) -> Result<()> {
         samples_per_second: t.samples as f64 / t.seconds,
         marched_samples_per_second: t.marched as f64 / t.seconds,
         steps_per_second: t.steps as f64 / t.seconds,
+        trained_per_step: t.samples as f64 / steps,
+        marched_per_step: t.marched as f64 / steps,
+        network_per_step: t.network as f64 / steps,
+        dropped_rays: t.dropped_rays,
+        host_waits_per_step: t.host_waits as f64 / steps,
+        submissions_per_step: t.submissions as f64 / steps,
         occupancy_seconds: t.occupancy_seconds,
         rays_seconds: t.rays_seconds,
         optimizer_seconds: t.optimizer_seconds,

@@ -6,6 +6,7 @@
 //! ([`AdapterRequest::Software`], [`AdapterRequest::Any`]), because on a machine without a
 //! GPU the CPU engine is faster than emulating one. CI has no GPU and tests on lavapipe.
 
+pub mod compact;
 pub mod field;
 pub mod grid;
 pub mod held;
@@ -19,6 +20,7 @@ pub mod render;
 pub mod renderer;
 pub mod trainer;
 
+pub use compact::{CompactInputs, Compacted};
 pub use field::{DensityScratch, GpuField};
 pub use grid::{GradAtomics, GridDispatch, GridEncoding, GridShape};
 pub use index::{CornerBatch, CornerKernel, GpuIndex, GpuLevel, INDEX_WGSL, U64_WGSL};
@@ -392,6 +394,69 @@ impl GpuContext {
                 .get_mapped_range(..)
                 .map_err(|e| map_err(e.to_string()))?;
             bytemuck::cast_slice::<u8, T>(&view).to_vec()
+        };
+        staging.unmap();
+        Ok(out)
+    }
+}
+
+impl GpuContext {
+    /// Reads back the first `bytes` of each of `parts` with one submission and one wait
+    /// (where [`Self::read_buffer`] per buffer would wait once each).
+    pub fn read_buffers(&self, parts: &[(&wgpu::Buffer, u64)]) -> GpuResult<Vec<Vec<u8>>> {
+        const ALIGN: u64 = 256;
+        let offsets: Vec<u64> = parts
+            .iter()
+            .scan(0u64, |at, &(_, bytes)| {
+                let o = *at;
+                *at += bytes.div_ceil(ALIGN) * ALIGN;
+                Some(o)
+            })
+            .collect();
+        let total = parts
+            .iter()
+            .map(|&(_, b)| b.div_ceil(ALIGN) * ALIGN)
+            .sum::<u64>();
+        if total == 0 {
+            return Ok(parts.iter().map(|_| Vec::new()).collect());
+        }
+        let staging = self.scoped("readback", || {
+            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("readback"),
+                size: total,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut enc = self.device.create_command_encoder(&Default::default());
+            for (&(src, bytes), &o) in parts.iter().zip(&offsets) {
+                if bytes > 0 {
+                    enc.copy_buffer_to_buffer(src, 0, &staging, o, bytes);
+                }
+            }
+            self.queue.submit([enc.finish()]);
+            staging
+        })?;
+        let (tx, rx) = mpsc::channel();
+        staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        let map_err = |msg: String| GpuError::Device {
+            what: "readback",
+            msg,
+        };
+        rx.recv()
+            .map_err(|e| map_err(e.to_string()))?
+            .map_err(|e| map_err(e.to_string()))?;
+        let out = {
+            let view = staging
+                .get_mapped_range(..)
+                .map_err(|e| map_err(e.to_string()))?;
+            parts
+                .iter()
+                .zip(&offsets)
+                .map(|(&(_, bytes), &o)| view[o as usize..(o + bytes) as usize].to_vec())
+                .collect()
         };
         staging.unmap();
         Ok(out)

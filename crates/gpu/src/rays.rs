@@ -141,8 +141,15 @@ impl RayBatch {
 
     /// The counters read back: (samples asked for, samples written, rays with samples).
     pub fn read_counters(&self, ctx: &GpuContext) -> GpuResult<(u32, u32, u32)> {
-        let c: Vec<u32> = ctx.read_buffer(&self.counters, 16)?;
+        let c = self.read_all_counters(ctx)?;
         Ok((c[0], c[1], c[2]))
+    }
+
+    /// All four counters: those of [`Self::read_counters`], then the rays with samples that
+    /// did not fit the budget.
+    pub fn read_all_counters(&self, ctx: &GpuContext) -> GpuResult<[u32; 4]> {
+        let c: Vec<u32> = ctx.read_buffer(&self.counters, 16)?;
+        Ok([c[0], c[1], c[2], c[3]])
     }
 }
 

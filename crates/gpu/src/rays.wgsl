@@ -101,7 +101,8 @@ struct OutRay {
 @group(0) @binding(7) var<storage, read_write> pos: array<f32>;
 @group(0) @binding(8) var<storage, read_write> dts: array<f32>;
 @group(0) @binding(9) var<storage, read_write> dists: array<f32>;
-// [0]: slots asked for (past the budget too), [1]: samples written, [2]: rays with samples.
+// [0]: slots asked for (past the budget too), [1]: samples written, [2]: rays with samples,
+// [3]: rays with samples that did not fit the budget (they train nothing this step).
 @group(0) @binding(10) var<storage, read_write> counters: array<atomic<u32>, 4>;
 @group(0) @binding(11) var<uniform> p: RayParams;
 
@@ -475,6 +476,8 @@ fn march_main(@builtin(global_invocation_id) gid: vec3<u32>) {
                 out.start = base;
                 out.n = n;
                 out.target_rgb = array<f32, 3>(g.target_rgb.x, g.target_rgb.y, g.target_rgb.z);
+            } else {
+                atomicAdd(&counters[3], 1u);
             }
         }
     }

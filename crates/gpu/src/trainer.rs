@@ -20,10 +20,20 @@
 //! when the one Adam step runs, as the CPU sums its workers' partials (in another order:
 //! the sums agree to rounding, not bit for bit).
 //!
-//! Host round trips per scene trained: the batch's three counters (the network kernels take
-//! their sample count from the host, so a scene submits twice: rays, then the rest), the
-//! per-ray (loss, samples used) pairs that the rays-per-batch adaptation and the reported
-//! loss need, and each occupancy grid's mean after an update (it switches the pull-up).
+//! Each scene's batch is trained as instant-ngp trains it (`testbed_nerf.cu`): rays drawn
+//! and marched into a budget of 16× the target samples; the whole network's inference pass
+//! over every marched sample; the loss on its outputs, which finds where each ray's
+//! transmittance stops and the gradient of the samples before; those samples compacted
+//! ([`Compacted`]); then the grid and network forward keeping activations, and the
+//! backward, over the compacted samples alone (≈ the target, where the network used to
+//! run its backward on every marched sample: 3.8× as many on lego at 800 px). The
+//! gradient is the same: the samples past a ray's end had a zero gradient.
+//!
+//! Host round trips per scene trained: the batch's counters after marching (the network
+//! kernels take their sample count from the host), then the per-ray (loss, samples used)
+//! pairs with the compaction's counters (one wait); per step, the wait after the optimizer
+//! and each occupancy grid's mean after an update (it switches the pull-up). `StepStats`
+//! counts them (`host_waits`, `submissions`).
 //! With a [`TrainPolicy`] installed that reads them, every update of scene 0's grid (and
 //! the installation itself) also reads back that grid and the EMA weights, calls the policy
 //! on the host and uploads the indices and bounds it returns, before the other scenes'
@@ -31,17 +41,18 @@
 //! extra density loss reads its raw outputs back to take the loss's derivative on the host.
 //! Otherwise samples and weights never leave the device.
 //!
-//! Differences from the CPU step, by design of this first version: the network runs (and
-//! keeps activations) on every marched sample, where the CPU first finds where each ray's
-//! transmittance ends with density-only waves and runs the full network on the used samples
-//! only; the loss kernel gives the samples past termination a zero gradient, so the update
-//! is the same, only slower by marched / used. Marching is bounded by a sample budget
-//! ([`GpuTrainer::sample_budget`]); rays past it train nothing this step, as in instant-ngp.
+//! Rays whose samples do not fit the marching budget train nothing that step, as in
+//! instant-ngp; they are counted (`StepStats::dropped_rays`), and the rays-per-batch
+//! adaptation leaves them out of the count it scales, so that a budget that binds shrinks
+//! the next batch (it used to grow it until every step filled its budget). The training
+//! pass runs in chunks of the network workspace's capacity (2× the target) when a batch
+//! has more used samples, so the compaction drops nothing.
 //!
 //! [`Trainer`]: ngp::train::Trainer
 //! [`Schedule::Mixed`]: ngp::train::Schedule::Mixed
 //! [`Schedule::RandomScene`]: ngp::train::Schedule::RandomScene
 
+use super::compact::{CompactInputs, Compacted};
 use super::field::{DensityScratch, GpuField};
 use super::grid::GridShape;
 use super::held::{GpuHoldBack, GpuKeptMlp};
@@ -73,12 +84,19 @@ const DIRS_WGSL: &str = include_str!("dirs.wgsl");
 const DIRS_WORKGROUP: u32 = 64;
 /// Most rays per batch: the CPU trainer's (and the reference's) cap.
 const MAX_RAYS: u32 = MAX_RAYS_PER_BATCH;
-/// Marched samples the device holds per batch, as a multiple of the trained-sample target.
-/// Marched samples exceed the trained ones (the generated test scene: about 1.5×), and a
-/// budget that binds drops rays from the step; 4× leaves room at the cost of 1.7 KiB of
-/// network workspace per budgeted sample. The device's largest storage binding caps it
-/// (the network's kept activations, `ACT_ROWS` floats a sample, are the largest buffer).
-const BUDGET_FACTOR: u32 = 4;
+/// Marched samples the device holds per batch, as a multiple of the trained-sample target:
+/// instant-ngp's 16. A budget that binds drops rays from the step (counted in
+/// [`StepStats::dropped_rays`]); marched samples cost 4 B per encoding feature and 60 B
+/// besides (the network's activations are kept for the trained samples only), so 2^18
+/// trained samples march into 2^22 slots, 0.8 GiB. The device's largest storage binding
+/// caps it (the encoding is the largest per-sample buffer).
+const BUDGET_FACTOR: u32 = 16;
+/// Trained samples (those that reach the loss) the network's workspace holds, as a multiple
+/// of the target: each costs its kept activations, `ACT_ROWS` floats. Rays-per-batch
+/// adaptation keeps a batch near the target; one with more (the first steps' fog, where
+/// rays cross the whole box before they stop) trains in chunks of this many, so that no
+/// ray is dropped for it.
+const CAPACITY_FACTOR: u32 = 2;
 /// The encoding's leading dimension is the sample count rounded up to this, so the kernels'
 /// padding work stays small while a bind is valid for a range of counts.
 const LD_GRANULE: u32 = 256;
@@ -89,6 +107,14 @@ struct DirsParams {
     n_rays: u32,
     row_width: u32,
     _pad: [u32; 2],
+}
+
+/// A chunk of compacted samples past the workspace's first: positions, directions and
+/// raw-output gradients of up to the workspace's capacity.
+struct ChunkBuffers {
+    pos: wgpu::Buffer,
+    dirs: wgpu::Buffer,
+    d_raw: wgpu::Buffer,
 }
 
 /// One scene's state on the device (and the host copies the API hands out).
@@ -118,6 +144,10 @@ pub struct GpuTrainer<'c> {
     policy: Option<Box<dyn TrainPolicy>>,
     density_scratch: DensityScratch,
     batch: RayBatch,
+    /// The samples of a batch that reach the loss, which the training pass runs on.
+    compacted: Compacted,
+    /// Where the training pass's later chunks are copied (the network binds whole buffers).
+    chunk: ChunkBuffers,
     loss: LossKernel,
     optimizer: GpuOptimizer,
     /// The gate with hold-back and the table's bounds on the device, once a policy uses
@@ -138,6 +168,8 @@ pub struct GpuTrainer<'c> {
     ray_out: wgpu::Buffer,
     dirs_pipeline: wgpu::ComputePipeline,
     dirs_uniform: wgpu::Buffer,
+    /// Occupancy updates submitted (each with its read-back) in this step so far.
+    occupancy_submissions: u32,
     /// Steps taken, updating the weights or not: the schedule's and the rays' clock.
     pub step: u32,
     /// Steps that updated the weights (the CPU trainer's `weight_steps`): the optimizer's
@@ -193,11 +225,22 @@ impl<'c> GpuTrainer<'c> {
         let max = limits
             .max_storage_buffer_binding_size
             .min(limits.max_buffer_size);
-        let fits = (max / (4 * ACT_ROWS)).min(u32::MAX as u64) as u32 / LD_GRANULE * LD_GRANULE;
-        let budget = config.batch_samples.saturating_mul(BUDGET_FACTOR).min(fits);
-        if budget < config.batch_samples {
+        let width = layout.grid.config.n_output_dims() as u64;
+        let fitting = |bytes_per_sample: u64| {
+            (max / bytes_per_sample).min(u32::MAX as u64) as u32 / LD_GRANULE * LD_GRANULE
+        };
+        let budget = config
+            .batch_samples
+            .saturating_mul(BUDGET_FACTOR)
+            .min(fitting(4 * width));
+        let capacity = config
+            .batch_samples
+            .saturating_mul(CAPACITY_FACTOR)
+            .min(fitting(4 * ACT_ROWS))
+            .min(budget);
+        if capacity < config.batch_samples {
             return input(format!(
-                "{} samples per batch: the device's {max}-byte bindings hold {fits}",
+                "{} samples per batch: the device's {max}-byte bindings hold {capacity}",
                 config.batch_samples
             ));
         }
@@ -234,16 +277,15 @@ impl<'c> GpuTrainer<'c> {
             layout.n_params,
             layout.n_mlp_params(),
         )?;
-        let ws = field.mlp().workspace(ctx, budget)?;
-        let width = layout.grid.config.n_output_dims() as u64;
+        let ws = field.mlp().workspace(ctx, capacity)?;
+        let compacted = Compacted::new(ctx, budget)?;
+        let c = capacity as u64;
+        let chunk = ctx.scoped("trainer chunk buffers", || ChunkBuffers {
+            pos: device_buffer(ctx, "chunk positions", 12 * c),
+            dirs: device_buffer(ctx, "chunk directions", 12 * c),
+            d_raw: device_buffer(ctx, "chunk gradients", 16 * c),
+        })?;
         let b = budget as u64;
-        if 4 * width * b > max {
-            return input(format!(
-                "a budget of {budget} samples needs a {}-byte encoding, past the device's \
-                 {max}-byte binding",
-                4 * width * b
-            ));
-        }
         let (dirs, raw, d_raw, enc, d_enc, grad, ray_out) =
             ctx.scoped("trainer buffers", || {
                 (
@@ -251,7 +293,11 @@ impl<'c> GpuTrainer<'c> {
                     device_buffer(ctx, "trainer raw", 16 * b),
                     device_buffer(ctx, "trainer d_raw", 16 * b),
                     device_buffer(ctx, "trainer encoding", 4 * width * b),
-                    device_buffer(ctx, "trainer encoding gradient", 4 * width * b),
+                    device_buffer(
+                        ctx,
+                        "trainer encoding gradient",
+                        4 * width * capacity as u64,
+                    ),
                     device_buffer(ctx, "trainer gradient", 4 * layout.n_params as u64),
                     device_buffer(ctx, "trainer ray losses", 8 * MAX_RAYS as u64),
                 )
@@ -282,6 +328,8 @@ impl<'c> GpuTrainer<'c> {
             policy: None,
             density_scratch: DensityScratch::default(),
             batch,
+            compacted,
+            chunk,
             loss,
             optimizer,
             hold: None,
@@ -297,6 +345,7 @@ impl<'c> GpuTrainer<'c> {
             ray_out,
             dirs_pipeline,
             dirs_uniform,
+            occupancy_submissions: 0,
             step: 0,
             weight_steps: 0,
         })
@@ -434,6 +483,7 @@ impl<'c> GpuTrainer<'c> {
             )?;
             ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
             scene.grid_mean = scene.occupancy.read_mean(ctx)?;
+            self.occupancy_submissions += 1;
             if si == 0 {
                 self.primary_grid_updated()?;
             }
@@ -553,6 +603,9 @@ impl<'c> GpuTrainer<'c> {
         // Without the update the gradient buffer keeps what the policy left in it for the
         // next step that updates the weights.
         self.ctx.wait()?;
+        stats.submissions += 1 + self.occupancy_submissions;
+        stats.host_waits += 1 + self.occupancy_submissions;
+        self.occupancy_submissions = 0;
         self.step += 1;
         stats.seconds = t0.elapsed().as_secs_f64();
         stats.occupancy_seconds = t_occ;
@@ -561,8 +614,12 @@ impl<'c> GpuTrainer<'c> {
         Ok(stats)
     }
 
-    /// Scene `si`'s batch: rays, then network, loss and backward into the gradient; its
-    /// losses and counters read back into `stats` and the scene's rays-per-batch state.
+    /// Scene `si`'s batch, as instant-ngp trains: rays drawn and marched; the network's
+    /// inference pass over every marched sample and the loss on its outputs (which finds
+    /// where each ray stops, and the gradient of the samples before); those samples
+    /// compacted; the grid and network forward keeping activations and the backward over
+    /// them alone, adding into the gradient. The per-ray losses and counters are read back
+    /// into `stats` and the scene's rays-per-batch state.
     fn train_scene(&mut self, si: usize, stats: &mut StepStats) -> GpuResult<()> {
         let ctx = self.ctx;
         let step = self.step;
@@ -582,26 +639,65 @@ impl<'c> GpuTrainer<'c> {
             seed,
         )?;
         ctx.scoped("training rays", || ctx.queue.submit([encoder.finish()]))?;
-        let (_asked, written, with_samples) = self.batch.read_counters(ctx)?;
+        let [_asked, written, with_samples, dropped] = self.batch.read_all_counters(ctx)?;
+        stats.submissions += 1;
+        stats.host_waits += 1;
         let n = written.min(self.batch.sample_budget());
 
-        // 2. Network, loss and backward (adding into the gradient) in one submission.
         let loss_norm = scene.loss_weight / n_rays as f32;
         let pull_up = if scene.grid_mean < MIN_OPTICAL_THICKNESS {
             DENSITY_PULL_UP
         } else {
             0.0
         };
-        let (loss, used) = if n > 0 {
+        let (loss, used, trained, unfit) = if n > 0 {
+            // 2. Inference over the marched samples, loss, compaction.
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.encode_samples(&mut encoder, si, n_rays, n, loss_norm, pull_up)?;
-            ctx.scoped("training samples", || ctx.queue.submit([encoder.finish()]))?;
-            let out: Vec<[f32; 2]> = ctx.read_buffer(&self.ray_out, 8 * n_rays as u64)?;
-            out.iter().fold((0.0f64, 0u64), |(l, u), o| {
+            self.encode_inference_and_loss(&mut encoder, si, n_rays, n, loss_norm, pull_up)?;
+            ctx.scoped("training inference", || {
+                ctx.queue.submit([encoder.finish()])
+            })?;
+            let back = ctx.read_buffers(&[
+                (&self.ray_out, 8 * n_rays as u64),
+                (&self.compacted.counters, 16),
+            ])?;
+            stats.submissions += 1;
+            stats.host_waits += 1;
+            let out: &[[f32; 2]] = bytemuck::cast_slice(&back[0]);
+            let counters: &[u32] = bytemuck::cast_slice(&back[1]);
+            let (trained, unfit) = (counters[1], counters[2]);
+            // 3. The training pass over the compacted samples, in chunks of the workspace.
+            if trained > 0 {
+                let mut encoder = ctx.device.create_command_encoder(&Default::default());
+                let cap = self.ws.capacity();
+                let mut at = 0u32;
+                while at < trained {
+                    let count = (trained - at).min(cap);
+                    let c = &self.compacted;
+                    let bufs = if at == 0 {
+                        (&c.pos, &c.dirs, &c.d_raw)
+                    } else {
+                        let k = &self.chunk;
+                        let (a, m) = (at as u64, count as u64);
+                        encoder.copy_buffer_to_buffer(&c.pos, 12 * a, &k.pos, 0, 12 * m);
+                        encoder.copy_buffer_to_buffer(&c.dirs, 12 * a, &k.dirs, 0, 12 * m);
+                        encoder.copy_buffer_to_buffer(&c.d_raw, 16 * a, &k.d_raw, 0, 16 * m);
+                        (&k.pos, &k.dirs, &k.d_raw)
+                    };
+                    let shape = self.shape(count, cap);
+                    self.encode_network_forward(&mut encoder, si, shape, bufs.0, bufs.1, true)?;
+                    self.encode_network_backward(&mut encoder, si, shape, bufs.0, bufs.2)?;
+                    at += count;
+                }
+                ctx.scoped("training samples", || ctx.queue.submit([encoder.finish()]))?;
+                stats.submissions += 1;
+            }
+            let (l, u) = out.iter().fold((0.0f64, 0u64), |(l, u), o| {
                 (l + o[0] as f64, u + o[1].to_bits() as u64)
-            })
+            });
+            (l, u, trained, unfit)
         } else {
-            (0.0, 0)
+            (0.0, 0, 0, 0)
         };
         let scene_loss = (loss / n_rays as f64) as f32;
         stats.loss += scene_loss;
@@ -609,21 +705,38 @@ impl<'c> GpuTrainer<'c> {
             stats.primary_loss = Some(scene_loss);
         }
         stats.n_rays += with_samples as u64;
-        stats.n_samples += used;
+        stats.n_samples += trained as u64;
         stats.n_marched += n as u64;
+        stats.n_network += n as u64 + trained as u64;
+        stats.dropped_rays += dropped as u64 + unfit as u64;
         let scene = &mut self.scenes[si];
-        scene.measured_samples = used as u32;
+        scene.measured_samples = trained;
         scene.measured_marched = n;
-        // The reference keeps its ray count when nothing was trained.
+        // The reference keeps its ray count when nothing was trained. Rays that did not fit
+        // the marching budget are left out of the count the adaptation scales, so that a
+        // budget that binds shrinks the batch instead of growing it (their samples are not
+        // in `used`); with none dropped this is the CPU's adaptation.
         if used > 0 {
-            scene.rays_per_batch = next_rays_per_batch(n_rays, self.config.batch_samples, used);
+            scene.rays_per_batch = next_rays_per_batch(
+                n_rays - dropped.min(n_rays),
+                self.config.batch_samples,
+                used,
+            );
         }
         Ok(())
     }
 
-    /// Records directions, grid forward, network forward, loss, network backward and grid
-    /// backward over the batch's `n` compacted samples of scene `si`.
-    fn encode_samples(
+    /// The grid shape of `n` samples in buffers of `cap` samples: the leading dimension is
+    /// `n` rounded up to [`LD_GRANULE`], within the buffers.
+    fn shape(&self, n: u32, cap: u32) -> GridShape {
+        let ld = n.div_ceil(LD_GRANULE).saturating_mul(LD_GRANULE).min(cap);
+        GridShape { n_samples: n, ld }
+    }
+
+    /// Records directions, grid forward and network inference over the batch's `n` marched
+    /// samples of scene `si`, the loss and its gradient to the raw outputs, and the
+    /// compaction of the samples that reach the loss.
+    fn encode_inference_and_loss(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
@@ -633,11 +746,7 @@ impl<'c> GpuTrainer<'c> {
         pull_up: f32,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
-        let ld = n
-            .div_ceil(LD_GRANULE)
-            .saturating_mul(LD_GRANULE)
-            .min(self.batch.sample_budget());
-        let shape = GridShape { n_samples: n, ld };
+        let shape = self.shape(n, self.batch.sample_budget());
 
         // Per-sample directions.
         let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
@@ -667,7 +776,7 @@ impl<'c> GpuTrainer<'c> {
             pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
         })?;
 
-        self.encode_network_forward(encoder, si, shape)?;
+        self.encode_network_forward(encoder, si, shape, &self.batch.pos, &self.dirs, false)?;
 
         // Loss and its gradient to the raw outputs.
         let bufs = LossBuffers {
@@ -682,7 +791,14 @@ impl<'c> GpuTrainer<'c> {
         let cfg = LossConfig::new(&self.marcher, loss_norm, pull_up);
         self.loss.encode(ctx, encoder, &bufs, n_rays, n, &cfg)?;
 
-        self.encode_network_backward(encoder, si, shape)
+        let inputs = CompactInputs {
+            rays: &self.batch.rays,
+            ray_out: &self.ray_out,
+            pos: &self.batch.pos,
+            dirs: &self.dirs,
+            d_raw: &self.d_raw,
+        };
+        self.compacted.encode(ctx, encoder, &inputs, n_rays)
     }
 
     /// Byte ranges of a batch of `shape`: the grid block of the parameters (and of the
@@ -708,13 +824,16 @@ impl<'c> GpuTrainer<'c> {
     }
 
     /// Grid forward under scene `si`'s index and network forward over the first
-    /// `shape.n_samples` positions of the batch and of `dirs`, into `raw`, keeping the
-    /// activations for [`Self::encode_network_backward`].
+    /// `shape.n_samples` of `pos` and `dirs`, into `raw`; with `keep`, the activations stay
+    /// in the workspace for [`Self::encode_network_backward`] (`shape` within its capacity).
     fn encode_network_forward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         shape: GridShape,
+        pos: &wgpu::Buffer,
+        dirs: &wgpu::Buffer,
+        keep: bool,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
@@ -723,7 +842,7 @@ impl<'c> GpuTrainer<'c> {
         let forward = grid.bind_forward(
             ctx,
             index,
-            self.batch.pos.slice(..pos_bytes),
+            pos.slice(..pos_bytes),
             self.field.params.slice(grid_bytes),
             self.enc.slice(..enc_bytes),
             shape,
@@ -733,19 +852,26 @@ impl<'c> GpuTrainer<'c> {
             forward.record(&mut pass);
         }
         let eb = self.encoded_batch(shape);
-        self.field
-            .mlp()
-            .encode_forward(ctx, encoder, &eb, &self.dirs, &self.raw, Some(&self.ws))
+        self.field.mlp().encode_forward(
+            ctx,
+            encoder,
+            &eb,
+            dirs,
+            &self.raw,
+            keep.then_some(&self.ws),
+        )
     }
 
-    /// Backward of the last [`Self::encode_network_forward`] from `d_raw`: MLP weight
-    /// gradients added into `grad`, dL/d(enc) into `d_enc`, then the grid's gradient added
-    /// into the grid block of `grad`.
+    /// Backward of the last [`Self::encode_network_forward`] that kept its activations,
+    /// from `d_raw`: MLP weight gradients added into `grad`, dL/d(enc) into `d_enc`, then
+    /// the grid's gradient at `pos` added into the grid block of `grad`.
     fn encode_network_backward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         shape: GridShape,
+        pos: &wgpu::Buffer,
+        d_raw: &wgpu::Buffer,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
@@ -754,7 +880,7 @@ impl<'c> GpuTrainer<'c> {
             ctx,
             encoder,
             &eb,
-            &self.d_raw,
+            d_raw,
             &self.ws,
             &self.grad,
             &self.d_enc,
@@ -762,7 +888,7 @@ impl<'c> GpuTrainer<'c> {
         let backward = self.field.grid().bind_backward(
             ctx,
             &self.scenes[si].index,
-            self.batch.pos.slice(..pos_bytes),
+            pos.slice(..pos_bytes),
             self.d_enc.slice(..enc_bytes),
             self.grad.slice(grid_bytes),
             shape,
@@ -773,8 +899,8 @@ impl<'c> GpuTrainer<'c> {
     }
 
     /// [`PolicyOps::density_loss`] on the device: the points, drawn on the host, go through
-    /// the network in the batch's buffers (the scene's rays are done with them) in chunks
-    /// of the sample budget; the loss's derivative is taken on the host from the raw
+    /// the network in the compacted samples' buffers (the scene's rays are done with them)
+    /// in chunks of their capacity; the loss's derivative is taken on the host from the raw
     /// outputs read back, and the backward pass adds into the gradient. Returns the points
     /// where the derivative is not zero.
     fn density_loss(
@@ -792,23 +918,21 @@ impl<'c> GpuTrainer<'c> {
         let ctx = self.ctx;
         let pos: Vec<[f32; 3]> = points.iter().map(|&p| self.marcher.warp(p)).collect();
         let mut active = 0;
-        for chunk in pos.chunks(self.batch.sample_budget() as usize) {
+        let cap = self.ws.capacity();
+        for chunk in pos.chunks(cap as usize) {
             let m = chunk.len() as u32;
-            let ld = m
-                .div_ceil(LD_GRANULE)
-                .saturating_mul(LD_GRANULE)
-                .min(self.batch.sample_budget());
-            let shape = GridShape { n_samples: m, ld };
+            let shape = self.shape(m, cap);
             // The colour's gradient is zero: any direction does.
             let dirs = vec![[0.0f32, 0.0, 1.0]; chunk.len()];
+            let c = &self.compacted;
             ctx.scoped("density loss points", || {
                 ctx.queue
-                    .write_buffer(&self.batch.pos, 0, bytemuck::cast_slice(chunk));
+                    .write_buffer(&c.pos, 0, bytemuck::cast_slice(chunk));
                 ctx.queue
-                    .write_buffer(&self.dirs, 0, bytemuck::cast_slice(&dirs));
+                    .write_buffer(&c.dirs, 0, bytemuck::cast_slice(&dirs));
             })?;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.encode_network_forward(&mut encoder, si, shape)?;
+            self.encode_network_forward(&mut encoder, si, shape, &c.pos, &c.dirs, true)?;
             ctx.scoped("density loss forward", || {
                 ctx.queue.submit([encoder.finish()])
             })?;
@@ -823,10 +947,10 @@ impl<'c> GpuTrainer<'c> {
                 .collect();
             ctx.scoped("density loss gradient", || {
                 ctx.queue
-                    .write_buffer(&self.d_raw, 0, bytemuck::cast_slice(&d_raw));
+                    .write_buffer(&c.d_raw, 0, bytemuck::cast_slice(&d_raw));
             })?;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.encode_network_backward(&mut encoder, si, shape)?;
+            self.encode_network_backward(&mut encoder, si, shape, &c.pos, &c.d_raw)?;
             ctx.scoped("density loss backward", || {
                 ctx.queue.submit([encoder.finish()])
             })?;

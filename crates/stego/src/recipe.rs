@@ -410,8 +410,16 @@ pub struct Totals {
     pub seconds: f64,
     /// Samples that reached the loss.
     pub samples: u64,
-    /// Samples marched and run through the network.
+    /// Samples marched.
     pub marched: u64,
+    /// Samples through the whole network, forward passes counted separately
+    /// ([`StepStats::n_network`]).
+    pub network: u64,
+    /// Rays that trained nothing because a device buffer was full.
+    pub dropped_rays: u64,
+    /// The device's host waits and command submissions.
+    pub host_waits: u64,
+    pub submissions: u64,
     /// The steps' time in occupancy updates, in rays and in the optimizer.
     pub occupancy_seconds: f64,
     pub rays_seconds: f64,
@@ -486,6 +494,10 @@ impl Training<'_> {
         t.seconds += st.seconds;
         t.samples += st.n_samples;
         t.marched += st.n_marched;
+        t.network += st.n_network;
+        t.dropped_rays += st.dropped_rays;
+        t.host_waits += st.host_waits as u64;
+        t.submissions += st.submissions as u64;
         t.occupancy_seconds += st.occupancy_seconds;
         t.rays_seconds += st.rays_seconds;
         t.optimizer_seconds += st.optimizer_seconds;

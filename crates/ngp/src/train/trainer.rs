@@ -105,8 +105,20 @@ pub struct StepStats {
     pub n_rays: u64,
     /// Samples that contributed to the loss (the reference's compacted samples).
     pub n_samples: u64,
-    /// Samples marched and run through the network (≥ n_samples).
+    /// Samples marched (≥ n_samples).
     pub n_marched: u64,
+    /// Samples run through the whole network (density and colour), forward passes
+    /// counted separately: the CPU runs it on the used samples only (density-only waves
+    /// find where rays stop); the GPU runs an inference pass over the marched samples, then
+    /// the training pass over the used ones, as instant-ngp does.
+    pub n_network: u64,
+    /// Rays drawn that trained nothing because a batch buffer was full (the GPU's marching
+    /// budget or its trained-sample capacity); always 0 on the CPU.
+    pub dropped_rays: u64,
+    /// Times the host waited for the device in this step, and command submissions (0 on
+    /// the CPU).
+    pub host_waits: u32,
+    pub submissions: u32,
     /// Points where a policy's extra density loss ([`PolicyOps::density_loss`]) had a
     /// gradient this step.
     pub penalised: u32,
@@ -467,6 +479,7 @@ impl Trainer {
                 stats.primary_loss = Some(scene_loss);
             }
             stats.n_samples += used;
+            stats.n_network += used;
             let scene = &mut self.scenes[si];
             scene.measured_samples = used as u32;
             scene.measured_marched = marched as u32;

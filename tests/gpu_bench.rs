@@ -1,0 +1,125 @@
+//! The GPU benchmark script (`scripts/gpu_bench.py`) end to end in its small mode, on the
+//! adapter CI has (llvmpipe): prepare a carry folder from a generated scene and this build's
+//! binary, run every phase, and read back the JSON a GPU machine's run would write. Needs
+//! Python 3 with Pillow (`.ci/run` installs Debian's); with `CI=true` their absence fails.
+
+use std::path::Path;
+use std::process::{Command, Output};
+use testkit::cli::{bin, ok, stegongp};
+
+fn python_with_pillow() -> bool {
+    Command::new("python3")
+        .args(["-c", "import PIL.Image, lzma"])
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+fn script(args: &[&str]) -> Output {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gpu_bench.py");
+    Command::new("python3")
+        .arg(script)
+        .args(args)
+        .output()
+        .expect("python3 runs")
+}
+
+fn ok_script(args: &[&str]) -> String {
+    let out = script(args);
+    assert!(
+        out.status.success(),
+        "gpu_bench.py {args:?} failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+#[test]
+fn gpu_bench_script_runs_end_to_end_in_small_mode() {
+    if !python_with_pillow() {
+        let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+        assert!(
+            !ci,
+            "CI=true: the GPU benchmark's test needs python3 with Pillow"
+        );
+        eprintln!("skipping: python3 with Pillow not found");
+        return;
+    }
+    if stegongp::gpu::test_context().is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    ok(&stegongp(&[
+        "synth",
+        "--scene",
+        "object",
+        "--res",
+        "32",
+        "--train",
+        "12",
+        "--test",
+        "4",
+        "--out",
+        &p("obj"),
+    ]));
+    let binary = bin();
+    let binary = binary.to_str().unwrap();
+    let prepared = ok_script(&[
+        "prepare",
+        &p("carry"),
+        "--small",
+        "--lego",
+        &p("obj"),
+        "--binary",
+        binary,
+        "--no-loader",
+    ]);
+    let manifest: serde_json::Value = serde_json::from_str(&prepared).unwrap();
+    // Every view recompressed, losslessly (the script checks each one decoded back).
+    assert_eq!(manifest["lego"]["views"]["train"], 12);
+    assert_eq!(manifest["lego"]["views"]["test"], 4);
+    assert!(manifest["carried_bytes"].as_u64().unwrap() > 1 << 20);
+
+    let software = stegongp::gpu::test_context().unwrap().report().software;
+    if software {
+        // A run that would measure llvmpipe fails loudly, before anything is trained.
+        let out = script(&["run", &p("carry"), &p("refused")]);
+        assert!(!out.status.success());
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("only a software adapter"), "{err}");
+        let partial: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(p("refused/gpu_bench.json")).unwrap())
+                .unwrap();
+        assert!(partial.get("lego").is_none());
+    }
+
+    ok_script(&["run", &p("carry"), &p("out"), "--small", "--allow-software"]);
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("out/gpu_bench.json")).unwrap()).unwrap();
+    let limits = &r["devices"]["opened"]["limits"];
+    assert!(limits["max_storage_buffer_binding_size"].as_u64().unwrap() > 0);
+    let lego = &r["lego"];
+    assert_eq!(lego["device"]["kind"], "gpu");
+    assert_eq!(lego["checkpoints"].as_array().unwrap().len(), 5);
+    // The step's own counters: the network's passes cover at least the trained samples,
+    // and the host waits at least once a step (until the step has none).
+    let trained = lego["trained_per_step"].as_f64().unwrap();
+    assert!(trained > 0.0);
+    assert!(lego["network_per_step"].as_f64().unwrap() >= trained);
+    assert!(lego["host_waits_per_step"].as_f64().unwrap() >= 1.0);
+    assert!(lego["submissions_per_step"].as_f64().unwrap() >= 1.0);
+    let s = &r["summary"];
+    for k in [
+        "pair_cover_psnr",
+        "pair_hidden_psnr_key",
+        "pair_hidden_psnr_wrong_key",
+        "plain_text_psnr_same_steps",
+    ] {
+        let v = s[k].as_f64().unwrap_or(f64::NAN);
+        assert!(v.is_finite() && v > 5.0, "{k}: {v}");
+    }
+    assert_eq!(s["lego_psnr_by_minute"].as_object().unwrap().len(), 5);
+    assert_eq!(r["plain_text"]["steps"], r["pair"]["steps"]);
+    assert!(Path::new(&p("out/log.txt")).is_file());
+}
