@@ -9,7 +9,7 @@ but no Rust toolchain and no network, in one short run.
   run DIR OUT   (there) installs the loader if the machine lacks one, expands the binary and
                 the images, fails loudly unless it got a hardware adapter, prints the adapter
                 and its limits, trains lego at 800x800 for 5 minutes (test PSNR at each
-                minute), trains the lego + text stego pair for 2 minutes beside a plain text
+                minute; one step in 50 timed phase by phase on the device), trains the lego + text stego pair for 2 minutes beside a plain text
                 model trained for the same steps, and writes OUT/gpu_bench.json (rewritten
                 after every phase, so a run cut short keeps what it measured) and OUT/log.txt.
 
@@ -312,9 +312,11 @@ class Run:
             common += ["--batch", "4096", "--occupancy-fraction", "0.0078125"]
         lm = a.lego_minutes
         marks = [round(lm * (i + 1) / 5, 4) for i in range(5)]
+        # One step in 50 timed phase by phase on the device (one extra read-back each).
         self.results["lego"] = self.cmd(
             "train", lego, "--out", self.work / "lego.ingp", "--minutes", lm,
-            "--checkpoints", ",".join(map(str, marks)), *common, json_out=True)
+            "--checkpoints", ",".join(map(str, marks)), "--profile-every",
+            "5" if small else "50", *common, json_out=True)
         self.results["lego"]["steady"] = steady(self.results["lego"])
         self.save()
         if a.lego_only:
@@ -384,6 +386,8 @@ def lego_summary(r, opened):
         "lego_per_step": {k: lego.get(k) for k in (
             "trained_per_step", "marched_per_step", "network_per_step", "dropped_rays",
             "host_waits_per_step", "submissions_per_step")},
+        "lego_device_ms_per_step": {p["phase"]: round(p["ms"], 3)
+                                    for p in lego.get("device_phases_ms", [])},
     }
 
 

@@ -7,6 +7,13 @@ use std::path::Path;
 use std::process::{Command, Output};
 use testkit::cli::{bin, ok, stegongp};
 
+fn s_phases(r: &serde_json::Value) -> serde_json::Map<String, serde_json::Value> {
+    r["summary"]["lego_device_ms_per_step"]
+        .as_object()
+        .cloned()
+        .unwrap_or_default()
+}
+
 fn python_with_pillow() -> bool {
     Command::new("python3")
         .args(["-c", "import PIL.Image, lzma"])
@@ -109,6 +116,17 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     assert!(lego["network_per_step"].as_f64().unwrap() >= trained);
     assert!(lego["host_waits_per_step"].as_f64().unwrap() >= 1.0);
     assert!(lego["submissions_per_step"].as_f64().unwrap() >= 1.0);
+    // The device's phases, timed with timestamps (llvmpipe writes them too).
+    let phases = &s_phases(&r);
+    for name in [
+        "rays: draw and march",
+        "network inference (marched)",
+        "network backward (trained)",
+        "optimizer (Adam + EMA)",
+    ] {
+        let ms = phases.get(name).and_then(|v| v.as_f64()).unwrap_or(-1.0);
+        assert!(ms > 0.0, "{name}: {ms} in {phases:?}");
+    }
     let s = &r["summary"];
     for k in [
         "pair_cover_psnr",

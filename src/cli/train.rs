@@ -67,6 +67,11 @@ pub struct Args {
     pub background: Background,
     #[command(flatten)]
     pub device: DeviceArg,
+    /// GPU: time the device's phases (marching, grid, network, loss, compaction,
+    /// optimizer, and its idle time between submissions) with timestamps on one step in N,
+    /// and report the milliseconds per step of each (one extra read-back per profiled step).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub profile_every: u32,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
@@ -128,6 +133,15 @@ struct Summary {
     /// reference's schedule.
     occupancy_budget: Option<f32>,
     checkpoints: Vec<Checkpoint>,
+    /// With --profile-every: milliseconds per profiled step in each device phase.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    device_phases_ms: Vec<Phase>,
+}
+
+#[derive(Serialize)]
+struct Phase {
+    phase: String,
+    ms: f64,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -200,6 +214,12 @@ pub fn run(a: Args) -> Result<()> {
     let device = a.device.open()?;
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
+    if a.profile_every > 0 && !training.trainer_mut().profile_device(a.profile_every) {
+        eprintln!(
+            "--profile-every: {} cannot time its phases (no timestamp queries); ignored",
+            device.report()
+        );
+    }
     if !a.json {
         eprintln!("device: {}", device.report());
         eprintln!(
@@ -317,6 +337,12 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     pb.finish_and_clear();
+    let device_phases_ms: Vec<Phase> = training
+        .trainer()
+        .device_profile()
+        .into_iter()
+        .map(|(phase, ms)| Phase { phase, ms })
+        .collect();
     // A --minutes budget can end before --hidden-from: the file would hold the cover alone.
     let trained = training
         .finish()
@@ -346,10 +372,14 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_evaluations: t.occupancy_evaluations,
         occupancy_budget,
         checkpoints,
+        device_phases_ms,
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
+        for p in &summary.device_phases_ms {
+            eprintln!("device {:>8.3} ms a step  {}", p.ms, p.phase);
+        }
         eprintln!(
             "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s; {}), loss {:.5}; wrote {}",
             summary.steps,

@@ -15,6 +15,7 @@ pub mod loss;
 pub mod mlp;
 pub mod occupancy;
 pub mod optimizer;
+pub mod profile;
 pub mod rays;
 pub mod render;
 pub mod renderer;
@@ -228,7 +229,9 @@ const BACKENDS: wgpu::Backends = wgpu::Backends::VULKAN.union(wgpu::Backends::ME
 /// Features the kernels use when the adapter has them; none is required.
 const WANTED: Features = Features::SHADER_FLOAT32_ATOMIC
     .union(Features::SHADER_F16)
-    .union(Features::SUBGROUP);
+    .union(Features::SUBGROUP)
+    .union(Features::TIMESTAMP_QUERY)
+    .union(Features::TIMESTAMP_QUERY_INSIDE_ENCODERS);
 
 impl GpuContext {
     /// Opens a device on the adapter `request` picks (Vulkan and Metal adapters).
@@ -641,6 +644,12 @@ impl ngp::train::TrainBackend for GpuTrainer<'_> {
     }
     fn model(&self, loss: f32) -> ngp::Result<ngp::model::Model> {
         Ok(GpuTrainer::model(self, loss)?)
+    }
+    fn profile_device(&mut self, every: u32) -> bool {
+        GpuTrainer::profile_device(self, every)
+    }
+    fn device_profile(&self) -> Vec<(String, f64)> {
+        GpuTrainer::device_profile(self)
     }
 }
 

@@ -31,9 +31,9 @@
 //!
 //! Host round trips per scene trained: the batch's counters after marching (the network
 //! kernels take their sample count from the host), then the per-ray (loss, samples used)
-//! pairs with the compaction's counters (one wait); per step, the wait after the optimizer
-//! and each occupancy grid's mean after an update (it switches the pull-up). `StepStats`
-//! counts them (`host_waits`, `submissions`).
+//! pairs with the compaction's counters (one wait); per step, each occupancy grid's mean
+//! after an update (it switches the pull-up). The step ends without waiting for the
+//! optimizer. `StepStats` counts them (`host_waits`, `submissions`).
 //! With a [`TrainPolicy`] installed that reads them, every update of scene 0's grid (and
 //! the installation itself) also reads back that grid and the EMA weights, calls the policy
 //! on the host and uploads the indices and bounds it returns, before the other scenes'
@@ -60,6 +60,7 @@ use super::loss::{LossBuffers, LossConfig, LossKernel};
 use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
 use super::occupancy::GpuOccupancy;
 use super::optimizer::GpuOptimizer;
+use super::profile::StepProfiler;
 use super::rays::{RayBatch, RayKernels};
 use super::{
     GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
@@ -77,6 +78,7 @@ use ngp::train::schedule::{
     MAX_RAYS_PER_BATCH, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid,
 };
 use ngp::train::{GridUpdates, SceneSpec, StepStats, TrainConfig};
+use std::cell::RefCell;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -170,6 +172,8 @@ pub struct GpuTrainer<'c> {
     dirs_uniform: wgpu::Buffer,
     /// Occupancy updates submitted (each with its read-back) in this step so far.
     occupancy_submissions: u32,
+    /// Device timestamps between the step's phases, when asked for.
+    profiler: RefCell<Option<StepProfiler>>,
     /// Steps taken, updating the weights or not: the schedule's and the rays' clock.
     pub step: u32,
     /// Steps that updated the weights (the CPU trainer's `weight_steps`): the optimizer's
@@ -346,6 +350,7 @@ impl<'c> GpuTrainer<'c> {
             dirs_pipeline,
             dirs_uniform,
             occupancy_submissions: 0,
+            profiler: RefCell::new(None),
             step: 0,
             weight_steps: 0,
         })
@@ -354,6 +359,74 @@ impl<'c> GpuTrainer<'c> {
     /// Marched samples a batch may hold.
     pub fn sample_budget(&self) -> u32 {
         self.batch.sample_budget()
+    }
+
+    /// Times the device's phases on one step in `every` (0: off); false where the device
+    /// cannot write timestamps inside encoders.
+    pub fn profile_device(&mut self, every: u32) -> bool {
+        let p = StepProfiler::new(self.ctx, every);
+        let on = p.is_some();
+        *self.profiler.get_mut() = p;
+        on
+    }
+
+    /// Milliseconds per profiled step by phase (see [`StepProfiler::report`]).
+    pub fn device_profile(&self) -> Vec<(String, f64)> {
+        self.profiler
+            .borrow()
+            .as_ref()
+            .map_or_else(Vec::new, |p| p.report())
+    }
+
+    /// Marks the end of phase `label` in `encoder` when this step is profiled.
+    fn mark(&self, encoder: &mut wgpu::CommandEncoder, label: &'static str) {
+        if let Some(p) = self.profiler.borrow_mut().as_mut() {
+            p.mark(encoder, label);
+        }
+    }
+
+    /// Marks the start of a submission when this step is profiled.
+    fn mark_submission(&self, encoder: &mut wgpu::CommandEncoder) {
+        if let Some(p) = self.profiler.borrow_mut().as_mut() {
+            p.submission(encoder);
+        }
+    }
+
+    /// Trained samples the network's workspace holds: a batch with more trains in chunks
+    /// of this many.
+    pub fn workspace_capacity(&self) -> u32 {
+        self.ws.capacity()
+    }
+
+    /// Sets the workspace's capacity (a multiple of 256, at most the marching budget), so
+    /// that tests can make a batch train in chunks.
+    pub fn set_workspace_capacity(&mut self, capacity: u32) -> GpuResult<()> {
+        if capacity == 0
+            || !capacity.is_multiple_of(LD_GRANULE)
+            || capacity > self.batch.sample_budget()
+        {
+            return input(format!(
+                "workspace capacity {capacity}: a multiple of {LD_GRANULE} up to {}",
+                self.batch.sample_budget()
+            ));
+        }
+        let ctx = self.ctx;
+        let c = capacity as u64;
+        let width = self.field.layout().grid.config.n_output_dims() as u64;
+        self.ws = self.field.mlp().workspace(ctx, capacity)?;
+        let (chunk, d_enc) = ctx.scoped("trainer chunk buffers", || {
+            (
+                ChunkBuffers {
+                    pos: device_buffer(ctx, "chunk positions", 12 * c),
+                    dirs: device_buffer(ctx, "chunk directions", 12 * c),
+                    d_raw: device_buffer(ctx, "chunk gradients", 16 * c),
+                },
+                device_buffer(ctx, "trainer encoding gradient", 4 * width * c),
+            )
+        })?;
+        self.chunk = chunk;
+        self.d_enc = d_enc;
+        Ok(())
     }
 
     pub fn n_scenes(&self) -> usize {
@@ -469,6 +542,9 @@ impl<'c> GpuTrainer<'c> {
             };
             evaluated += nu as u64 + nn as u64;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            if let Some(p) = self.profiler.get_mut() {
+                p.submission(&mut encoder);
+            }
             // Scene si's update seed on the CPU.
             let seed = mix(self.config.seed, 0x6772_6964 + si as u64);
             scene.occupancy.encode_update_under(
@@ -481,6 +557,9 @@ impl<'c> GpuTrainer<'c> {
                 nn,
                 seed,
             )?;
+            if let Some(p) = self.profiler.get_mut() {
+                p.mark(&mut encoder, "occupancy update");
+            }
             ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
             scene.grid_mean = scene.occupancy.read_mean(ctx)?;
             self.occupancy_submissions += 1;
@@ -554,11 +633,15 @@ impl<'c> GpuTrainer<'c> {
 
     /// One training step: the occupancy updates due, the scenes of the step's schedule one
     /// after another (their gradients summed), one Adam + EMA step. `optimizer_seconds` is
-    /// the optimizer's own submission, timed from its recording until the device has run it
-    /// (every scene's work has finished before: each scene's losses are read back).
+    /// the time to record and submit the optimizer's work: the step returns without waiting
+    /// for the device, whose time for it (and for the last scene's training pass) shows in
+    /// the next step's first wait.
     pub fn train_step(&mut self) -> GpuResult<StepStats> {
         let t0 = Instant::now();
         let step = self.step;
+        if let Some(p) = self.profiler.get_mut() {
+            p.begin_step(step);
+        }
         let info = StepInfo {
             seed: self.config.seed,
             step,
@@ -591,6 +674,7 @@ impl<'c> GpuTrainer<'c> {
         let ctx = self.ctx;
         let mut encoder =
             encoder.unwrap_or_else(|| ctx.device.create_command_encoder(&Default::default()));
+        self.mark_submission(&mut encoder);
         if update {
             self.optimizer
                 .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
@@ -599,12 +683,21 @@ impl<'c> GpuTrainer<'c> {
             }
             self.weight_steps += 1;
         }
+        self.mark(&mut encoder, "optimizer (Adam + EMA)");
         ctx.scoped("optimizer", || ctx.queue.submit([encoder.finish()]))?;
+        // A profiled step reads its timestamps back: one more wait.
+        if let Some(p) = self.profiler.get_mut()
+            && p.is_active()
+        {
+            p.end_step(ctx)?;
+            stats.host_waits += 1;
+        }
         // Without the update the gradient buffer keeps what the policy left in it for the
-        // next step that updates the weights.
-        self.ctx.wait()?;
+        // next step that updates the weights. The step does not wait for the device here:
+        // the queue runs the next step's rays after this update, and the host records them
+        // meanwhile (anything read back waits for it).
         stats.submissions += 1 + self.occupancy_submissions;
-        stats.host_waits += 1 + self.occupancy_submissions;
+        stats.host_waits += self.occupancy_submissions;
         self.occupancy_submissions = 0;
         self.step += 1;
         stats.seconds = t0.elapsed().as_secs_f64();
@@ -630,6 +723,7 @@ impl<'c> GpuTrainer<'c> {
 
         // 1. Rays: draw, march, compact; then the counts the network kernels need.
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        self.mark_submission(&mut encoder);
         scene.rays.encode(
             ctx,
             &mut encoder,
@@ -638,6 +732,7 @@ impl<'c> GpuTrainer<'c> {
             n_rays,
             seed,
         )?;
+        self.mark(&mut encoder, "rays: draw and march");
         ctx.scoped("training rays", || ctx.queue.submit([encoder.finish()]))?;
         let [_asked, written, with_samples, dropped] = self.batch.read_all_counters(ctx)?;
         stats.submissions += 1;
@@ -653,6 +748,7 @@ impl<'c> GpuTrainer<'c> {
         let (loss, used, trained, unfit) = if n > 0 {
             // 2. Inference over the marched samples, loss, compaction.
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
+            self.mark_submission(&mut encoder);
             self.encode_inference_and_loss(&mut encoder, si, n_rays, n, loss_norm, pull_up)?;
             ctx.scoped("training inference", || {
                 ctx.queue.submit([encoder.finish()])
@@ -669,6 +765,7 @@ impl<'c> GpuTrainer<'c> {
             // 3. The training pass over the compacted samples, in chunks of the workspace.
             if trained > 0 {
                 let mut encoder = ctx.device.create_command_encoder(&Default::default());
+                self.mark_submission(&mut encoder);
                 let cap = self.ws.capacity();
                 let mut at = 0u32;
                 while at < trained {
@@ -682,6 +779,7 @@ impl<'c> GpuTrainer<'c> {
                         encoder.copy_buffer_to_buffer(&c.pos, 12 * a, &k.pos, 0, 12 * m);
                         encoder.copy_buffer_to_buffer(&c.dirs, 12 * a, &k.dirs, 0, 12 * m);
                         encoder.copy_buffer_to_buffer(&c.d_raw, 16 * a, &k.d_raw, 0, 16 * m);
+                        self.mark(&mut encoder, "chunk copies");
                         (&k.pos, &k.dirs, &k.d_raw)
                     };
                     let shape = self.shape(count, cap);
@@ -775,6 +873,7 @@ impl<'c> GpuTrainer<'c> {
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
         })?;
+        self.mark(encoder, "directions");
 
         self.encode_network_forward(encoder, si, shape, &self.batch.pos, &self.dirs, false)?;
 
@@ -790,6 +889,7 @@ impl<'c> GpuTrainer<'c> {
         };
         let cfg = LossConfig::new(&self.marcher, loss_norm, pull_up);
         self.loss.encode(ctx, encoder, &bufs, n_rays, n, &cfg)?;
+        self.mark(encoder, "loss");
 
         let inputs = CompactInputs {
             rays: &self.batch.rays,
@@ -798,7 +898,9 @@ impl<'c> GpuTrainer<'c> {
             dirs: &self.dirs,
             d_raw: &self.d_raw,
         };
-        self.compacted.encode(ctx, encoder, &inputs, n_rays)
+        self.compacted.encode(ctx, encoder, &inputs, n_rays)?;
+        self.mark(encoder, "compaction");
+        Ok(())
     }
 
     /// Byte ranges of a batch of `shape`: the grid block of the parameters (and of the
@@ -851,6 +953,14 @@ impl<'c> GpuTrainer<'c> {
             let mut pass = encoder.begin_compute_pass(&Default::default());
             forward.record(&mut pass);
         }
+        self.mark(
+            encoder,
+            if keep {
+                "grid forward (trained)"
+            } else {
+                "grid forward (marched)"
+            },
+        );
         let eb = self.encoded_batch(shape);
         self.field.mlp().encode_forward(
             ctx,
@@ -859,7 +969,16 @@ impl<'c> GpuTrainer<'c> {
             dirs,
             &self.raw,
             keep.then_some(&self.ws),
-        )
+        )?;
+        self.mark(
+            encoder,
+            if keep {
+                "network forward (trained)"
+            } else {
+                "network inference (marched)"
+            },
+        );
+        Ok(())
     }
 
     /// Backward of the last [`Self::encode_network_forward`] that kept its activations,
@@ -885,6 +1004,7 @@ impl<'c> GpuTrainer<'c> {
             &self.grad,
             &self.d_enc,
         )?;
+        self.mark(encoder, "network backward (trained)");
         let backward = self.field.grid().bind_backward(
             ctx,
             &self.scenes[si].index,
@@ -893,8 +1013,11 @@ impl<'c> GpuTrainer<'c> {
             self.grad.slice(grid_bytes),
             shape,
         )?;
-        let mut pass = encoder.begin_compute_pass(&Default::default());
-        backward.record(&mut pass);
+        {
+            let mut pass = encoder.begin_compute_pass(&Default::default());
+            backward.record(&mut pass);
+        }
+        self.mark(encoder, "grid backward (trained)");
         Ok(())
     }
 

@@ -544,6 +544,10 @@ impl Training<'_> {
         self.trainer.as_ref()
     }
 
+    pub fn trainer_mut(&mut self) -> &mut dyn TrainBackend {
+        self.trainer.as_mut()
+    }
+
     /// The model as it would be published now.
     pub fn model(&self) -> Result<Model> {
         self.trainer.model(self.stored_loss())

@@ -35,6 +35,16 @@ pub trait TrainBackend {
     fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> Result<()>;
     /// The model as it would be published now, with `loss` as its stored loss.
     fn model(&self, loss: f32) -> Result<Model>;
+    /// Times the device's phases on one step in `every` (a GPU that can write timestamps);
+    /// false where this backend cannot.
+    fn profile_device(&mut self, _every: u32) -> bool {
+        false
+    }
+    /// Milliseconds per profiled step by phase, in the order they ran (empty unless
+    /// profiling).
+    fn device_profile(&self) -> Vec<(String, f64)> {
+        Vec::new()
+    }
 }
 
 impl TrainBackend for Trainer {
