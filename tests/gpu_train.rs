@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 use std::time::Instant;
-use stegongp::gpu::{GpuTrainer, test_context};
+use stegongp::gpu::{GpuContext, GpuTrainer, test_context};
 use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
@@ -62,11 +62,11 @@ fn psnr_of(model: &Model, test: &Dataset) -> f64 {
     .psnr
 }
 
-fn train_gpu(train: &Arc<Dataset>) -> Option<Model> {
-    let ctx = test_context()?;
+/// A GPU trainer of `train` with the test's model and configuration.
+fn gpu_trainer(ctx: &'static GpuContext, train: &Arc<Dataset>) -> GpuTrainer<'static> {
     let cfg = model_config();
     let layout = NerfLayout::new(cfg).unwrap();
-    let mut t = GpuTrainer::new(
+    GpuTrainer::new(
         ctx,
         cfg,
         vec![SceneSpec {
@@ -75,7 +75,12 @@ fn train_gpu(train: &Arc<Dataset>) -> Option<Model> {
         }],
         config(),
     )
-    .unwrap();
+    .unwrap()
+}
+
+fn train_gpu(train: &Arc<Dataset>) -> Option<Model> {
+    let ctx = test_context()?;
+    let mut t = gpu_trainer(ctx, train);
     let t0 = Instant::now();
     let mut last = None;
     for _ in 0..STEPS {
@@ -168,22 +173,8 @@ fn a_batch_past_the_workspace_trains_in_chunks_like_one_pass() {
     let dir = tempfile::tempdir().unwrap();
     let (train, _) = scene(dir.path());
     let train = Arc::new(train);
-    let cfg = model_config();
-    let layout = NerfLayout::new(cfg).unwrap();
-    let trainer = || {
-        GpuTrainer::new(
-            ctx,
-            cfg,
-            vec![SceneSpec {
-                dataset: train.clone(),
-                indices: reference_indices(&layout.grid),
-            }],
-            config(),
-        )
-        .unwrap()
-    };
-    let mut one = trainer();
-    let mut chunked = trainer();
+    let mut one = gpu_trainer(ctx, &train);
+    let mut chunked = gpu_trainer(ctx, &train);
     chunked.set_workspace_capacity(256).unwrap();
     assert!(chunked.set_workspace_capacity(500).is_err());
     for step in 0..4 {

@@ -364,42 +364,10 @@ impl GpuContext {
         src: &wgpu::Buffer,
         bytes: u64,
     ) -> GpuResult<Vec<T>> {
-        if bytes == 0 {
-            return Ok(Vec::new());
-        }
-        let staging = self.scoped("readback", || {
-            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("readback"),
-                size: bytes,
-                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            let mut enc = self.device.create_command_encoder(&Default::default());
-            enc.copy_buffer_to_buffer(src, 0, &staging, 0, bytes);
-            self.queue.submit([enc.finish()]);
-            staging
-        })?;
-        let (tx, rx) = mpsc::channel();
-        staging.map_async(wgpu::MapMode::Read, .., move |r| {
-            // The receiver waits below; a send can only fail if it is gone.
-            let _ = tx.send(r);
-        });
-        self.wait()?;
-        let map_err = |msg: String| GpuError::Device {
-            what: "readback",
-            msg,
-        };
-        rx.recv()
-            .map_err(|e| map_err(e.to_string()))?
-            .map_err(|e| map_err(e.to_string()))?;
-        let out = {
-            let view = staging
-                .get_mapped_range(..)
-                .map_err(|e| map_err(e.to_string()))?;
-            bytemuck::cast_slice::<u8, T>(&view).to_vec()
-        };
-        staging.unmap();
-        Ok(out)
+        let mut parts = self.read_buffers(&[(src, bytes)])?;
+        Ok(bytemuck::pod_collect_to_vec(
+            &parts.pop().unwrap_or_default(),
+        ))
     }
 }
 
