@@ -53,10 +53,16 @@ def tree_bytes(path):
 
 def tracked_bytes():
     """What travels with the repository: tracked files and untracked ones git does not ignore."""
-    out = subprocess.run(
-        ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-        cwd=REPO, check=True, capture_output=True,
-    ).stdout
+    try:
+        out = subprocess.run(
+            ["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+            cwd=REPO, check=True, capture_output=True,
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        # Not a git checkout: every file but the build and the carry folders.
+        skip = {"target", ".git", ".carry", "out"}
+        return sum(f.stat().st_size for f in REPO.rglob("*")
+                   if f.is_file() and not skip & set(f.relative_to(REPO).parts))
     total = 0
     for name in out.split(b"\0"):
         p = REPO / name.decode()
