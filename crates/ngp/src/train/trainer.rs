@@ -107,16 +107,15 @@ pub struct StepStats {
     pub n_samples: u64,
     /// Samples marched (≥ n_samples).
     pub n_marched: u64,
-    /// Samples run through the whole network (density and colour), forward passes
-    /// counted separately: the CPU runs it on the used samples only (density-only waves
-    /// find where rays stop); the GPU runs an inference pass over the marched samples, then
-    /// the training pass over the used ones, as instant-ngp does.
+    /// Samples run through the whole network (density and colour), each forward pass
+    /// counted: this engine runs it on the used samples only (density-only waves find where
+    /// rays stop); a backend that first runs an inference pass over the marched samples, as
+    /// instant-ngp does, counts those too.
     pub n_network: u64,
-    /// Rays drawn that trained nothing because a batch buffer was full (the GPU's marching
-    /// budget or its trained-sample capacity); always 0 on the CPU.
+    /// Rays drawn that trained nothing because a backend's batch buffer was full; 0 here.
     pub dropped_rays: u64,
-    /// Times the host waited for the device in this step, and command submissions (0 on
-    /// the CPU).
+    /// Times the host waited for a separate device in this step, and the command
+    /// submissions it made (0 here).
     pub host_waits: u32,
     pub submissions: u32,
     /// Points where a policy's extra density loss ([`PolicyOps::density_loss`]) had a
