@@ -5,7 +5,7 @@
 
 use std::path::Path;
 use std::process::{Command, Output};
-use testkit::cli::{bin, ok, stegongp};
+use testkit::cli::{bin, ok, stdout_ok, stegongp};
 
 fn s_phases(r: &serde_json::Value) -> serde_json::Map<String, serde_json::Value> {
     r["summary"]["lego_device_ms_per_step"]
@@ -140,4 +140,50 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     assert_eq!(s["lego_psnr_by_minute"].as_object().unwrap().len(), 5);
     assert_eq!(r["plain_text"]["steps"], r["pair"]["steps"]);
     assert!(Path::new(&p("out/log.txt")).is_file());
+}
+
+/// `--profile-every` on the CPU engine: said to be ignored, the training unchanged, no
+/// device phases in the JSON.
+#[test]
+fn profile_every_is_ignored_with_a_notice_on_the_cpu() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    ok(&stegongp(&[
+        "synth",
+        "--scene",
+        "object",
+        "--res",
+        "24",
+        "--train",
+        "4",
+        "--test",
+        "1",
+        "--out",
+        &p("obj"),
+    ]));
+    let out = stegongp(&[
+        "train",
+        &p("obj"),
+        "--out",
+        &p("m.ingp"),
+        "--device",
+        "cpu",
+        "--steps",
+        "2",
+        "--batch",
+        "4096",
+        "--profile-every",
+        "1",
+        "--json",
+    ]);
+    let stdout = stdout_ok(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--profile-every") && err.contains("ignored"),
+        "{err}"
+    );
+    let summary: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    assert_eq!(summary["steps"], 2);
+    assert!(summary.get("device_phases_ms").is_none());
+    assert_eq!(summary["host_waits_per_step"], 0.0);
 }
