@@ -14,6 +14,13 @@ fn s_phases(r: &serde_json::Value) -> serde_json::Map<String, serde_json::Value>
         .unwrap_or_default()
 }
 
+/// The generated object at `res` px with `train` + `test` views, into `out`.
+fn synth_object(out: &str, res: &str, train: &str, test: &str) {
+    ok(&stegongp(&[
+        "synth", "--scene", "object", "--res", res, "--train", train, "--test", test, "--out", out,
+    ]));
+}
+
 fn python_with_pillow() -> bool {
     Command::new("python3")
         .args(["-c", "import PIL.Image, lzma"])
@@ -57,19 +64,7 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     }
     let dir = tempfile::tempdir().unwrap();
     let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    ok(&stegongp(&[
-        "synth",
-        "--scene",
-        "object",
-        "--res",
-        "32",
-        "--train",
-        "12",
-        "--test",
-        "4",
-        "--out",
-        &p("obj"),
-    ]));
+    synth_object(&p("obj"), "32", "12", "4");
     let binary = bin();
     let binary = binary.to_str().unwrap();
     let prepared = ok_script(&[
@@ -148,19 +143,7 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
 fn profile_every_is_ignored_with_a_notice_on_the_cpu() {
     let dir = tempfile::tempdir().unwrap();
     let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    ok(&stegongp(&[
-        "synth",
-        "--scene",
-        "object",
-        "--res",
-        "24",
-        "--train",
-        "4",
-        "--test",
-        "1",
-        "--out",
-        &p("obj"),
-    ]));
+    synth_object(&p("obj"), "24", "4", "1");
     let out = stegongp(&[
         "train",
         &p("obj"),

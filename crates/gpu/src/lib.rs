@@ -136,33 +136,39 @@ pub struct AdapterEntry {
     pub software: bool,
 }
 
-/// Every Vulkan (and Metal) adapter present, in the order wgpu enumerates them.
-pub fn list_adapters() -> Vec<AdapterEntry> {
+impl AdapterEntry {
+    fn of(info: &wgpu::AdapterInfo) -> AdapterEntry {
+        AdapterEntry {
+            name: info.name.clone(),
+            backend: format!("{:?}", info.backend),
+            device_type: format!("{:?}", info.device_type),
+            driver: [info.driver.as_str(), info.driver_info.as_str()]
+                .iter()
+                .filter(|s| !s.is_empty())
+                .copied()
+                .collect::<Vec<_>>()
+                .join(" "),
+            software: is_software(info),
+        }
+    }
+}
+
+/// A Vulkan (and Metal) instance and every adapter it finds, in wgpu's order.
+fn enumerate() -> (wgpu::Instance, Vec<wgpu::Adapter>) {
     let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
     desc.backends = BACKENDS;
     let instance = wgpu::Instance::new(desc);
-    pollster::block_on(instance.enumerate_adapters(BACKENDS))
-        .iter()
-        .map(|a| {
-            let i = a.get_info();
-            AdapterEntry {
-                name: i.name.clone(),
-                backend: format!("{:?}", i.backend),
-                device_type: format!("{:?}", i.device_type),
-                driver: driver_line(&i),
-                software: is_software(&i),
-            }
-        })
-        .collect()
+    let adapters = pollster::block_on(instance.enumerate_adapters(BACKENDS));
+    (instance, adapters)
 }
 
-fn driver_line(info: &wgpu::AdapterInfo) -> String {
-    [info.driver.as_str(), info.driver_info.as_str()]
+/// Every adapter present, as [`GpuContext::new`] chooses among them.
+pub fn list_adapters() -> Vec<AdapterEntry> {
+    enumerate()
+        .1
         .iter()
-        .filter(|s| !s.is_empty())
-        .copied()
-        .collect::<Vec<_>>()
-        .join(" ")
+        .map(|a| AdapterEntry::of(&a.get_info()))
+        .collect()
 }
 
 /// An open device: what every kernel needs.
@@ -236,10 +242,7 @@ const WANTED: Features = Features::SHADER_FLOAT32_ATOMIC
 impl GpuContext {
     /// Opens a device on the adapter `request` picks (Vulkan and Metal adapters).
     pub fn new(request: AdapterRequest) -> GpuResult<GpuContext> {
-        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
-        desc.backends = BACKENDS;
-        let instance = wgpu::Instance::new(desc);
-        let adapters = pollster::block_on(instance.enumerate_adapters(BACKENDS));
+        let (instance, adapters) = enumerate();
         let adapter = choose(adapters, request)?;
         let info = adapter.get_info();
         let features = adapter.features() & WANTED;
@@ -255,12 +258,13 @@ impl GpuContext {
             adapter: info.name.clone(),
             err,
         })?;
+        let entry = AdapterEntry::of(&info);
         let report = AdapterReport {
-            name: info.name.clone(),
-            backend: format!("{:?}", info.backend),
-            device_type: format!("{:?}", info.device_type),
-            driver: driver_line(&info),
-            software: is_software(&info),
+            name: entry.name,
+            backend: entry.backend,
+            device_type: entry.device_type,
+            driver: entry.driver,
+            software: entry.software,
             float32_atomics: features.contains(Features::SHADER_FLOAT32_ATOMIC),
             f16: features.contains(Features::SHADER_F16),
             subgroups: features.contains(Features::SUBGROUP),
@@ -369,25 +373,20 @@ impl GpuContext {
             &parts.pop().unwrap_or_default(),
         ))
     }
-}
 
-impl GpuContext {
     /// Reads back the first `bytes` of each of `parts` with one submission and one wait
     /// (where [`Self::read_buffer`] per buffer would wait once each).
     pub fn read_buffers(&self, parts: &[(&wgpu::Buffer, u64)]) -> GpuResult<Vec<Vec<u8>>> {
         const ALIGN: u64 = 256;
+        let mut total = 0u64;
         let offsets: Vec<u64> = parts
             .iter()
-            .scan(0u64, |at, &(_, bytes)| {
-                let o = *at;
-                *at += bytes.div_ceil(ALIGN) * ALIGN;
-                Some(o)
+            .map(|&(_, bytes)| {
+                let at = total;
+                total += bytes.div_ceil(ALIGN) * ALIGN;
+                at
             })
             .collect();
-        let total = parts
-            .iter()
-            .map(|&(_, b)| b.div_ceil(ALIGN) * ALIGN)
-            .sum::<u64>();
         if total == 0 {
             return Ok(parts.iter().map(|_| Vec::new()).collect());
         }
@@ -409,6 +408,7 @@ impl GpuContext {
         })?;
         let (tx, rx) = mpsc::channel();
         staging.map_async(wgpu::MapMode::Read, .., move |r| {
+            // The receiver waits below; a send can only fail if it is gone.
             let _ = tx.send(r);
         });
         self.wait()?;

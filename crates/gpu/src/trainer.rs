@@ -119,6 +119,17 @@ struct ChunkBuffers {
     d_raw: wgpu::Buffer,
 }
 
+impl ChunkBuffers {
+    fn new(ctx: &GpuContext, capacity: u32) -> GpuResult<ChunkBuffers> {
+        let c = capacity as u64;
+        ctx.scoped("trainer chunk buffers", || ChunkBuffers {
+            pos: device_buffer(ctx, "chunk positions", 12 * c),
+            dirs: device_buffer(ctx, "chunk directions", 12 * c),
+            d_raw: device_buffer(ctx, "chunk gradients", 16 * c),
+        })
+    }
+}
+
 /// One scene's state on the device (and the host copies the API hands out).
 struct GpuScene {
     dataset: Arc<Dataset>,
@@ -283,12 +294,7 @@ impl<'c> GpuTrainer<'c> {
         )?;
         let ws = field.mlp().workspace(ctx, capacity)?;
         let compacted = Compacted::new(ctx, budget)?;
-        let c = capacity as u64;
-        let chunk = ctx.scoped("trainer chunk buffers", || ChunkBuffers {
-            pos: device_buffer(ctx, "chunk positions", 12 * c),
-            dirs: device_buffer(ctx, "chunk directions", 12 * c),
-            d_raw: device_buffer(ctx, "chunk gradients", 16 * c),
-        })?;
+        let chunk = ChunkBuffers::new(ctx, capacity)?;
         let b = budget as u64;
         let (dirs, raw, d_raw, enc, d_enc, grad, ray_out) =
             ctx.scoped("trainer buffers", || {
@@ -392,12 +398,6 @@ impl<'c> GpuTrainer<'c> {
         }
     }
 
-    /// Trained samples the network's workspace holds: a batch with more trains in chunks
-    /// of this many.
-    pub fn workspace_capacity(&self) -> u32 {
-        self.ws.capacity()
-    }
-
     /// Sets the workspace's capacity (a multiple of 256, at most the marching budget), so
     /// that tests can make a batch train in chunks.
     pub fn set_workspace_capacity(&mut self, capacity: u32) -> GpuResult<()> {
@@ -411,21 +411,16 @@ impl<'c> GpuTrainer<'c> {
             ));
         }
         let ctx = self.ctx;
-        let c = capacity as u64;
         let width = self.field.layout().grid.config.n_output_dims() as u64;
         self.ws = self.field.mlp().workspace(ctx, capacity)?;
-        let (chunk, d_enc) = ctx.scoped("trainer chunk buffers", || {
-            (
-                ChunkBuffers {
-                    pos: device_buffer(ctx, "chunk positions", 12 * c),
-                    dirs: device_buffer(ctx, "chunk directions", 12 * c),
-                    d_raw: device_buffer(ctx, "chunk gradients", 16 * c),
-                },
-                device_buffer(ctx, "trainer encoding gradient", 4 * width * c),
+        self.chunk = ChunkBuffers::new(ctx, capacity)?;
+        self.d_enc = ctx.scoped("trainer encoding gradient", || {
+            device_buffer(
+                ctx,
+                "trainer encoding gradient",
+                4 * width * capacity as u64,
             )
         })?;
-        self.chunk = chunk;
-        self.d_enc = d_enc;
         Ok(())
     }
 
@@ -816,7 +811,7 @@ impl<'c> GpuTrainer<'c> {
         // in `used`); with none dropped this is the CPU's adaptation.
         if used > 0 {
             scene.rays_per_batch = next_rays_per_batch(
-                n_rays - dropped.min(n_rays),
+                n_rays.saturating_sub(dropped),
                 self.config.batch_samples,
                 used,
             );
