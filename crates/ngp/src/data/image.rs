@@ -244,11 +244,58 @@ pub fn decode_image_file(path: &Path) -> Result<Image> {
     }
 }
 
+/// The largest image any loader takes: 2^28 pixels (16384²), 1 GiB as RGBA.
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 28;
+/// Deflate's best ratio: a PNG's compressed data cannot hold more raw bytes than this many
+/// times its own size.
+const DEFLATE_MAX_RATIO: u64 = 1032;
+/// A baseline or progressive JPEG spends at least a bit per 8×8 block of a component on
+/// its DC coefficient: 512 pixels a byte at most.
+const JPEG_MAX_PIXELS_PER_BYTE: u64 = 512;
+
+/// Refuses a declared size the file cannot back, before anything is allocated for it: a
+/// 100-byte header may say 65535×65535.
+fn check_declared_size(path: &Path, what: &str, w: u32, h: u32, backed: u64) -> Result<()> {
+    let pixels = w as u64 * h as u64;
+    if pixels == 0 {
+        return Err(Error::format(
+            path,
+            format!("{what}: {w}x{h}, an empty image"),
+        ));
+    }
+    if pixels > MAX_IMAGE_PIXELS {
+        return Err(Error::format(
+            path,
+            format!("{what}: {w}x{h} is more than the {MAX_IMAGE_PIXELS} pixels an image may have"),
+        ));
+    }
+    if pixels > backed {
+        return Err(Error::format(
+            path,
+            format!(
+                "{what}: {w}x{h} pixels, more than the file's compressed data can hold (truncated or forged)"
+            ),
+        ));
+    }
+    Ok(())
+}
+
 fn decode_png(path: &Path, bytes: &[u8]) -> Result<Image> {
     let perr = |e: png::DecodingError| Error::format(path, format!("PNG decoding: {e}"));
     let mut dec = png::Decoder::new(Cursor::new(bytes));
     dec.set_transformations(png::Transformations::normalize_to_color8());
     let mut reader = dec.read_info().map_err(perr)?;
+    {
+        let info = reader.info();
+        let (w, h) = info.size();
+        // Raw scanline bytes the IHDR implies, against what deflate can expand the file to;
+        // as pixels, so one check serves every bit depth.
+        let raw = info.raw_row_length() as u64 * h as u64;
+        let backed = (DEFLATE_MAX_RATIO * bytes.len() as u64 + 4096)
+            .saturating_mul(w as u64 * h as u64)
+            / raw.max(1);
+        check_declared_size(path, "PNG header (IHDR)", w, h, backed)?;
+    }
     let size = reader
         .output_buffer_size()
         .ok_or_else(|| Error::format(path, "PNG too large"))?;
@@ -282,6 +329,21 @@ fn decode_png(path: &Path, bytes: &[u8]) -> Result<Image> {
 
 fn decode_jpeg(path: &Path, bytes: &[u8]) -> Result<Image> {
     let mut dec = jpeg_decoder::Decoder::new(Cursor::new(bytes));
+    dec.read_info()
+        .map_err(|e| Error::format(path, format!("JPEG header: {e}")))?;
+    let info = dec
+        .info()
+        .ok_or_else(|| Error::format(path, "JPEG header: no frame info"))?;
+    let backed = JPEG_MAX_PIXELS_PER_BYTE * bytes.len() as u64;
+    check_declared_size(
+        path,
+        "JPEG header (SOF)",
+        info.width as u32,
+        info.height as u32,
+        backed,
+    )?;
+    // The decoder's own planes (up to 4 components) stay within the same bound.
+    dec.set_max_decoding_buffer_size((4 * backed.min(MAX_IMAGE_PIXELS)) as usize);
     let data = dec
         .decode()
         .map_err(|e| Error::format(path, format!("JPEG decoding: {e}")))?;

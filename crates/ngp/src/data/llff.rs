@@ -42,6 +42,7 @@ const LLFF_EXTENSIONS: [&str; 4] = ["jpg", "JPG", "png", "PNG"];
 pub fn read_poses_bounds(path: &Path) -> Result<Vec<[f64; 17]>> {
     let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let bad = |msg: String| Error::format(path, msg);
+    check_npy_header_length(&bytes).map_err(bad)?;
     let npy =
         npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(format!("not a valid .npy file: {e}")))?;
     let size = match npy.dtype() {
@@ -99,6 +100,30 @@ pub fn read_poses_bounds(path: &Path) -> Result<Vec<[f64; 17]>> {
         }
     }
     Ok(rows)
+}
+
+/// npyz allocates the header length a file declares before reading it (a 300-byte file
+/// of version 2 or 3 can declare 4 GiB): refuse a length the file does not hold first.
+fn check_npy_header_length(bytes: &[u8]) -> std::result::Result<(), String> {
+    if bytes.len() < 10 || !bytes.starts_with(b"\x93NUMPY") {
+        return Ok(()); // npyz says what is wrong
+    }
+    let (start, len) = match bytes[6] {
+        1 => (10, u16::from_le_bytes([bytes[8], bytes[9]]) as u64),
+        _ if bytes.len() >= 12 => (
+            12,
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as u64,
+        ),
+        _ => return Ok(()),
+    };
+    if start + len > bytes.len() as u64 {
+        return Err(format!(
+            "header length {len} (version {}): more than the file's {} bytes (truncated or forged)",
+            bytes[6],
+            bytes.len()
+        ));
+    }
+    Ok(())
 }
 
 /// The image files of an LLFF image folder, sorted by name (byte order).
