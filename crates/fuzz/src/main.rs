@@ -33,6 +33,13 @@ struct Args {
     /// Where each case is written before it runs (the last one stays after a crash).
     #[arg(long)]
     work: Option<PathBuf>,
+    /// The real datasets whose files join the seeds (default: `../shared/data` beside the
+    /// repository, when it is there).
+    #[arg(long)]
+    real: Option<PathBuf>,
+    /// Generated seeds only.
+    #[arg(long)]
+    no_real: bool,
     /// Lists the targets and exits.
     #[arg(long)]
     list: bool,
@@ -61,6 +68,15 @@ fn main() -> Result<()> {
         std::env::temp_dir().join(format!("stegongp-fuzz-{}", std::process::id()))
     });
     eprintln!("cases are written to {} before they run", work.display());
+    let real = if args.no_real {
+        None
+    } else {
+        args.real.clone().or_else(stegongp_fuzz::shared_data)
+    };
+    match &real {
+        Some(r) => eprintln!("real seeds from {}", r.display()),
+        None => eprintln!("generated seeds only (no ../shared/data; --real DIR names one)"),
+    }
     quiet_panics();
     let mut failed = 0;
     for t in targets {
@@ -76,6 +92,7 @@ fn main() -> Result<()> {
             seed: args.seed,
             work: &work,
             findings: Some(&args.findings),
+            real: real.as_deref(),
         };
         let s = run_target(t, &cfg);
         failed += s.findings.len();

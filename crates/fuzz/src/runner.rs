@@ -27,7 +27,7 @@ pub struct Stats {
     pub cases: u64,
     /// Cases the target refused with an error (the right answer to most mutants).
     pub errors: u64,
-    /// Errors whose message names the file (or folder) it came from.
+    /// Errors whose message names a file of the case.
     pub errors_naming_file: u64,
     /// Distinct error messages (digits folded).
     pub distinct_errors: usize,
@@ -164,12 +164,12 @@ fn signature(msg: &str) -> String {
         .collect()
 }
 
-fn names_file(msg: &str, dir: &Path, case: &Case) -> bool {
-    msg.contains(&*dir.to_string_lossy())
-        || case.iter().any(|(n, _)| {
-            let base = n.rsplit('/').next().unwrap_or(n);
-            msg.contains(base)
-        })
+/// Whether an error names one of the case's files (not just its folder).
+fn names_file(msg: &str, case: &Case) -> bool {
+    case.iter().any(|(n, _)| {
+        let base = n.rsplit('/').next().unwrap_or(n);
+        msg.contains(base)
+    })
 }
 
 fn save_finding(root: &Path, target: &Target, case: &Case, what: &str) -> Option<PathBuf> {
@@ -195,13 +195,18 @@ pub struct RunConfig<'a> {
     pub work: &'a Path,
     /// Where findings are saved, if anywhere.
     pub findings: Option<&'a Path>,
+    /// The real datasets' folder (`../shared/data`), whose files join the seeds.
+    pub real: Option<&'a Path>,
 }
 
 /// Runs `cfg.cases` mutated cases of `target`.
 pub fn run_target(target: &Target, cfg: &RunConfig) -> Stats {
     let dir = cfg.work.join(target.name);
     let mut rng = Rng::new(cfg.seed, fnv(target.name));
-    let seeds = (target.seeds)();
+    let mut seeds = (target.seeds)();
+    if let Some(data) = cfg.real {
+        seeds.extend(crate::real::seeds(target.name, data));
+    }
     assert!(!seeds.is_empty(), "target {} has no seeds", target.name);
     let mut corpus: Vec<Case> = seeds.clone();
     let mut seen: HashSet<String> = HashSet::new();
@@ -229,7 +234,7 @@ pub fn run_target(target: &Target, cfg: &RunConfig) -> Stats {
             Outcome::Ok => {}
             Outcome::Err(msg) => {
                 stats.errors += 1;
-                stats.errors_naming_file += names_file(&msg, &dir, &case) as u64;
+                stats.errors_naming_file += names_file(&msg, &case) as u64;
                 if seen.insert(signature(&msg)) && corpus.len() < seeds.len() + MAX_CORPUS {
                     corpus.push(case);
                 }

@@ -28,6 +28,8 @@ fn every_target_survives_its_regressions_and_a_seeded_run() {
             seed: 20261127,
             work: &tmp,
             findings: Some(&findings),
+            // CI has no shared data; the generated seeds keep the run the same everywhere.
+            real: None,
         };
         let s = run_target(t, &cfg);
         eprintln!(
@@ -49,6 +51,16 @@ fn every_target_survives_its_regressions_and_a_seeded_run() {
             t.name,
             s.distinct_errors
         );
+        // A refusal names the file it refuses (the viewer's answers are status lines).
+        if t.name != "viewer" {
+            assert!(
+                s.errors_naming_file * 100 >= s.errors * 99,
+                "{}: {} of {} errors name their file",
+                t.name,
+                s.errors_naming_file,
+                s.errors
+            );
+        }
         failures.extend(s.findings.iter().map(|f| {
             format!(
                 "{}: {} ({})",
@@ -94,5 +106,27 @@ fn every_seed_loads_cleanly() {
             }
         }
     }
+    let _ = std::fs::remove_dir_all(&tmp);
+}
+
+#[test]
+fn every_real_seed_loads_cleanly() {
+    let Some(data) = stegongp_fuzz::shared_data() else {
+        eprintln!("skipped: ../shared/data is absent");
+        return;
+    };
+    let tmp = std::env::temp_dir().join(format!("stegongp-fuzz-real-{}", std::process::id()));
+    let mut n = 0;
+    for t in TARGETS {
+        for (i, case) in stegongp_fuzz::real::seeds(t.name, &data).iter().enumerate() {
+            let dir = tmp.join(t.name).join(i.to_string());
+            stegongp_fuzz::runner::write_case(&dir, case).expect("write");
+            if let Err(e) = (t.run)(&dir) {
+                panic!("{} real seed {i} does not load: {e}", t.name);
+            }
+            n += 1;
+        }
+    }
+    assert!(n >= 9, "{n} real seeds");
     let _ = std::fs::remove_dir_all(&tmp);
 }
