@@ -21,6 +21,12 @@ pub const ALLOC_BOUND: usize = 128 << 20;
 pub const SLOW_BOUND: Duration = Duration::from_secs(3);
 /// Cases kept for further mutation because they drew a new error.
 const MAX_CORPUS: usize = 400;
+/// Mutants larger than this are dropped unrun: growth by repeated duplication, not input a
+/// parser should be judged on.
+const MAX_CASE_BYTES: usize = 32 << 20;
+/// A case may allocate this many times its input (reading a file is allowed to cost its
+/// size) before the [`ALLOC_BOUND`] applies.
+const ALLOC_PER_INPUT_BYTE: usize = 8;
 
 #[derive(Clone, Debug, Default)]
 pub struct Stats {
@@ -144,9 +150,12 @@ fn run_one(target: &Target, dir: &Path, case: &Case) -> (Outcome, usize, Duratio
             let msg = PANIC_MSG.lock().map(|m| m.clone()).unwrap_or_default();
             Outcome::Finding(format!("panic: {msg}"))
         }
-        Ok(_) if largest > ALLOC_BOUND => Outcome::Finding(format!(
-            "allocation of {largest} bytes from {input} bytes of input (bound {ALLOC_BOUND})"
-        )),
+        Ok(_) if largest > ALLOC_BOUND.max(ALLOC_PER_INPUT_BYTE * input) => {
+            Outcome::Finding(format!(
+                "allocation of {largest} bytes from {input} bytes of input (bound {})",
+                ALLOC_BOUND.max(ALLOC_PER_INPUT_BYTE * input)
+            ))
+        }
         Ok(_) if dt > SLOW_BOUND => Outcome::Finding(format!(
             "took {:.1} s on {input} bytes of input (bound {:.0} s)",
             dt.as_secs_f64(),
@@ -225,6 +234,9 @@ pub fn run_target(target: &Target, cfg: &RunConfig) -> Stats {
         let mut case = base.clone();
         for _ in 0..1 + rng.below(3) {
             mutate_some_file(&mut case, &seeds, &mut rng);
+        }
+        if case.iter().map(|(_, b)| b.len()).sum::<usize>() > MAX_CASE_BYTES {
+            continue;
         }
         let (outcome, largest, dt) = run_one(target, &dir, &case);
         stats.cases += 1;

@@ -66,8 +66,19 @@ impl std::str::FromStr for PairSpec {
 /// `{"cover": …, "hidden": …}` objects, or an object `{"pairs": [ … ]}`. Relative paths are
 /// taken relative to the file's folder.
 pub fn read_pairs_file(path: &Path) -> Result<Vec<PairSpec>> {
-    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let bad = |what: String| Error::Config(format!("{}: {what}", path.display()));
+    // Ten thousand pairs are well under a megabyte; anything this large is not a pairs
+    // file, and is refused before it is read.
+    const MAX_BYTES: u64 = 16 << 20;
+    let len = std::fs::metadata(path)
+        .map_err(|e| Error::io(path, e))?
+        .len();
+    if len > MAX_BYTES {
+        return Err(bad(format!(
+            "{len} bytes: too large for a pairs file (at most {MAX_BYTES})"
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
     let v: Value = serde_json::from_slice(&bytes).map_err(|e| bad(format!("not JSON: {e}")))?;
     let list = match &v {
         Value::Array(a) => a,
