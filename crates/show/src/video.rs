@@ -38,7 +38,6 @@ pub struct VideoSummary {
 /// An MP4 being written.
 pub struct Mp4Video {
     dest: PathBuf,
-    tmp: PathBuf,
     mp4: Option<Mp4Writer<BufWriter<File>>>,
     encoder: Encoder,
     width: u32,
@@ -48,6 +47,9 @@ pub struct Mp4Video {
     track_added: bool,
     encode_seconds: f64,
     sample: Vec<u8>,
+    /// Removes the temporary file when the video is dropped unfinished or finishing fails;
+    /// last, so that it is dropped after the writer has closed the file.
+    pending: ngp::util::PendingFile,
 }
 
 fn nal_type(nal: &[u8]) -> Option<u8> {
@@ -86,8 +88,7 @@ impl Mp4Video {
                 format!("{fps} frames per second: not in 1..=240"),
             ));
         }
-        let tmp = ngp::util::temp_beside(path)?;
-        let file = File::create(&tmp).map_err(|e| Error::io(path, e))?;
+        let (pending, file) = ngp::util::PendingFile::create(path)?;
         let config = Mp4Config {
             major_brand: "isom".parse().expect("a four-character code"),
             minor_version: 512,
@@ -99,7 +100,7 @@ impl Mp4Video {
         };
         let mut video = Mp4Video {
             dest: path.to_path_buf(),
-            tmp,
+            pending,
             mp4: None,
             encoder: Encoder::with_api_config(
                 OpenH264API::from_source(),
@@ -233,12 +234,10 @@ impl Mp4Video {
             .into_writer()
             .into_inner()
             .map_err(|e| Error::io(&self.dest, e.into_error()))?;
-        file.sync_all().map_err(|e| Error::io(&self.dest, e))?;
         let bytes = file.metadata().map_err(|e| Error::io(&self.dest, e))?.len();
-        drop(file);
-        std::fs::rename(&self.tmp, &self.dest).map_err(|e| Error::io(&self.dest, e))?;
+        self.pending.commit(file)?;
         Ok(VideoSummary {
-            path: self.dest.clone(),
+            path: self.dest,
             width: self.width,
             height: self.height,
             frames: self.frames,
@@ -246,16 +245,6 @@ impl Mp4Video {
             bytes,
             encode_seconds: self.encode_seconds,
         })
-    }
-}
-
-impl Drop for Mp4Video {
-    /// An unfinished video (an error, an interrupted render) leaves no temporary file.
-    fn drop(&mut self) {
-        if self.mp4.is_some() {
-            self.mp4 = None;
-            let _ = std::fs::remove_file(&self.tmp);
-        }
     }
 }
 
@@ -446,6 +435,12 @@ mod tests {
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
         let missing = dir.path().join("no/such/dir/v.mp4");
         assert!(Mp4Video::create(&missing, 32, 20, 24).is_err());
+        // A video that fails to finish leaves an older file under the name as it was.
+        std::fs::write(&path, b"old video").unwrap();
+        let v = Mp4Video::create(&path, 32, 20, 24).unwrap();
+        assert!(v.finish().is_err());
+        assert_eq!(std::fs::read(&path).unwrap(), b"old video");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 
     #[test]

@@ -281,7 +281,7 @@ pub fn write_private(
                 break;
             }
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
-            Err(e) => return Err(Error::io(&tmp, e)),
+            Err(e) => return Err(Error::io(path, e)),
         }
     }
     let Some((tmp, mut f)) = opened else {
@@ -319,11 +319,7 @@ pub fn write_private(
         }
         return Err(Error::io(path, e));
     }
-    // Make the new directory entry durable too (best effort).
-    if let Ok(d) = std::fs::File::open(&dir) {
-        let _ = d.sync_all();
-    }
-    Ok(())
+    ngp::util::sync_folder_of(path)
 }
 
 /// A new file, created exclusively (fails if anything, a symlink included, is there),
