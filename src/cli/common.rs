@@ -10,6 +10,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::stego::OpenedScene;
 use stegongp::stego::options::choice;
+use stegongp::util::FolderLock;
 
 /// A transmittance in [0, 1) (`--min-transmittance`).
 pub fn transmittance(s: &str) -> std::result::Result<f32, String> {
@@ -130,6 +131,14 @@ pub fn check_model_path(path: &Path) -> Result<()> {
 pub fn ensure_dir(dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir)
         .with_context(|| format!("{}: cannot create directory", dir.display()))
+}
+
+/// Creates `dir` and locks it until the returned lock is dropped: a command that writes many
+/// files into one folder over a long time refuses a second run into the same folder at once,
+/// instead of the two interleaving (and overwriting) each other's files.
+pub fn ensure_locked_dir(dir: &Path) -> Result<FolderLock> {
+    ensure_dir(dir)?;
+    Ok(FolderLock::acquire(dir)?)
 }
 
 pub fn progress(len: u64, template: &str) -> ProgressBar {

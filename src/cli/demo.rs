@@ -1,7 +1,7 @@
 //! The whole story on generated scenes: a cover object and a hidden 3D-text message in one
 //! Instant-NGP model; the cover renders for everyone, the text only with the key.
 
-use super::common::{DeviceArg, ensure_dir};
+use super::common::{DeviceArg, ensure_dir, ensure_locked_dir};
 use super::video::{GAP, render_frame};
 use anyhow::Result;
 use std::path::PathBuf;
@@ -65,7 +65,7 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     let t0 = std::time::Instant::now();
-    ensure_dir(&a.out)?;
+    let _lock = ensure_locked_dir(&a.out)?;
     let cover_dir = a.out.join("cover");
     let hidden_dir = a.out.join("hidden");
     for (dir, scene, seed) in [

@@ -1,4 +1,4 @@
-use super::common::DeviceArg;
+use super::common::{DeviceArg, ensure_locked_dir};
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::experiments::{
@@ -160,7 +160,9 @@ pub fn run(mut a: Args) -> Result<()> {
         a.training.check_steps(steps)?;
     }
     let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
-    std::fs::create_dir_all(&a.out)?;
+    // Held until the run ends: its scenes (OUT/data), models and reports would otherwise be
+    // interleaved with another run's into the same folder.
+    let _lock = ensure_locked_dir(&a.out)?;
     let data = a.out.join("data");
     let gen_scene = |name: &str, kind: SceneKind, seed: u64| -> Result<PathBuf> {
         let dir = data.join(name);

@@ -1,4 +1,4 @@
-use super::common::{ViewArgs, Viewing, ensure_dir, progress};
+use super::common::{ViewArgs, Viewing, ensure_locked_dir, progress};
 use anyhow::Result;
 use std::path::PathBuf;
 use stegongp::ngp::data::{save_png_gray, save_png_rgb};
@@ -23,7 +23,7 @@ pub fn run(a: Args) -> Result<()> {
     } = a.view.open()?;
     let mut renderer = scene.renderer(&device, &model)?;
     eprintln!("device: {}", device.report());
-    ensure_dir(&a.out)?;
+    let _lock = ensure_locked_dir(&a.out)?;
     let pb = progress(
         which.len() as u64,
         "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} views {msg}",

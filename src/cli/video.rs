@@ -1,7 +1,9 @@
 //! `stegongp video`: a camera path rendered from a model, as the cover, as the hidden scene of
 //! a key, or both beside a wrong key's, to an H.264 MP4 and/or numbered PNGs.
 
-use super::common::{DeviceArg, check_parent_dir, ensure_dir, frame_size, progress, transmittance};
+use super::common::{
+    DeviceArg, check_parent_dir, ensure_locked_dir, frame_size, progress, transmittance,
+};
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
 use stegongp::backend::RenderBackend;
@@ -217,9 +219,7 @@ pub fn run(a: Args) -> Result<()> {
         min_transmittance: a.min_transmittance,
         ..Default::default()
     };
-    if let Some(dir) = &a.frames_dir {
-        ensure_dir(dir)?;
-    }
+    let _lock = a.frames_dir.as_deref().map(ensure_locked_dir).transpose()?;
     if let Some(p) = &a.write_path {
         write_nerfstudio(p, &path, w, h, &rig.frame)?;
     }

@@ -148,6 +148,44 @@ impl Drop for PendingFile {
     }
 }
 
+/// An exclusive advisory lock on a folder that a long run writes many files into, held for
+/// the run's lifetime: a second run into the same folder is refused instead of interleaving
+/// its files with the first's. The lock is the kernel's `flock` on `DIR/.lock`, so it ends
+/// with the process however that ends, and the file itself is left in place (removing it
+/// would let a third run lock a fresh file while the second still holds the old one).
+#[derive(Debug)]
+pub struct FolderLock {
+    _file: File,
+}
+
+impl FolderLock {
+    /// The name of the lock file inside a locked folder.
+    pub const FILE: &str = ".lock";
+
+    /// Locks `dir` (which must exist) without waiting. Errors name the folder and, when
+    /// another process holds it, say so.
+    pub fn acquire(dir: &Path) -> Result<FolderLock> {
+        let path = dir.join(Self::FILE);
+        let file = File::options()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .open(&path)
+            .map_err(|e| Error::io(&path, e))?;
+        match file.try_lock() {
+            Ok(()) => Ok(FolderLock { _file: file }),
+            Err(std::fs::TryLockError::WouldBlock) => Err(Error::Other(format!(
+                "{}: another stegongp run is writing into this folder (it holds {}); \
+                 wait for it to end or choose another output folder",
+                dir.display(),
+                path.display()
+            ))),
+            Err(std::fs::TryLockError::Error(e)) => Err(Error::io(&path, e)),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -318,5 +356,18 @@ mod tests {
         assert!(text.contains(&p.display().to_string()), "{text}");
         assert_eq!(std::fs::read(&p).unwrap(), old);
         assert_eq!(names(dir.path()), ["model.ingp"]);
+    }
+
+    #[test]
+    fn a_held_folder_lock_refuses_a_second_and_frees_on_drop() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = FolderLock::acquire(dir.path()).unwrap();
+        let e = FolderLock::acquire(dir.path()).unwrap_err().to_string();
+        assert!(
+            e.contains(&dir.path().display().to_string()) && e.contains("another stegongp run"),
+            "{e}"
+        );
+        drop(first);
+        FolderLock::acquire(dir.path()).unwrap();
     }
 }
