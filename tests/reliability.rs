@@ -322,6 +322,16 @@ fn a_second_run_into_a_held_folder_is_refused() {
         assert_eq!(std::fs::read(out.join("keep.txt")).unwrap(), b"untouched");
     }
     drop(lock);
-    run_ok(&["experiment", "key-strength", "--out", o]);
+    // A small grid: key-strength of the default one takes seconds.
+    run_ok(&[
+        "experiment",
+        "key-strength",
+        "--out",
+        o,
+        "--levels",
+        "4",
+        "--log2-t",
+        "10",
+    ]);
     assert!(out.join("key-strength/report.json").exists());
 }
