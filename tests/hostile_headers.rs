@@ -181,7 +181,7 @@ fn capture_counts_larger_than_the_file_are_refused() {
     std::fs::create_dir_all(llff.join("images")).unwrap();
     let dict = "{'descr': '<f8', 'fortran_order': False, 'shape': (1099511627776, 17), }";
     let mut header = dict.as_bytes().to_vec();
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(b' ');
     }
     header.push(b'\n');

@@ -40,6 +40,10 @@ struct Args {
     /// Generated seeds only.
     #[arg(long)]
     no_real: bool,
+    /// Replays the saved cases under DIR/<target>/ (a findings folder) and exits: which
+    /// still fail after a fix.
+    #[arg(long, value_name = "DIR")]
+    replay: Option<PathBuf>,
     /// Lists the targets and exits.
     #[arg(long)]
     list: bool,
@@ -78,6 +82,29 @@ fn main() -> Result<()> {
         None => eprintln!("generated seeds only (no ../shared/data; --real DIR names one)"),
     }
     quiet_panics();
+    if let Some(dir) = &args.replay {
+        let mut still = 0;
+        for t in &targets {
+            let (n, failing) =
+                replay(t, dir, &work).with_context(|| format!("replaying {}", dir.display()))?;
+            if n > 0 {
+                println!(
+                    "{:12} {n} cases replayed, {} still fail",
+                    t.name,
+                    failing.len()
+                );
+            }
+            for f in &failing {
+                println!("  {f}");
+            }
+            still += failing.len();
+        }
+        let _ = std::fs::remove_dir_all(&work);
+        if still > 0 {
+            bail!("{still} cases still fail");
+        }
+        return Ok(());
+    }
     let mut failed = 0;
     for t in targets {
         let (n, still) = replay(t, &stegongp_fuzz::regressions_dir(), &work)

@@ -615,6 +615,9 @@ fn mutate_text_prefix(data: &mut Vec<u8>, header: usize, rng: &mut Rng) -> bool 
     let Some(close) = data[..end].iter().rposition(|&b| b == b'}') else {
         return false;
     };
+    if close <= open {
+        return false;
+    }
     let Ok(dict) = std::str::from_utf8(&data[open..=close]) else {
         return false;
     };

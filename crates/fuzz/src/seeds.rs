@@ -144,7 +144,7 @@ pub fn jpeg_sized(w: u16, h: u16) -> Vec<u8> {
     let blocks = (w as usize).div_ceil(8) * (h as usize).div_ceil(8);
     let bits = 2 * blocks;
     j.extend(std::iter::repeat_n(0u8, bits / 8));
-    if bits % 8 != 0 {
+    if !bits.is_multiple_of(8) {
         j.push(0xffu8 >> (bits % 8));
     }
     j.extend([0xff, 0xd9]);
@@ -306,7 +306,7 @@ pub fn npy_poses_bounds(rows: &[[f64; 17]]) -> Vec<u8> {
     );
     let mut header = dict.into_bytes();
     // Magic (6) + version (2) + length (2) + header, padded with spaces to 64, then '\n'.
-    while (10 + header.len() + 1) % 64 != 0 {
+    while !(10 + header.len() + 1).is_multiple_of(64) {
         header.push(b' ');
     }
     header.push(b'\n');

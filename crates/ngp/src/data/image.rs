@@ -296,25 +296,19 @@ fn decode_png(path: &Path, bytes: &[u8]) -> Result<Image> {
             / raw.max(1);
         check_declared_size(path, "PNG header (IHDR)", w, h, backed)?;
     }
-    let size = reader
-        .output_buffer_size()
-        .ok_or_else(|| Error::format(path, "PNG too large"))?;
-    let mut buf = vec![0u8; size];
-    let info = reader.next_frame(&mut buf).map_err(perr)?;
-    let (w, h) = (info.width, info.height);
-    let n = w as usize * h as usize;
-    let src = &buf[..info.line_size * h as usize];
-    let rows = src.chunks_exact(info.line_size);
-    let mut rgba = Vec::with_capacity(4 * n);
+    let (color, _) = reader.output_color_type();
     use png::ColorType::*;
-    let ch = match info.color_type {
+    let ch = match color {
         Grayscale => 1,
         GrayscaleAlpha => 2,
         Rgb => 3,
         Rgba => 4,
         Indexed => return Err(Error::format(path, "PNG palette was not expanded")),
     };
-    for row in rows {
+    let (w, h) = reader.info().size();
+    let n = w as usize * h as usize;
+    let mut rgba = Vec::new();
+    let push = |row: &[u8], rgba: &mut Vec<u8>| {
         for p in row[..ch * w as usize].chunks_exact(ch) {
             match ch {
                 1 => rgba.extend_from_slice(&[p[0], p[0], p[0], 255]),
@@ -323,7 +317,29 @@ fn decode_png(path: &Path, bytes: &[u8]) -> Result<Image> {
                 _ => rgba.extend_from_slice(p),
             }
         }
+    };
+    if reader.info().interlaced {
+        // Adam7 passes are not rows of the image: the decoder assembles the frame.
+        let size = reader
+            .output_buffer_size()
+            .ok_or_else(|| Error::format(path, "PNG too large"))?;
+        let mut buf = vec![0u8; size];
+        let info = reader.next_frame(&mut buf).map_err(perr)?;
+        rgba.reserve_exact(4 * n);
+        for row in buf[..info.line_size * h as usize].chunks_exact(info.line_size) {
+            push(row, &mut rgba);
+        }
+    } else {
+        // Row by row, so memory grows with the pixels the file really holds, not with the
+        // size its header declares (a forged IHDR stops at the first missing row).
+        while let Some(row) = reader.next_row().map_err(perr)? {
+            push(row.data(), &mut rgba);
+        }
     }
+    if rgba.len() != 4 * n {
+        return Err(Error::format(path, "PNG decoding: truncated pixel data"));
+    }
+    rgba.shrink_to_fit();
     Image::from_rgba8(w, h, rgba)
 }
 
