@@ -3,6 +3,7 @@
 //! the engine knows nothing of it.
 
 pub mod frame;
+pub mod gate;
 pub mod path;
 pub mod server;
 pub mod video;

@@ -20,8 +20,7 @@ use std::time::Instant;
 use stego::{DenseMode, Key, OpenedScene, open_scene_on};
 use tiny_http::{Header, Method, Request, Response, Server};
 
-/// Largest request body (a key file is a few hundred bytes).
-const MAX_BODY: u64 = 64 << 10;
+use crate::gate::{self, MAX_BODY, SocketDir};
 /// Largest frame the page may ask for, in pixels.
 const MAX_PIXELS: u32 = 4096 * 4096;
 
@@ -54,6 +53,10 @@ pub struct Viewer {
     token: String,
     nonce: String,
     hosts: Vec<String>,
+    /// The port the front door listens on.
+    port: u16,
+    /// Where the server's socket lives; removed with the viewer.
+    _socket_dir: SocketDir,
 }
 
 fn random_hex(bytes: usize) -> Result<String> {
@@ -66,15 +69,24 @@ fn random_hex(bytes: usize) -> Result<String> {
 impl Viewer {
     /// Binds `addr` (port 0: any free port).
     pub fn bind(addr: SocketAddr) -> Result<Self> {
-        let server = Server::http(addr)
-            .map_err(|e| Error::format(addr.to_string(), format!("cannot listen: {e}")))?;
+        let cannot = |e: &dyn std::fmt::Display| {
+            Error::format(addr.to_string(), format!("cannot listen: {e}"))
+        };
+        // Requests come in through the front door (`gate`), which bounds them before the
+        // HTTP server, reachable only through a socket in a private folder, sees them.
+        let front = std::net::TcpListener::bind(addr).map_err(|e| cannot(&e))?;
+        let port = front.local_addr().map_err(|e| cannot(&e))?.port();
+        let socket_dir = SocketDir::new(&random_hex(12)?).map_err(|e| cannot(&e))?;
+        let server = Server::http_unix(&socket_dir.socket()).map_err(|e| cannot(&e))?;
+        gate::spawn(front, socket_dir.socket());
         let mut viewer = Viewer {
             server,
             token: random_hex(24)?,
             nonce: random_hex(16)?,
             hosts: Vec::new(),
+            port,
+            _socket_dir: socket_dir,
         };
-        let port = viewer.port();
         viewer.hosts = ["127.0.0.1", "localhost", "[::1]"]
             .iter()
             .map(|h| format!("{h}:{port}"))
@@ -94,11 +106,7 @@ impl Viewer {
     }
 
     pub fn port(&self) -> u16 {
-        match self.server.server_addr() {
-            tiny_http::ListenAddr::IP(a) => a.port(),
-            #[allow(unreachable_patterns)]
-            _ => 0,
-        }
+        self.port
     }
 
     /// The URL to open, token included.
