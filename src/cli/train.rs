@@ -1,4 +1,4 @@
-use super::common::{DeviceArg, check_model_path, progress};
+use super::common::{DeviceArg, check_model_path, check_parent_dir, progress};
 use super::keygen;
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
@@ -72,9 +72,56 @@ pub struct Args {
     /// and report the milliseconds per step of each (one extra read-back per profiled step).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub profile_every: u32,
+    /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
+    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it. CPU only,
+    /// not with --stealth. A stego run's state describes its hidden scenes: it is written
+    /// owner-only and must be kept like the keys.
+    #[arg(long, value_name = "N|Mm", value_parser = parse_every)]
+    pub save_every: Option<Every>,
+    /// Where --save-every writes (default: the model's path with `.state` added).
+    #[arg(long, value_name = "PATH")]
+    pub state: Option<PathBuf>,
+    /// Go on from a state --save-every wrote, with the same data, keys, options and thread
+    /// count; --steps and --minutes count from the run's start, not from the resume.
+    #[arg(long, value_name = "STATE")]
+    pub resume: Option<PathBuf>,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
+}
+
+/// How often `--save-every` saves.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Every {
+    Steps(u32),
+    Minutes(f64),
+}
+
+fn parse_every(s: &str) -> std::result::Result<Every, String> {
+    let bad = || format!("'{s}': expected a step count (500) or minutes (10m)");
+    match s.strip_suffix('m') {
+        Some(m) => {
+            let m: f64 = m.trim().parse().map_err(|_| bad())?;
+            if m.is_finite() && m > 0.0 {
+                Ok(Every::Minutes(m))
+            } else {
+                Err(bad())
+            }
+        }
+        None => match s.trim().parse::<u32>() {
+            Ok(n) if n > 0 => Ok(Every::Steps(n)),
+            _ => Err(bad()),
+        },
+    }
+}
+
+/// The state's path: `--state`, else the model's with `.state` added.
+fn state_path(a: &Args) -> PathBuf {
+    a.state.clone().unwrap_or_else(|| {
+        let mut p = a.out.clone().into_os_string();
+        p.push(".state");
+        PathBuf::from(p)
+    })
 }
 
 #[derive(Serialize)]
@@ -159,6 +206,25 @@ pub fn run(a: Args) -> Result<()> {
     // The options first, before any image is read; the recipe checks them again with the
     // scenes and keys.
     a.training.check()?;
+    if a.training.stealth.enabled && (a.save_every.is_some() || a.resume.is_some()) {
+        bail!(
+            "--save-every and --resume do not work with --stealth yet (its policy's state is not saved)"
+        );
+    }
+    let resume_bytes = match &a.resume {
+        Some(p) => Some(std::fs::read(p).with_context(|| format!("reading {}", p.display()))?),
+        None => None,
+    };
+    if a.save_every.is_some() {
+        let sp = state_path(&a);
+        check_parent_dir(&sp)?;
+        if sp == a.out {
+            bail!(
+                "--state {}: the model and the state need two files",
+                sp.display()
+            );
+        }
+    }
     let opts = LoadOptions {
         downscale: a.downscale,
         images: a.images.clone(),
@@ -214,6 +280,17 @@ pub fn run(a: Args) -> Result<()> {
     let device = a.device.open()?;
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
+    if let (Some(bytes), Some(p)) = (&resume_bytes, &a.resume) {
+        training.restore_state(bytes, p)?;
+        if !a.json {
+            eprintln!(
+                "resumed from {} at step {} ({:.1} s trained)",
+                p.display(),
+                training.totals().steps,
+                training.totals().seconds
+            );
+        }
+    }
     if a.profile_every > 0 && !training.trainer_mut().profile_device(a.profile_every) {
         eprintln!(
             "--profile-every: {} cannot time its phases (no timestamp queries); ignored",
@@ -260,8 +337,17 @@ pub fn run(a: Args) -> Result<()> {
         ),
     };
     let mut checkpoints = Vec::new();
-    let mut pending: Vec<f64> = a.checkpoints.clone();
+    // A resumed run evaluates only the checkpoints still ahead of it.
+    let done_seconds = training.totals().seconds;
+    let mut pending: Vec<f64> = a
+        .checkpoints
+        .iter()
+        .copied()
+        .filter(|m| m * 60.0 > done_seconds)
+        .collect();
     pending.sort_by(|x, y| x.total_cmp(y));
+    let state_file = state_path(&a);
+    let mut saved_at = done_seconds;
     let grid = NerfLayout::new(model)?.grid;
     while training.step()?.is_some() {
         let t = *training.totals();
@@ -277,6 +363,15 @@ pub fn run(a: Args) -> Result<()> {
             t.samples_per_second() / 1e3,
             t.phase_split()
         ));
+        let save_due = match a.save_every {
+            Some(Every::Steps(n)) => t.steps.is_multiple_of(n),
+            Some(Every::Minutes(m)) => t.seconds - saved_at >= m * 60.0,
+            None => false,
+        };
+        if save_due {
+            training.save_state_to(&state_file)?;
+            saved_at = t.seconds;
+        }
         while let Some(&m) = pending.first() {
             if t.seconds < m * 60.0 {
                 break;
@@ -337,6 +432,20 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     pb.finish_and_clear();
+    if a.save_every.is_some() {
+        training.save_state_to(&state_file)?;
+        if !a.json {
+            eprintln!(
+                "training state: {} (owner-only{}; --resume goes on from it)",
+                state_file.display(),
+                if a.hidden.is_empty() {
+                    ""
+                } else {
+                    "; it describes the hidden scenes: keep it like the keys, delete it when done"
+                }
+            );
+        }
+    }
     let device_phases_ms: Vec<Phase> = training
         .trainer()
         .device_profile()

@@ -11,13 +11,14 @@ pub mod mutate;
 pub mod real;
 pub mod runner;
 pub mod seeds;
+pub mod state;
 pub mod targets;
 pub mod viewer;
 
 /// `../shared/data` beside the repository, when it is there.
 pub fn shared_data() -> Option<std::path::PathBuf> {
     let p = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    p.is_dir().then_some(p)
+    p.canonicalize().ok().filter(|p| p.is_dir())
 }
 
 /// The regression corpus in the repository.

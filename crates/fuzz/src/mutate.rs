@@ -119,7 +119,7 @@ fn mutate_inner(name: &str, data: &mut Vec<u8>, pool: &[Vec<u8>], rng: &mut Rng)
     let done = structured
         && match ext.as_str() {
             "json" => mutate_json(data, rng),
-            "msgpack" | "ingp" => mutate_msgpack(data, rng),
+            "msgpack" | "ingp" | "state" => mutate_msgpack(data, rng),
             "png" => mutate_png(data, rng),
             "txt" | "http" => mutate_text(data, rng),
             "npy" => mutate_text_prefix(data, 128, rng),

@@ -8,6 +8,8 @@ use std::path::Path;
 
 pub struct Target {
     pub name: &'static str,
+    /// Cases in CI, where the default's would take too long (large cases).
+    pub ci_cases: Option<u64>,
     /// What a user or a page hands the program here.
     pub about: &'static str,
     pub seeds: fn() -> Vec<Case>,
@@ -88,58 +90,74 @@ fn camera_path(dir: &Path) -> Result<(), String> {
 
 pub const TARGETS: &[Target] = &[
     Target {
+        ci_cases: None,
         name: "snapshot",
         about: "instant-ngp snapshots, .msgpack and gzip .ingp (inspect, detect, every loader)",
         seeds: seeds::snapshots,
         run: snapshot,
     },
     Target {
+        ci_cases: None,
         name: "key",
         about: "key files, versions 1 and 2, primes and prf",
         seeds: seeds::keys,
         run: key,
     },
     Target {
+        ci_cases: None,
         name: "image",
         about: "PNG and JPEG images",
         seeds: seeds::images,
         run: image,
     },
     Target {
+        ci_cases: None,
         name: "transforms",
         about: "transforms*.json datasets, instant-ngp's and NeRF-synthetic's dialects",
         seeds: seeds::transforms,
         run: dataset,
     },
     Target {
+        ci_cases: None,
         name: "colmap",
         about: "COLMAP models, binary and text, with their images",
         seeds: seeds::colmap,
         run: dataset,
     },
     Target {
+        ci_cases: None,
         name: "llff",
         about: "LLFF captures: poses_bounds.npy with its images",
         seeds: seeds::llff,
         run: dataset,
     },
     Target {
+        ci_cases: None,
         name: "pairs",
         about: "experiment pairs files",
         seeds: seeds::pairs,
         run: pairs,
     },
     Target {
+        ci_cases: None,
         name: "camera-path",
         about: "camera paths, nerfstudio's camera_path.json and instant-ngp's base_cam.json",
         seeds: seeds::camera_paths,
         run: camera_path,
     },
     Target {
+        ci_cases: None,
         name: "viewer",
         about: "HTTP requests to a live viewer on loopback (info, frame, key, record, forget)",
         seeds: crate::viewer::seeds,
         run: crate::viewer::run,
+    },
+    Target {
+        ci_cases: Some(100),
+        name: "train-state",
+        about: "training states (train --resume): every field of the trainer's state",
+        seeds: crate::state::seeds,
+        run: crate::state::run,
     },
 ];
 

@@ -23,7 +23,7 @@ fn every_target_survives_its_regressions_and_a_seeded_run() {
         let (n, still) = replay(t, &stegongp_fuzz::regressions_dir(), &tmp).expect("replay");
         failures.extend(still);
         let cfg = RunConfig {
-            cases: CI_CASES,
+            cases: t.ci_cases.unwrap_or(CI_CASES),
             max_time: Some(Duration::from_secs(60)),
             seed: 20261127,
             work: &tmp,

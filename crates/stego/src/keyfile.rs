@@ -241,6 +241,17 @@ pub fn save_key(path: &Path, key: &Key, force: bool) -> Result<()> {
     write_private(path, text.as_bytes(), force, &mut random_name)
 }
 
+/// Writes a secret file other than a key (a stego run's training state, which describes
+/// its hidden scenes) as [`save_key`] writes a key: owner-only from creation, atomic, never
+/// through a symlink; an existing file is replaced.
+pub fn write_secret(path: &Path, bytes: &[u8]) -> Result<()> {
+    let mut random_name = || -> Result<String> {
+        let r = super::primes::os_u64()?;
+        Ok(format!("{r:016x}"))
+    };
+    write_private(path, bytes, true, &mut random_name)
+}
+
 /// The writer behind [`save_key`], with the temporary names' random part supplied (tests
 /// plant a symlink at a chosen name). Tries up to 8 names: a name that exists — file or
 /// link — is skipped, never opened.

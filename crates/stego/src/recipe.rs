@@ -454,6 +454,10 @@ impl Totals {
     }
 }
 
+/// The run-state document ([`Training::save_state`]).
+pub const RUN_STATE_FORMAT: &str = "stegongp-run-state";
+pub const RUN_STATE_VERSION: u64 = 1;
+
 /// A recipe's training in progress.
 pub struct Training<'d> {
     trainer: Box<dyn TrainBackend + 'd>,
@@ -546,6 +550,106 @@ impl Training<'_> {
 
     pub fn trainer_mut(&mut self) -> &mut dyn TrainBackend {
         self.trainer.as_mut()
+    }
+
+    /// The run's whole state between two steps: the trainer's and this loop's (totals,
+    /// losses), so that a resumed run ends as the uninterrupted one would (on the CPU, bit
+    /// for bit).
+    pub fn save_state(&self) -> Result<Vec<u8>> {
+        use ngp::train::state::{encode, map};
+        use rmpv::Value;
+        let t = &self.totals;
+        let totals = map(vec![
+            ("steps", Value::from(t.steps)),
+            ("seconds", Value::F64(t.seconds)),
+            ("samples", Value::from(t.samples)),
+            ("marched", Value::from(t.marched)),
+            ("network", Value::from(t.network)),
+            ("dropped_rays", Value::from(t.dropped_rays)),
+            ("host_waits", Value::from(t.host_waits)),
+            ("submissions", Value::from(t.submissions)),
+            ("occupancy_seconds", Value::F64(t.occupancy_seconds)),
+            ("rays_seconds", Value::F64(t.rays_seconds)),
+            ("optimizer_seconds", Value::F64(t.optimizer_seconds)),
+            ("occupancy_updates", Value::from(t.occupancy_updates)),
+            (
+                "occupancy_evaluations",
+                Value::from(t.occupancy_evaluations),
+            ),
+        ]);
+        Ok(encode(&map(vec![
+            ("format", Value::from(RUN_STATE_FORMAT)),
+            ("version", Value::from(RUN_STATE_VERSION)),
+            ("totals", totals),
+            ("last_loss", Value::F32(self.last_loss)),
+            ("smoothed", self.smoothed.map_or(Value::Nil, Value::F32)),
+            ("shown", Value::F32(self.shown)),
+            ("trainer", Value::Binary(self.trainer.save_state()?)),
+        ])))
+    }
+
+    /// Takes back a [`save_state`](Self::save_state) before the first step; `origin` names
+    /// the state in errors.
+    pub fn restore_state(&mut self, bytes: &[u8], origin: &Path) -> Result<()> {
+        use ngp::train::state::{Fields, open};
+        let doc = open(origin, bytes)?;
+        let f = Fields::top(origin, &doc)?;
+        if f.str("format")? != RUN_STATE_FORMAT {
+            return Err(f.err("format", format!("not a run state ({RUN_STATE_FORMAT})")));
+        }
+        let v = f.u64("version")?;
+        if v != RUN_STATE_VERSION {
+            return Err(f.err(
+                "version",
+                format!("{v}: this program reads version {RUN_STATE_VERSION}"),
+            ));
+        }
+        let tf = f.map("totals")?;
+        let totals = Totals {
+            steps: tf.u32("steps")?,
+            seconds: tf.f64("seconds")?,
+            samples: tf.u64("samples")?,
+            marched: tf.u64("marched")?,
+            network: tf.u64("network")?,
+            dropped_rays: tf.u64("dropped_rays")?,
+            host_waits: tf.u64("host_waits")?,
+            submissions: tf.u64("submissions")?,
+            occupancy_seconds: tf.f64("occupancy_seconds")?,
+            rays_seconds: tf.f64("rays_seconds")?,
+            optimizer_seconds: tf.f64("optimizer_seconds")?,
+            occupancy_updates: tf.u32("occupancy_updates")?,
+            occupancy_evaluations: tf.u64("occupancy_evaluations")?,
+        };
+        let last_loss = f.f32("last_loss")?;
+        let smoothed = if f.has("smoothed") {
+            Some(f.f32("smoothed")?)
+        } else {
+            None
+        };
+        let shown = f.f32("shown")?;
+        self.trainer.restore_state(f.binary("trainer")?, origin)?;
+        if self.trainer.step() != totals.steps {
+            return Err(f.err(
+                "totals.steps",
+                format!(
+                    "{}, but the trainer is at step {}",
+                    totals.steps,
+                    self.trainer.step()
+                ),
+            ));
+        }
+        self.totals = totals;
+        self.last_loss = last_loss;
+        self.smoothed = smoothed;
+        self.shown = shown;
+        Ok(())
+    }
+
+    /// [`save_state`](Self::save_state) written to `path` as a key is: owner-only,
+    /// atomically. A stego run's state describes its hidden scenes, so it is as secret as
+    /// their keys; it never goes into the published model.
+    pub fn save_state_to(&self, path: &Path) -> Result<()> {
+        crate::keyfile::write_secret(path, &self.save_state()?)
     }
 
     /// The model as it would be published now.

@@ -24,6 +24,16 @@ pub struct GridUpdates {
 }
 
 impl GridUpdates {
+    /// The clock a training state keeps: trained samples since the last update, updates.
+    pub fn clock(&self) -> (u64, u32) {
+        (self.since, self.updates)
+    }
+
+    pub fn set_clock(&mut self, since: u64, updates: u32) {
+        self.since = since;
+        self.updates = updates;
+    }
+
     /// `per_sample`: density evaluations allowed per trained sample; `None` (or 0) for the
     /// reference's schedule.
     pub fn new(per_sample: Option<f32>) -> Self {

@@ -8,6 +8,7 @@ pub mod hooks;
 pub mod loss;
 pub mod optimizer;
 pub mod schedule;
+pub mod state;
 pub mod trainer;
 mod worker;
 
@@ -35,6 +36,20 @@ pub trait TrainBackend {
     fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> Result<()>;
     /// The model as it would be published now, with `loss` as its stored loss.
     fn model(&self, loss: f32) -> Result<Model>;
+    /// The whole training state between two steps ([`state`]), to go on from later; an
+    /// error where this backend cannot save one.
+    fn save_state(&self) -> Result<Vec<u8>> {
+        Err(crate::error::Error::Config(
+            "this device cannot save a training state yet (the CPU can)".into(),
+        ))
+    }
+    /// Takes back a [`save_state`](Self::save_state) before the first step; `origin`
+    /// names it in errors.
+    fn restore_state(&mut self, _bytes: &[u8], _origin: &std::path::Path) -> Result<()> {
+        Err(crate::error::Error::Config(
+            "this device cannot resume a training state yet (the CPU can)".into(),
+        ))
+    }
     /// Times the device's phases on one step in `every` (a GPU that can write timestamps);
     /// false where this backend cannot.
     fn profile_device(&mut self, _every: u32) -> bool {
@@ -65,5 +80,11 @@ impl TrainBackend for Trainer {
     }
     fn model(&self, loss: f32) -> Result<Model> {
         Ok(Model::from_trainer(self, loss))
+    }
+    fn save_state(&self) -> Result<Vec<u8>> {
+        Trainer::save_state(self)
+    }
+    fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> Result<()> {
+        Trainer::restore_state(self, bytes, origin)
     }
 }

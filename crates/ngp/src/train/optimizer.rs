@@ -152,6 +152,57 @@ impl Optimizer {
         }
     }
 
+    /// The bias-correction and decay tables up to the current step (each entry is a
+    /// function of its index alone, so a restored optimizer rebuilds the same values).
+    fn extend_tables(&mut self) {
+        let c = self.config;
+        let t = self.step as usize;
+        while self.correction.len() <= t {
+            let k = self.correction.len() as u32;
+            self.correction.push(c.adam_correction(k));
+            self.decay_pow
+                .push((c.ema_decay as f64).powi(k as i32) as f32);
+        }
+    }
+
+    /// Everything [`restore`](Self::restore) needs, for a training state.
+    pub(super) fn state(&self) -> rmpv::Value {
+        use super::state::{f32s, map, u32s};
+        map(vec![
+            ("step", rmpv::Value::from(self.step)),
+            ("m", f32s(&self.m)),
+            ("v", f32s(&self.v)),
+            ("param_steps", u32s(&self.steps)),
+            ("ema", f32s(&self.ema)),
+            ("ema_step", u32s(&self.ema_step)),
+        ])
+    }
+
+    /// Takes back a [`state`](Self::state); lengths are checked against this optimizer.
+    pub(super) fn restore(&mut self, f: &super::state::Fields) -> crate::error::Result<()> {
+        f.f32s_into("m", &mut self.m)?;
+        f.f32s_into("v", &mut self.v)?;
+        f.u32s_into("param_steps", &mut self.steps)?;
+        f.f32s_into("ema", &mut self.ema)?;
+        f.u32s_into("ema_step", &mut self.ema_step)?;
+        self.step = f.u32("step")?;
+        if let Some(bad) = self
+            .steps
+            .iter()
+            .chain(&self.ema_step)
+            .find(|&&s| s > self.step)
+        {
+            return Err(f.err(
+                "param_steps",
+                format!("a step count {bad} beyond the optimizer's {}", self.step),
+            ));
+        }
+        self.correction.truncate(1);
+        self.decay_pow.truncate(1);
+        self.extend_tables();
+        Ok(())
+    }
+
     /// Learning rate in force for the next step (ExponentialDecay).
     pub fn learning_rate(&self) -> f32 {
         self.config.learning_rate(self.step)
@@ -169,13 +220,7 @@ impl Optimizer {
         let c = self.config;
         let lr = self.learning_rate();
         self.step += 1;
-        let t = self.step as usize;
-        while self.correction.len() <= t {
-            let k = self.correction.len() as u32;
-            self.correction.push(c.adam_correction(k));
-            self.decay_pow
-                .push((c.ema_decay as f64).powi(k as i32) as f32);
-        }
+        self.extend_tables();
         let step = self.step;
         let correction = &self.correction;
         let decay_pow = &self.decay_pow;

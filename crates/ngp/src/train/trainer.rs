@@ -321,6 +321,147 @@ impl Trainer {
         Ok(())
     }
 
+    /// The parts of a training a saved state must share with the trainer it goes back into,
+    /// by name. Never the index functions: a state's errors may be printed, and a key must
+    /// not be (the program re-derives them from the same key files).
+    fn fingerprint(&self) -> Vec<(String, String)> {
+        let mut options = self.config.clone();
+        options.workers = self.workers.len();
+        let mut out = vec![
+            (
+                "layout".to_string(),
+                format!("{:?}", self.net.layout.config),
+            ),
+            ("options".to_string(), format!("{options:?}")),
+            ("scenes".to_string(), self.scenes.len().to_string()),
+        ];
+        for (i, s) in self.scenes.iter().enumerate() {
+            let f = &s.data.frames;
+            let size = f
+                .first()
+                .map_or((0, 0), |f| (f.camera.width, f.camera.height));
+            out.push((
+                format!("scene {i}"),
+                format!(
+                    "{} images of {}x{}, aabb {}",
+                    f.len(),
+                    size.0,
+                    size.1,
+                    s.data.aabb_scale
+                ),
+            ));
+        }
+        out
+    }
+
+    /// The whole training state between two steps ([`super::state`]): restored into a
+    /// trainer built the same way, training goes on as if it had never stopped. Not with a
+    /// training policy (stealth), whose own state is not saved yet.
+    pub fn save_state(&self) -> Result<Vec<u8>> {
+        use super::state::{FORMAT, VERSION, encode, f32s, map};
+        use rmpv::Value;
+        if self.policy.is_some() {
+            return Err(Error::Config(
+                "a training policy's state (stealth training) cannot be saved yet".into(),
+            ));
+        }
+        let fingerprint = Value::Map(
+            self.fingerprint()
+                .into_iter()
+                .map(|(k, v)| (Value::from(k), Value::from(v)))
+                .collect(),
+        );
+        let scenes = self
+            .scenes
+            .iter()
+            .map(|s| {
+                map(vec![
+                    ("density", f32s(&s.grid.density)),
+                    ("bitfield", Value::Binary(s.grid.bitfield().to_vec())),
+                    ("mean", Value::F32(s.grid.mean)),
+                    ("grid_updates", Value::from(s.grid.ema_step)),
+                    ("rays_per_batch", Value::from(s.rays_per_batch)),
+                    ("measured_samples", Value::from(s.measured_samples)),
+                    ("measured_marched", Value::from(s.measured_marched)),
+                ])
+            })
+            .collect();
+        let (since, updates) = self.grid_updates.clock();
+        Ok(encode(&map(vec![
+            ("format", Value::from(FORMAT)),
+            ("version", Value::from(VERSION)),
+            ("fingerprint", fingerprint),
+            ("step", Value::from(self.step)),
+            ("weight_steps", Value::from(self.weight_steps)),
+            ("params", f32s(&self.params)),
+            ("optimizer", self.optimizer.state()),
+            (
+                "occupancy_clock",
+                map(vec![
+                    ("since", Value::from(since)),
+                    ("updates", Value::from(updates)),
+                ]),
+            ),
+            ("scenes", Value::Array(scenes)),
+        ])))
+    }
+
+    /// Takes back a [`save_state`](Self::save_state) into this trainer, which must be fresh
+    /// (no step taken) and built from the same scenes, layout, options and worker count;
+    /// `origin` names the state in errors. After an error, drop the trainer.
+    pub fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> Result<()> {
+        use super::state::{Fields, check_header, open};
+        if self.policy.is_some() {
+            return Err(Error::Config(
+                "a training policy's state (stealth training) cannot be restored yet".into(),
+            ));
+        }
+        if self.step != 0 {
+            return Err(Error::Config(
+                "a training state goes into a trainer that has not stepped".into(),
+            ));
+        }
+        let doc = open(origin, bytes)?;
+        let f = Fields::top(origin, &doc)?;
+        check_header(&f, &self.fingerprint())?;
+        let step = f.u32("step")?;
+        let weight_steps = f.u32("weight_steps")?;
+        f.f32s_into("params", &mut self.params)?;
+        self.optimizer.restore(&f.map("optimizer")?)?;
+        if self.optimizer.step != weight_steps {
+            return Err(f.err(
+                "weight_steps",
+                format!(
+                    "{weight_steps}, but the optimizer took {} steps",
+                    self.optimizer.step
+                ),
+            ));
+        }
+        let clock = f.map("occupancy_clock")?;
+        self.grid_updates
+            .set_clock(clock.u64("since")?, clock.u32("updates")?);
+        let scene_fields = f.maps("scenes", self.scenes.len())?;
+        for (s, sf) in self.scenes.iter_mut().zip(scene_fields) {
+            let mut density = vec![0.0f32; s.grid.density.len()];
+            sf.f32s_into("density", &mut density)?;
+            let mut bitfield = vec![0u8; s.grid.bitfield().len()];
+            sf.bytes_into("bitfield", &mut bitfield)?;
+            s.grid = OccupancyGrid::from_parts(
+                density,
+                bitfield,
+                sf.f32("mean")?,
+                sf.u32("grid_updates")?,
+            )
+            .ok_or_else(|| sf.err("density", "does not make an occupancy grid"))?;
+            s.rays_per_batch = sf.u32("rays_per_batch")?;
+            s.measured_samples = sf.u32("measured_samples")?;
+            s.measured_marched = sf.u32("measured_marched")?;
+        }
+        self.step = step;
+        self.weight_steps = weight_steps;
+        Ok(())
+    }
+
     /// Weights to render with and to publish: the debiased EMA.
     pub fn inference_params(&self) -> Vec<f32> {
         self.optimizer.ema_params(&self.params)
@@ -958,6 +1099,128 @@ mod tests {
         )
         .unwrap();
         Arc::new(Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap())
+    }
+
+    fn two_scene_trainer(dir: &std::path::Path, seed: u64) -> Trainer {
+        let a = tiny_scene(&dir.join("a"), 6);
+        let b = tiny_scene(&dir.join("b"), 5);
+        let model = ModelConfig {
+            grid: GridConfig {
+                n_levels: 4,
+                n_features: 2,
+                log2_hashmap_size: 10,
+                base_resolution: 16,
+            },
+            aabb_scale: 1,
+        };
+        let layout = NerfLayout::new(model).unwrap();
+        let scenes = [a, b]
+            .into_iter()
+            .map(|dataset| SceneSpec {
+                dataset,
+                indices: reference_indices(&layout.grid),
+            })
+            .collect();
+        let tc = TrainConfig {
+            seed,
+            batch_samples: 1 << 11,
+            occupancy_fraction: 0.05,
+            workers: 2,
+            ..Default::default()
+        };
+        Trainer::new(model, scenes, tc).unwrap()
+    }
+
+    fn bits(v: &[f32]) -> Vec<u32> {
+        v.iter().map(|x| x.to_bits()).collect()
+    }
+
+    /// A run saved at step 12 and restored into a fresh trainer ends bit for bit where the
+    /// uninterrupted run does at step 30: weights, published (EMA) weights and both scenes'
+    /// grids; saving does not disturb the run that saved.
+    #[test]
+    fn a_restored_state_goes_on_bit_for_bit() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut whole = two_scene_trainer(dir.path(), 3);
+        for _ in 0..30 {
+            whole.train_step();
+        }
+        let mut first = two_scene_trainer(dir.path(), 3);
+        for _ in 0..12 {
+            first.train_step();
+        }
+        let saved = first.save_state().unwrap();
+        let mut resumed = two_scene_trainer(dir.path(), 3);
+        resumed
+            .restore_state(&saved, std::path::Path::new("state"))
+            .unwrap();
+        assert_eq!(resumed.step, 12);
+        for _ in 12..30 {
+            first.train_step();
+            resumed.train_step();
+        }
+        for t in [&first, &resumed] {
+            assert_eq!(t.step, whole.step);
+            assert!(bits(&t.params) == bits(&whole.params), "weights differ");
+            assert!(
+                bits(&t.inference_params()) == bits(&whole.inference_params()),
+                "published weights differ"
+            );
+            for i in 0..2 {
+                assert!(
+                    bits(&t.grid(i).density) == bits(&whole.grid(i).density),
+                    "grid {i}"
+                );
+                assert_eq!(t.grid(i).bitfield(), whole.grid(i).bitfield());
+                assert_eq!(t.batch_counters(i), whole.batch_counters(i));
+            }
+        }
+        // The state really moves the run: a fresh trainer without it differs.
+        let mut fresh = two_scene_trainer(dir.path(), 3);
+        for _ in 12..30 {
+            fresh.train_step();
+        }
+        assert!(bits(&fresh.params) != bits(&whole.params));
+    }
+
+    #[test]
+    fn a_state_from_another_training_or_damaged_is_refused_naming_the_field() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut t = two_scene_trainer(dir.path(), 3);
+        for _ in 0..3 {
+            t.train_step();
+        }
+        let saved = t.save_state().unwrap();
+        let origin = std::path::Path::new("run.state");
+        let err = |r: Result<()>| r.unwrap_err().to_string();
+        // Another seed: the options differ.
+        let e = err(two_scene_trainer(dir.path(), 4).restore_state(&saved, origin));
+        assert!(
+            e.contains("run.state") && e.contains("fingerprint") && e.contains("options"),
+            "{e}"
+        );
+        // Truncated, and not msgpack at all.
+        let e =
+            err(two_scene_trainer(dir.path(), 3).restore_state(&saved[..saved.len() / 2], origin));
+        assert!(e.contains("run.state") && e.contains("msgpack"), "{e}");
+        let e = err(two_scene_trainer(dir.path(), 3).restore_state(b"{}", origin));
+        assert!(e.contains("run.state"), "{e}");
+        // A trainer that has stepped.
+        let e = err(t.restore_state(&saved, origin));
+        assert!(e.contains("not stepped"), "{e}");
+        // The weights of a smaller table: the length is checked, nothing copied.
+        let mut doc = rmpv::decode::read_value(&mut saved.as_slice()).unwrap();
+        if let rmpv::Value::Map(m) = &mut doc {
+            for (k, v) in m.iter_mut() {
+                if k.as_str() == Some("params") {
+                    *v = rmpv::Value::Binary(vec![0; 16]);
+                }
+            }
+        }
+        let mut forged = Vec::new();
+        rmpv::encode::write_value(&mut forged, &doc).unwrap();
+        let e = err(two_scene_trainer(dir.path(), 3).restore_state(&forged, origin));
+        assert!(e.contains("field params") && e.contains("16 bytes"), "{e}");
     }
 
     /// [`PolicyOps::density_loss`]'s gradient through the network and the grid equals
