@@ -154,6 +154,11 @@ struct Summary {
     device: DeviceReport,
     steps: u32,
     train_seconds: f64,
+    /// --save-every: states written, their total seconds (outside `train_seconds`), and the
+    /// seconds --resume took to read and restore one.
+    state_saves: u32,
+    state_save_seconds: f64,
+    resume_seconds: f64,
     /// The cover's loss (what the file stores).
     final_loss: f32,
     samples_per_second: f64,
@@ -211,10 +216,12 @@ pub fn run(a: Args) -> Result<()> {
             "--save-every and --resume do not work with --stealth yet (its policy's state is not saved)"
         );
     }
+    let t_read = std::time::Instant::now();
     let resume_bytes = match &a.resume {
         Some(p) => Some(std::fs::read(p).with_context(|| format!("reading {}", p.display()))?),
         None => None,
     };
+    let read_seconds = t_read.elapsed().as_secs_f64();
     if a.save_every.is_some() {
         let sp = state_path(&a);
         check_parent_dir(&sp)?;
@@ -278,10 +285,21 @@ pub fn run(a: Args) -> Result<()> {
         )
     };
     let device = a.device.open()?;
+    if (a.save_every.is_some() || a.resume.is_some())
+        && !matches!(device, stegongp::backend::Device::Cpu { .. })
+    {
+        bail!(
+            "--save-every and --resume work on the CPU only for now ({}); use --device cpu",
+            device.report()
+        );
+    }
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
+    let mut resume_seconds = 0.0;
     if let (Some(bytes), Some(p)) = (&resume_bytes, &a.resume) {
+        let t0 = std::time::Instant::now();
         training.restore_state(bytes, p)?;
+        resume_seconds = t0.elapsed().as_secs_f64() + read_seconds;
         if !a.json {
             eprintln!(
                 "resumed from {} at step {} ({:.1} s trained)",
@@ -348,6 +366,14 @@ pub fn run(a: Args) -> Result<()> {
     pending.sort_by(|x, y| x.total_cmp(y));
     let state_file = state_path(&a);
     let mut saved_at = done_seconds;
+    let (mut state_saves, mut state_save_seconds) = (0u32, 0.0f64);
+    let mut save_state = |training: &stegongp::stego::recipe::Training| -> Result<()> {
+        let t0 = std::time::Instant::now();
+        training.save_state_to(&state_file)?;
+        state_saves += 1;
+        state_save_seconds += t0.elapsed().as_secs_f64();
+        Ok(())
+    };
     let grid = NerfLayout::new(model)?.grid;
     while training.step()?.is_some() {
         let t = *training.totals();
@@ -369,7 +395,7 @@ pub fn run(a: Args) -> Result<()> {
             None => false,
         };
         if save_due {
-            training.save_state_to(&state_file)?;
+            save_state(&training)?;
             saved_at = t.seconds;
         }
         while let Some(&m) = pending.first() {
@@ -433,7 +459,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     pb.finish_and_clear();
     if a.save_every.is_some() {
-        training.save_state_to(&state_file)?;
+        save_state(&training)?;
         if !a.json {
             eprintln!(
                 "training state: {} (owner-only{}; --resume goes on from it)",
@@ -464,6 +490,9 @@ pub fn run(a: Args) -> Result<()> {
         device: device.report(),
         steps: t.steps,
         train_seconds: t.seconds,
+        state_saves,
+        state_save_seconds,
+        resume_seconds,
         final_loss: trained.model.loss,
         samples_per_second: t.samples as f64 / t.seconds,
         marched_samples_per_second: t.marched as f64 / t.seconds,
