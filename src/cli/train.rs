@@ -367,7 +367,13 @@ pub fn run(a: Args) -> Result<()> {
     let state_file = state_path(&a);
     let mut saved_at = done_seconds;
     let (mut state_saves, mut state_save_seconds) = (0u32, 0.0f64);
+    let mut saved_step = None;
     let mut save_state = |training: &stegongp::stego::recipe::Training| -> Result<()> {
+        let step = training.totals().steps;
+        if saved_step == Some(step) {
+            return Ok(()); // the end of a run that just saved
+        }
+        saved_step = Some(step);
         let t0 = std::time::Instant::now();
         training.save_state_to(&state_file)?;
         state_saves += 1;
