@@ -21,21 +21,7 @@ fn names(dir: &Path) -> Vec<String> {
 
 /// A scene small enough that a few training steps take a fraction of a second.
 fn tiny_scene(dir: &Path) {
-    run_ok(&[
-        "synth",
-        "--scene",
-        "object",
-        "--out",
-        dir.to_str().unwrap(),
-        "--res",
-        "24",
-        "--train",
-        "8",
-        "--test",
-        "1",
-        "--val",
-        "0",
-    ]);
+    testkit::cli::synth(dir, "object", 24, 8);
 }
 
 /// `stegongp train` of [`tiny_scene`] into `out`: a 2^`log2_t`-entry, 8-level grid, a few

@@ -8,21 +8,7 @@ use std::time::{Duration, Instant};
 use testkit::cli::{bin, fails_naming, run_ok, stegongp};
 
 fn synth(dir: &Path, scene: &str) {
-    run_ok(&[
-        "synth",
-        "--scene",
-        scene,
-        "--res",
-        "24",
-        "--train",
-        "8",
-        "--test",
-        "1",
-        "--val",
-        "0",
-        "--out",
-        dir.to_str().unwrap(),
-    ]);
+    testkit::cli::synth(dir, scene, 24, 8);
 }
 
 /// Common options of every run here: small and fast, the same for all.

@@ -24,6 +24,26 @@ pub fn stegongp(args: &[&str]) -> Output {
         .expect("run stegongp")
 }
 
+/// `stegongp synth --scene SCENE` into `dir`: `res` px, `train` training views, one
+/// held-out view, no validation split.
+pub fn synth(dir: &Path, scene: &str, res: u32, train: u32) {
+    run_ok(&[
+        "synth",
+        "--scene",
+        scene,
+        "--res",
+        &res.to_string(),
+        "--train",
+        &train.to_string(),
+        "--test",
+        "1",
+        "--val",
+        "0",
+        "--out",
+        dir.to_str().expect("a UTF-8 path"),
+    ]);
+}
+
 /// The standard error of a run that must have succeeded.
 pub fn ok(out: &Output) -> String {
     let err = String::from_utf8_lossy(&out.stderr).into_owned();

@@ -1101,10 +1101,9 @@ mod tests {
         Arc::new(Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap())
     }
 
-    fn two_scene_trainer(dir: &std::path::Path, seed: u64) -> Trainer {
-        let a = tiny_scene(&dir.join("a"), 6);
-        let b = tiny_scene(&dir.join("b"), 5);
-        let model = ModelConfig {
+    /// 4 levels of 2^10 entries: a step in milliseconds.
+    fn tiny_model() -> ModelConfig {
+        ModelConfig {
             grid: GridConfig {
                 n_levels: 4,
                 n_features: 2,
@@ -1112,7 +1111,13 @@ mod tests {
                 base_resolution: 16,
             },
             aabb_scale: 1,
-        };
+        }
+    }
+
+    fn two_scene_trainer(dir: &std::path::Path, seed: u64) -> Trainer {
+        let a = tiny_scene(&dir.join("a"), 6);
+        let b = tiny_scene(&dir.join("b"), 5);
+        let model = tiny_model();
         let layout = NerfLayout::new(model).unwrap();
         let scenes = [a, b]
             .into_iter()
@@ -1232,15 +1237,7 @@ mod tests {
     fn a_density_losss_gradient_matches_finite_differences() {
         let dir = tempfile::tempdir().unwrap();
         let data = tiny_scene(dir.path(), 6);
-        let model = ModelConfig {
-            grid: GridConfig {
-                n_levels: 4,
-                n_features: 2,
-                log2_hashmap_size: 10,
-                base_resolution: 16,
-            },
-            aabb_scale: 1,
-        };
+        let model = tiny_model();
         let layout = NerfLayout::new(model).unwrap();
         let spec = SceneSpec {
             dataset: data,
