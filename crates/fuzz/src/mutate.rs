@@ -80,6 +80,10 @@ const INTERESTING_F64: &[f64] = &[
     1.8e19,
 ];
 
+/// The most one mutation adds to a document: growth by repetition, not by the mutator's
+/// own runaway (a string repeated across generations reached 4.7 GB).
+const GROWTH: usize = 1 << 20;
+
 const TOKENS: &[&str] = &[
     "0",
     "-1",
@@ -285,7 +289,7 @@ fn mutated_json(v: &Json, rng: &mut Rng) -> Json {
         }
         Json::String(s) if rng.chance(0.75) => match rng.below(4) {
             0 => Json::String(rng.pick(TOKENS).to_string()),
-            1 => Json::String(s.repeat(1 + rng.below(64))),
+            1 => Json::String(s.repeat((1 + rng.below(64)).min(GROWTH / s.len().max(1)).max(1))),
             2 => Json::String(s.chars().take(rng.below(s.len() + 1)).collect()),
             _ => Json::String(format!("{s}\u{0}\u{ffff}")),
         },
@@ -299,7 +303,8 @@ fn mutated_json(v: &Json, rng: &mut Rng) -> Json {
                 1 if !a.is_empty() => {
                     let i = rng.below(a.len());
                     let x = a[i].clone();
-                    for _ in 0..1 + rng.below(200) {
+                    let size = serde_json::to_vec(&x).map_or(GROWTH, |v| v.len().max(1));
+                    for _ in 0..(1 + rng.below(200)).min(GROWTH / size) {
                         a.push(x.clone());
                     }
                 }
@@ -436,7 +441,7 @@ fn mutated_mp(v: &rmpv::Value, rng: &mut Rng) -> rmpv::Value {
         }
         V::String(s) if rng.chance(0.7) => {
             let s = s.as_str().unwrap_or("");
-            V::from(if rng.chance(0.5) {
+            V::from(if rng.chance(0.5) || s.len() > GROWTH {
                 rng.pick(TOKENS).to_string()
             } else {
                 format!("{s}{s}")
@@ -449,9 +454,11 @@ fn mutated_mp(v: &rmpv::Value, rng: &mut Rng) -> rmpv::Value {
                     let i = rng.below(a.len());
                     a.remove(i);
                 }
-                1 if !a.is_empty() => {
+                1 if !a.is_empty() && a.len() < 100_000 => {
                     let x = a[rng.below(a.len())].clone();
-                    for _ in 0..1 + rng.below(100) {
+                    let mut size = Vec::new();
+                    let _ = rmpv::encode::write_value(&mut size, &x);
+                    for _ in 0..(1 + rng.below(100)).min(GROWTH / size.len().max(1)) {
                         a.push(x.clone());
                     }
                 }

@@ -246,7 +246,11 @@ pub fn run_target(target: &Target, cfg: &RunConfig) -> Stats {
             Outcome::Ok => {}
             Outcome::Err(msg) => {
                 stats.errors += 1;
-                stats.errors_naming_file += names_file(&msg, &case) as u64;
+                let named = names_file(&msg, &case);
+                stats.errors_naming_file += named as u64;
+                if !named && std::env::var_os("STEGONGP_FUZZ_SHOW_UNNAMED").is_some() {
+                    eprintln!("{}: an error naming no file: {msg}", target.name);
+                }
                 if seen.insert(signature(&msg)) && corpus.len() < seeds.len() + MAX_CORPUS {
                     corpus.push(case);
                 }
