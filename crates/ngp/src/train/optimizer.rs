@@ -82,6 +82,8 @@ pub struct Optimizer {
 /// Parameters per touched-bitmap bit: hashed levels scatter a batch over most 64-float
 /// lines, so only a fine granularity lets untouched entries be skipped.
 pub const GROUP: usize = 4;
+/// The most optimizer steps a restored state may have taken (the paper trains 50 000).
+pub const MAX_STEPS: u32 = 10_000_000;
 const BLOCK: usize = 1 << 14;
 
 /// The positions of the set bits of a bitmap given as 64-bit words, in increasing order.
@@ -186,6 +188,17 @@ impl Optimizer {
         f.f32s_into("ema", &mut self.ema)?;
         f.u32s_into("ema_step", &mut self.ema_step)?;
         self.step = f.u32("step")?;
+        // The bias-correction tables hold a value a step: a forged count must not make
+        // them gigabytes (the fuzzer's first run of training states found 2^30).
+        if self.step > MAX_STEPS {
+            return Err(f.err(
+                "step",
+                format!(
+                    "{}: more steps than a training runs (at most {MAX_STEPS})",
+                    self.step
+                ),
+            ));
+        }
         if let Some(bad) = self
             .steps
             .iter()

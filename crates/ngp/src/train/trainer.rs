@@ -1226,6 +1226,25 @@ mod tests {
         rmpv::encode::write_value(&mut forged, &doc).unwrap();
         let e = err(two_scene_trainer(dir.path(), 3).restore_state(&forged, origin));
         assert!(e.contains("field params") && e.contains("16 bytes"), "{e}");
+        // A forged step count: refused before the optimizer's tables are grown to it.
+        let mut doc = rmpv::decode::read_value(&mut saved.as_slice()).unwrap();
+        if let rmpv::Value::Map(m) = &mut doc {
+            for (k, v) in m.iter_mut() {
+                if k.as_str() == Some("optimizer")
+                    && let rmpv::Value::Map(o) = v
+                {
+                    for (k, v) in o.iter_mut() {
+                        if k.as_str() == Some("step") {
+                            *v = rmpv::Value::from(u32::MAX);
+                        }
+                    }
+                }
+            }
+        }
+        let mut forged = Vec::new();
+        rmpv::encode::write_value(&mut forged, &doc).unwrap();
+        let e = err(two_scene_trainer(dir.path(), 3).restore_state(&forged, origin));
+        assert!(e.contains("optimizer.step") && e.contains("at most"), "{e}");
     }
 
     /// [`PolicyOps::density_loss`]'s gradient through the network and the grid equals
