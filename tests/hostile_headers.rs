@@ -3,6 +3,7 @@
 //! before anything is allocated for it (under the limit, such an allocation would abort
 //! the process instead of failing cleanly).
 
+use fuzz::mutate::png_chunk;
 use std::path::Path;
 use std::process::{Command, Output};
 use testkit::cli::bin;
@@ -34,55 +35,26 @@ fn refused(out: &Output, needles: &[&str]) {
 }
 
 fn png_header(w: u32, h: u32) -> Vec<u8> {
-    // Signature, then an IHDR (8-bit RGB) with a correct CRC, one empty IDAT and IEND.
-    fn chunk(ty: &[u8], body: &[u8], out: &mut Vec<u8>) {
-        out.extend((body.len() as u32).to_be_bytes());
-        let mut c = ty.to_vec();
-        c.extend(body);
-        out.extend(&c);
-        let mut crc = 0xffff_ffffu32;
-        for &b in &c {
-            crc ^= b as u32;
-            for _ in 0..8 {
-                crc = if crc & 1 != 0 {
-                    0xedb8_8320 ^ (crc >> 1)
-                } else {
-                    crc >> 1
-                };
-            }
-        }
-        out.extend((!crc).to_be_bytes());
-    }
+    // Signature, an IHDR (8-bit RGB), one empty IDAT and IEND.
     let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
     let mut ihdr = Vec::new();
     ihdr.extend(w.to_be_bytes());
     ihdr.extend(h.to_be_bytes());
     ihdr.extend([8, 2, 0, 0, 0]);
-    chunk(b"IHDR", &ihdr, &mut out);
-    chunk(
+    png_chunk(b"IHDR", &ihdr, &mut out);
+    png_chunk(
         b"IDAT",
         &[0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01],
         &mut out,
     );
-    chunk(b"IEND", &[], &mut out);
+    png_chunk(b"IEND", &[], &mut out);
     out
 }
 
+/// A JPEG of `w`×`h` whose scan holds one block's bits: the header alone declares the size.
 fn jpeg_header(w: u16, h: u16) -> Vec<u8> {
-    let mut j = vec![0xff, 0xd8, 0xff, 0xdb, 0x00, 0x43, 0x00];
-    j.extend([1u8; 64]);
-    j.extend([0xff, 0xc0, 0x00, 0x0b, 0x08]);
-    j.extend(h.to_be_bytes());
-    j.extend(w.to_be_bytes());
-    j.extend([0x01, 0x01, 0x11, 0x00]);
-    for class in [0x00u8, 0x10] {
-        j.extend([0xff, 0xc4, 0x00, 0x14, class, 0x01]);
-        j.extend([0u8; 15]);
-        j.push(0x00);
-    }
-    j.extend([
-        0xff, 0xda, 0x00, 0x08, 0x01, 0x01, 0x00, 0x00, 0x3f, 0x00, 0x3f, 0xff, 0xd9,
-    ]);
+    let mut j = fuzz::seeds::jpeg_header(w, h);
+    j.extend([0x3f, 0xff, 0xd9]);
     j
 }
 

@@ -550,15 +550,20 @@ fn mutate_png(data: &mut Vec<u8>, rng: &mut Rng) -> bool {
     }
     let mut out = data[..SIG].to_vec();
     for (ty, body) in &chunks {
-        out.extend((body.len() as u32).to_be_bytes());
-        out.extend(ty);
-        out.extend(body);
-        let mut crc_in = ty.clone();
-        crc_in.extend(body);
-        out.extend(crc32(&crc_in).to_be_bytes());
+        png_chunk(ty, body, &mut out);
     }
     *data = out;
     true
+}
+
+/// Appends a PNG chunk: length, type, data and the CRC of type and data.
+pub fn png_chunk(ty: &[u8], body: &[u8], out: &mut Vec<u8>) {
+    out.extend((body.len() as u32).to_be_bytes());
+    let start = out.len();
+    out.extend(ty);
+    out.extend(body);
+    let crc = crc32(&out[start..]);
+    out.extend(crc.to_be_bytes());
 }
 
 fn crc32(bytes: &[u8]) -> u32 {

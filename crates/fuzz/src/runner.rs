@@ -182,12 +182,10 @@ fn names_file(msg: &str, case: &Case) -> bool {
 }
 
 fn save_finding(root: &Path, target: &Target, case: &Case, what: &str) -> Option<PathBuf> {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for (n, b) in case {
-        for &x in n.as_bytes().iter().chain(b) {
-            h = (h ^ x as u64).wrapping_mul(0x100_0000_01b3);
-        }
-    }
+    let h = fnv(case
+        .iter()
+        .flat_map(|(n, b)| n.as_bytes().iter().chain(b))
+        .copied());
     let dir = root.join(target.name).join(format!("{h:016x}"));
     write_case(&dir, case).ok()?;
     std::fs::write(dir.join(NOTE), format!("{what}\n")).ok()?;
@@ -211,7 +209,7 @@ pub struct RunConfig<'a> {
 /// Runs `cfg.cases` mutated cases of `target`.
 pub fn run_target(target: &Target, cfg: &RunConfig) -> Stats {
     let dir = cfg.work.join(target.name);
-    let mut rng = Rng::new(cfg.seed, fnv(target.name));
+    let mut rng = Rng::new(cfg.seed, fnv(target.name.bytes()));
     let mut seeds = (target.seeds)();
     if let Some(data) = cfg.real {
         seeds.extend(crate::real::seeds(target.name, data));
@@ -320,8 +318,9 @@ pub fn replay(target: &Target, dir: &Path, work: &Path) -> std::io::Result<(usiz
     Ok((n, failed))
 }
 
-fn fnv(s: &str) -> u64 {
-    s.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+/// FNV-1a: a case's folder name, a target's random stream.
+fn fnv(bytes: impl Iterator<Item = u8>) -> u64 {
+    bytes.fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
         (h ^ b as u64).wrapping_mul(0x100_0000_01b3)
     })
 }

@@ -120,26 +120,30 @@ pub fn png(w: u32, h: u32, alpha: bool) -> Vec<u8> {
     out
 }
 
-/// A baseline JPEG, `w`×`h`, grey: the smallest file the decoder fully reads (one
-/// quantisation table, one-code Huffman tables, every block a DC of 0 and an end-of-block).
-pub fn jpeg_sized(w: u16, h: u16) -> Vec<u8> {
+/// A baseline JPEG's markers up to its scan's start, `w`×`h`, one grey component: one
+/// quantisation table of ones, one-code Huffman tables (DC category 0; AC end-of-block).
+/// The entropy-coded data is the caller's.
+pub fn jpeg_header(w: u16, h: u16) -> Vec<u8> {
     let mut j = vec![0xff, 0xd8];
-    // DQT: table 0, all ones.
     j.extend([0xff, 0xdb, 0x00, 0x43, 0x00]);
     j.extend([1u8; 64]);
-    // SOF0: 8 bits, h×w, one component (id 1, 1×1 sampling, table 0).
     j.extend([0xff, 0xc0, 0x00, 0x0b, 0x08]);
     j.extend(h.to_be_bytes());
     j.extend(w.to_be_bytes());
     j.extend([0x01, 0x01, 0x11, 0x00]);
-    // DHT DC 0 and AC 0: one code of length 1 each (DC category 0; AC end-of-block).
     for class in [0x00u8, 0x10] {
         j.extend([0xff, 0xc4, 0x00, 0x14, class, 0x01]);
         j.extend([0u8; 15]);
         j.push(0x00);
     }
-    // SOS: one component, tables 0/0, full spectral range.
     j.extend([0xff, 0xda, 0x00, 0x08, 0x01, 0x01, 0x00, 0x00, 0x3f, 0x00]);
+    j
+}
+
+/// A baseline JPEG, `w`×`h`, grey: the smallest file the decoder fully reads (one
+/// quantisation table, one-code Huffman tables, every block a DC of 0 and an end-of-block).
+pub fn jpeg_sized(w: u16, h: u16) -> Vec<u8> {
+    let mut j = jpeg_header(w, h);
     // Two zero bits a block (DC code '0', EOB code '0'), the last byte padded with ones.
     let blocks = (w as usize).div_ceil(8) * (h as usize).div_ceil(8);
     let bits = 2 * blocks;
