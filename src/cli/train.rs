@@ -13,7 +13,7 @@ use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::stego::options::choice;
 use stegongp::stego::recipe::{
-    Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
+    Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, SaveEvery, StepOptions, StoredLoss,
 };
 
 #[derive(clap::Args, Debug)]
@@ -73,11 +73,11 @@ pub struct Args {
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub profile_every: u32,
     /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
-    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it. CPU only,
-    /// not with --stealth. A stego run's state describes its hidden scenes: it is written
+    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it (CPU only;
+    /// with --stealth too). A stego run's state describes its hidden scenes: it is written
     /// owner-only and must be kept like the keys.
     #[arg(long, value_name = "N|Mm", value_parser = parse_every)]
-    pub save_every: Option<Every>,
+    pub save_every: Option<SaveEvery>,
     /// Where --save-every writes (default: the model's path with `.state` added).
     #[arg(long, value_name = "PATH")]
     pub state: Option<PathBuf>,
@@ -90,29 +90,8 @@ pub struct Args {
     pub json: bool,
 }
 
-/// How often `--save-every` saves.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Every {
-    Steps(u32),
-    Minutes(f64),
-}
-
-fn parse_every(s: &str) -> std::result::Result<Every, String> {
-    let bad = || format!("'{s}': expected a step count (500) or minutes (10m)");
-    match s.strip_suffix('m') {
-        Some(m) => {
-            let m: f64 = m.trim().parse().map_err(|_| bad())?;
-            if m.is_finite() && m > 0.0 {
-                Ok(Every::Minutes(m))
-            } else {
-                Err(bad())
-            }
-        }
-        None => match s.trim().parse::<u32>() {
-            Ok(n) if n > 0 => Ok(Every::Steps(n)),
-            _ => Err(bad()),
-        },
-    }
+fn parse_every(s: &str) -> std::result::Result<SaveEvery, String> {
+    s.parse()
 }
 
 /// The state's path: `--state`, else the model's with `.state` added.
@@ -211,11 +190,6 @@ pub fn run(a: Args) -> Result<()> {
     // The options first, before any image is read; the recipe checks them again with the
     // scenes and keys.
     a.training.check()?;
-    if a.training.stealth.enabled && (a.save_every.is_some() || a.resume.is_some()) {
-        bail!(
-            "--save-every and --resume do not work with --stealth yet (its policy's state is not saved)"
-        );
-    }
     let t_read = std::time::Instant::now();
     let resume_bytes = match &a.resume {
         Some(p) => Some(std::fs::read(p).with_context(|| format!("reading {}", p.display()))?),
@@ -395,11 +369,7 @@ pub fn run(a: Args) -> Result<()> {
             t.samples_per_second() / 1e3,
             t.phase_split()
         ));
-        let save_due = match a.save_every {
-            Some(Every::Steps(n)) => t.steps.is_multiple_of(n),
-            Some(Every::Minutes(m)) => t.seconds - saved_at >= m * 60.0,
-            None => false,
-        };
+        let save_due = a.save_every.is_some_and(|e| e.due(&t, saved_at));
         if save_due {
             save_state(&training)?;
             saved_at = t.seconds;

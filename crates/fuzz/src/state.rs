@@ -1,13 +1,17 @@
-//! Training states (`train --resume`): a fresh tiny trainer takes back each case. A state
-//! holds the grid of every scene, so a case is megabytes; CI runs fewer of them.
+//! Training states (`train --resume`): a fresh tiny trainer takes back each case, plain
+//! (`run.state`) or a cover and a hidden scene under stealth (`stealth.state`: the policy's
+//! own state and its mechanisms'). A state holds the grid of every scene, so a case is
+//! megabytes; CI runs fewer of them.
 
 use crate::seeds::{self, Case};
 use ngp::data::{Dataset, LoadOptions, Split};
 use ngp::encoding::reference_indices;
 use ngp::network::NerfLayout;
-use ngp::train::{SceneSpec, TrainConfig, Trainer};
+use ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use std::path::Path;
 use std::sync::{Arc, OnceLock};
+use stego::keys::SchemeKind;
+use stego::stealth::{Stealth, StealthOptions};
 
 static DATA: OnceLock<Result<Arc<Dataset>, String>> = OnceLock::new();
 
@@ -26,39 +30,71 @@ fn dataset() -> Result<Arc<Dataset>, String> {
     .clone()
 }
 
-fn trainer() -> Result<Trainer, String> {
+/// The tiny trainer, with a stealth policy and a hidden scene (the same images under a
+/// fixed key) when `stealth`.
+fn trainer(stealth: bool) -> Result<Trainer, String> {
     let model = seeds::tiny_config(1);
     let layout = NerfLayout::new(model).map_err(|e| e.to_string())?;
-    let spec = SceneSpec {
-        dataset: dataset()?,
-        indices: reference_indices(&layout.grid),
+    let spec = || -> Result<SceneSpec, String> {
+        Ok(SceneSpec {
+            dataset: dataset()?,
+            indices: reference_indices(&layout.grid),
+        })
+    };
+    let scenes = if stealth {
+        vec![spec()?, spec()?]
+    } else {
+        vec![spec()?]
     };
     let config = TrainConfig {
         seed: 1,
         batch_samples: 1 << 10,
         occupancy_fraction: 0.01,
         workers: 1,
+        schedule: Schedule::RandomScene,
         ..Default::default()
     };
-    Trainer::new(model, vec![spec], config).map_err(|e| e.to_string())
+    let mut t = Trainer::new(model, scenes, config).map_err(|e| e.to_string())?;
+    if stealth {
+        let mut n = 0u64;
+        let key = stego::keys::generate_with(SchemeKind::Prf, 4, || {
+            n += 1;
+            Ok(n.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+        })
+        .map_err(|e| e.to_string())?;
+        let options = StealthOptions {
+            enabled: true,
+            ..Default::default()
+        };
+        let policy = Stealth::new(layout, &[key], &options).map_err(|e| e.to_string())?;
+        t.set_policy(Box::new(policy)).map_err(|e| e.to_string())?;
+    }
+    Ok(t)
 }
 
 pub fn seeds() -> Vec<Case> {
-    let mut t = trainer().expect("the tiny trainer");
-    t.train_step();
-    let a = t.save_state().expect("a state");
-    t.train_step();
-    let b = t.save_state().expect("a state");
-    vec![
-        vec![("run.state".to_string(), a)],
-        vec![("run.state".to_string(), b)],
-    ]
+    let mut cases = Vec::new();
+    for (name, stealth) in [("run.state", false), ("stealth.state", true)] {
+        let mut t = trainer(stealth).expect("the tiny trainer");
+        for steps in [1, 3] {
+            while t.step < steps {
+                t.train_step();
+            }
+            cases.push(vec![(name.to_string(), t.save_state().expect("a state"))]);
+        }
+    }
+    cases
 }
 
 pub fn run(dir: &Path) -> Result<(), String> {
-    let path = dir.join("run.state");
+    let stealth = dir.join("stealth.state");
+    let (path, stealth) = if stealth.exists() {
+        (stealth, true)
+    } else {
+        (dir.join("run.state"), false)
+    };
     let bytes = std::fs::read(&path).map_err(|e| e.to_string())?;
-    let mut t = trainer()?;
+    let mut t = trainer(stealth)?;
     t.restore_state(&bytes, &path).map_err(|e| e.to_string())?;
     // What a resumed run does next.
     t.train_step();

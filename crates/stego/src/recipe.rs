@@ -454,6 +454,42 @@ impl Totals {
     }
 }
 
+/// How often a long training saves its state (`--save-every`): every N steps (`500`) or
+/// every M minutes of training (`10m`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SaveEvery {
+    Steps(u32),
+    Minutes(f64),
+}
+
+impl std::str::FromStr for SaveEvery {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        let bad = || format!("'{s}': expected a step count (500) or minutes (10m)");
+        match s.strip_suffix('m') {
+            Some(m) => match m.trim().parse::<f64>() {
+                Ok(m) if m.is_finite() && m > 0.0 => Ok(SaveEvery::Minutes(m)),
+                _ => Err(bad()),
+            },
+            None => match s.trim().parse::<u32>() {
+                Ok(n) if n > 0 => Ok(SaveEvery::Steps(n)),
+                _ => Err(bad()),
+            },
+        }
+    }
+}
+
+impl SaveEvery {
+    /// Whether a save is due after the step that brought the run to `totals`, the last save
+    /// having been at `saved_at` seconds of training.
+    pub fn due(&self, totals: &Totals, saved_at: f64) -> bool {
+        match *self {
+            SaveEvery::Steps(n) => totals.steps.is_multiple_of(n),
+            SaveEvery::Minutes(m) => totals.seconds - saved_at >= m * 60.0,
+        }
+    }
+}
+
 /// The run-state document ([`Training::save_state`]).
 pub const RUN_STATE_FORMAT: &str = "stegongp-run-state";
 pub const RUN_STATE_VERSION: u64 = 1;

@@ -82,6 +82,27 @@ impl EntrySet {
     pub fn fraction(&self) -> f64 {
         self.count as f64 / self.size.max(1) as f64
     }
+
+    /// The set's bits, 64 entries a word (what a training state saves).
+    pub fn words(&self) -> &[u64] {
+        &self.bits
+    }
+
+    /// A set of `size` entries from its [`Self::words`]; `None` when their count does not
+    /// fit `size` or a bit past the last entry is set.
+    pub fn from_words(size: u32, bits: Vec<u64>) -> Option<Self> {
+        if bits.len() != (size as usize).div_ceil(64) {
+            return None;
+        }
+        if !size.is_multiple_of(64)
+            && let Some(&last) = bits.last()
+            && last >> (size % 64) != 0
+        {
+            return None;
+        }
+        let count = bits.iter().map(|w| w.count_ones()).sum();
+        Some(EntrySet { size, count, bits })
+    }
 }
 
 /// Network-space (`[0,1]³`) boxes of the coarsest cascade's occupied cells, clipped to the

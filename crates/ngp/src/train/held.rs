@@ -33,6 +33,10 @@ impl HoldBack {
         &self.pending
     }
 
+    pub(super) fn pending_mut(&mut self) -> &mut [f32] {
+        &mut self.pending
+    }
+
     fn gated(&self, i: usize) -> bool {
         self.gate[i / 64] >> (i % 64) & 1 != 0
     }

@@ -98,6 +98,31 @@ pub trait TrainPolicy: Send {
         let _ = (step, ops);
         Ok(())
     }
+
+    /// The policy's own state between two steps, for a training state ([`super::state`]):
+    /// what it carries from one step to the next that building it again does not give
+    /// back. `None`: nothing (the default).
+    fn save_state(&self) -> Result<Option<Vec<u8>>> {
+        Ok(None)
+    }
+
+    /// Takes back a [`Self::save_state`] into a policy built the same way and installed in
+    /// a trainer whose own state has just been restored; `origin` names the state in
+    /// errors. Returns the index functions the policy had last given ([`Self::indices`]),
+    /// which the trainer sets again.
+    fn restore_state(
+        &mut self,
+        bytes: Option<&[u8]>,
+        origin: &std::path::Path,
+    ) -> Result<Vec<(usize, LevelIndices)>> {
+        match bytes {
+            None => Ok(Vec::new()),
+            Some(_) => Err(crate::error::Error::format(
+                origin,
+                "holds a training policy's state that this policy does not keep",
+            )),
+        }
+    }
 }
 
 /// The mechanisms a policy drives, implemented by each backend on the gradient of the step

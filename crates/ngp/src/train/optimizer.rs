@@ -136,6 +136,13 @@ impl Touched {
     pub fn clear(&mut self) {
         self.bits.fill(0);
     }
+    /// The marks, one bit a group (a training state saves them).
+    pub fn words(&self) -> &[u64] {
+        &self.bits
+    }
+    pub fn words_mut(&mut self) -> &mut [u64] {
+        &mut self.bits
+    }
 }
 
 impl Optimizer {

@@ -16,7 +16,9 @@ use rmpv::Value;
 use std::path::Path;
 
 pub const FORMAT: &str = "stegongp-train-state";
-pub const VERSION: u64 = 1;
+/// 2: a training policy's state, the mechanisms' (held-back gradients, table bounds) and
+/// the gradients a step left waiting in the workers' buffers.
+pub const VERSION: u64 = 2;
 
 pub fn f32s(v: &[f32]) -> Value {
     Value::Binary(v.iter().flat_map(|x| x.to_le_bytes()).collect())
@@ -24,6 +26,19 @@ pub fn f32s(v: &[f32]) -> Value {
 
 pub fn u32s(v: &[u32]) -> Value {
     Value::Binary(v.iter().flat_map(|x| x.to_le_bytes()).collect())
+}
+
+/// The values of `v` whose bits are not zero (−0.0 included), as `{index, value}`: what a
+/// mostly-empty gradient or bound array costs.
+pub fn sparse(v: &[f32]) -> Value {
+    let (mut index, mut value) = (Vec::new(), Vec::new());
+    for (i, x) in v.iter().enumerate() {
+        if x.to_bits() != 0 {
+            index.push(i as u32);
+            value.push(*x);
+        }
+    }
+    map(vec![("index", u32s(&index)), ("value", f32s(&value))])
 }
 
 pub fn map(entries: Vec<(&str, Value)>) -> Value {
@@ -147,6 +162,55 @@ impl<'a> Fields<'a> {
             *o = u32::from_le_bytes([c[0], c[1], c[2], c[3]]);
         }
         Ok(())
+    }
+
+    /// A [`sparse`] array into `out` (zeroed first): indices strictly increasing and within
+    /// `out`, one value each.
+    pub fn sparse_into(&self, key: &str, out: &mut [f32]) -> Result<()> {
+        let f = self.map(key)?;
+        let (index, value) = (f.binary("index")?, f.binary("value")?);
+        if index.len() % 4 != 0 || index.len() != value.len() || index.len() / 4 > out.len() {
+            return Err(self.err(
+                key,
+                format!(
+                    "{} index and {} value bytes for at most {} values",
+                    index.len(),
+                    value.len(),
+                    out.len()
+                ),
+            ));
+        }
+        out.fill(0.0);
+        let mut next = 0usize;
+        for (i, v) in index.chunks_exact(4).zip(value.chunks_exact(4)) {
+            let i = u32::from_le_bytes([i[0], i[1], i[2], i[3]]) as usize;
+            if i < next || i >= out.len() {
+                return Err(self.err(
+                    key,
+                    format!("index {i} out of order or past {} values", out.len()),
+                ));
+            }
+            out[i] = f32::from_le_bytes([v[0], v[1], v[2], v[3]]);
+            next = i + 1;
+        }
+        Ok(())
+    }
+
+    /// u32 values of any count up to `max`.
+    pub fn u32s(&self, key: &str, max: usize) -> Result<Vec<u32>> {
+        let b = self.binary(key)?;
+        if b.len() % 4 != 0 || b.len() / 4 > max {
+            return Err(self.err(
+                key,
+                format!(
+                    "{} bytes where at most {max} values of 4 bytes fit",
+                    b.len()
+                ),
+            ));
+        }
+        Ok(b.chunks_exact(4)
+            .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect())
     }
 
     pub fn bytes_into(&self, key: &str, out: &mut [u8]) -> Result<()> {

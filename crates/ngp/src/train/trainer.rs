@@ -11,7 +11,7 @@
 
 use super::grid_updates::GridUpdates;
 use super::held::{HoldBack, KeptMlp};
-use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
+use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy, UNBOUNDED};
 use super::loss::{DENSITY_PULL_UP, ray_loss};
 use super::optimizer::{Optimizer, OptimizerConfig, Touched};
 use super::schedule::{
@@ -334,6 +334,15 @@ impl Trainer {
             ),
             ("options".to_string(), format!("{options:?}")),
             ("scenes".to_string(), self.scenes.len().to_string()),
+            (
+                "policy".to_string(),
+                if self.policy.is_some() {
+                    "installed"
+                } else {
+                    "none"
+                }
+                .to_string(),
+            ),
         ];
         for (i, s) in self.scenes.iter().enumerate() {
             let f = &s.data.frames;
@@ -355,16 +364,13 @@ impl Trainer {
     }
 
     /// The whole training state between two steps ([`super::state`]): restored into a
-    /// trainer built the same way, training goes on as if it had never stopped. Not with a
-    /// training policy (stealth), whose own state is not saved yet.
+    /// trainer built the same way (its policy too), training goes on as if it had never
+    /// stopped. With a policy: its own state, the mechanisms' (held-back gradients, table
+    /// bounds) and the gradients a step that did not update the weights left waiting in
+    /// the workers' buffers.
     pub fn save_state(&self) -> Result<Vec<u8>> {
-        use super::state::{FORMAT, VERSION, encode, f32s, map};
+        use super::state::{FORMAT, VERSION, encode, f32s, map, sparse, u32s};
         use rmpv::Value;
-        if self.policy.is_some() {
-            return Err(Error::Config(
-                "a training policy's state (stealth training) cannot be saved yet".into(),
-            ));
-        }
         let fingerprint = Value::Map(
             self.fingerprint()
                 .into_iter()
@@ -387,6 +393,39 @@ impl Trainer {
             })
             .collect();
         let (since, updates) = self.grid_updates.clock();
+        let bounds = self.mech.bounds.as_ref().map_or(Value::Nil, |b| {
+            let bounded: Vec<u32> = (0..b.bounds().len() as u32)
+                .filter(|&e| b.is_bounded(e as usize))
+                .collect();
+            let values: Vec<f32> = bounded.iter().map(|&e| b.bound(e as usize)).collect();
+            map(vec![("entries", u32s(&bounded)), ("bounds", f32s(&values))])
+        });
+        let mechanisms = map(vec![
+            (
+                "held",
+                self.mech
+                    .hold
+                    .as_ref()
+                    .map_or(Value::Nil, |h| sparse(h.pending())),
+            ),
+            ("bounds", bounds),
+        ]);
+        let workers = self
+            .workers
+            .iter()
+            .map(|w| {
+                let touched: Vec<u8> = w
+                    .touched
+                    .words()
+                    .iter()
+                    .flat_map(|x| x.to_le_bytes())
+                    .collect();
+                map(vec![
+                    ("grad", sparse(&w.grad)),
+                    ("touched", Value::Binary(touched)),
+                ])
+            })
+            .collect();
         Ok(encode(&map(vec![
             ("format", Value::from(FORMAT)),
             ("version", Value::from(VERSION)),
@@ -403,6 +442,15 @@ impl Trainer {
                 ]),
             ),
             ("scenes", Value::Array(scenes)),
+            ("mechanisms", mechanisms),
+            ("workers", Value::Array(workers)),
+            (
+                "policy",
+                match &self.policy {
+                    Some(p) => p.save_state()?.map_or(Value::Nil, Value::Binary),
+                    None => Value::Nil,
+                },
+            ),
         ])))
     }
 
@@ -411,11 +459,6 @@ impl Trainer {
     /// `origin` names the state in errors. After an error, drop the trainer.
     pub fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> Result<()> {
         use super::state::{Fields, check_header, open};
-        if self.policy.is_some() {
-            return Err(Error::Config(
-                "a training policy's state (stealth training) cannot be restored yet".into(),
-            ));
-        }
         if self.step != 0 {
             return Err(Error::Config(
                 "a training state goes into a trainer that has not stepped".into(),
@@ -457,8 +500,70 @@ impl Trainer {
             s.measured_samples = sf.u32("measured_samples")?;
             s.measured_marched = sf.u32("measured_marched")?;
         }
+        self.restore_mechanisms(&f.map("mechanisms")?)?;
+        let worker_fields = f.maps("workers", self.workers.len())?;
+        for (w, wf) in self.workers.iter_mut().zip(worker_fields) {
+            wf.sparse_into("grad", &mut w.grad)?;
+            let words = w.touched.words_mut();
+            let mut raw = vec![0u8; words.len() * 8];
+            wf.bytes_into("touched", &mut raw)?;
+            for (x, c) in words.iter_mut().zip(raw.chunks_exact(8)) {
+                *x = u64::from_le_bytes(c.try_into().expect("8 bytes"));
+            }
+        }
+        // The fingerprint has checked that a policy is installed here iff one saved.
+        let saved = if f.has("policy") {
+            Some(f.binary("policy")?)
+        } else {
+            None
+        };
+        if let Some(p) = &mut self.policy {
+            let fresh = p.restore_state(saved, origin)?;
+            self.set_indices(fresh)?;
+        }
         self.step = step;
         self.weight_steps = weight_steps;
+        Ok(())
+    }
+
+    /// The policy mechanisms' state ([`Self::save_state`]): the held-back sums and the
+    /// table's bounds, each absent until a policy first used it.
+    fn restore_mechanisms(&mut self, f: &super::state::Fields) -> Result<()> {
+        let n = self.params.len();
+        let n_matrix = self.net.layout.n_mlp_params();
+        self.mech.hold = if f.has("held") {
+            let mut hold = HoldBack::new(n, n_matrix);
+            f.sparse_into("held", hold.pending_mut())?;
+            if hold.pending()[..n_matrix].iter().any(|&g| g != 0.0) {
+                return Err(f.err("held", "holds back an MLP gradient (never held)"));
+            }
+            Some(hold)
+        } else {
+            None
+        };
+        self.mech.bounds = if f.has("bounds") {
+            let bf = f.map("bounds")?;
+            let n_features = self.net.layout.config.grid.n_features as usize;
+            let n_entries = (n - self.net.layout.grid_offset) / n_features;
+            let entries = bf.u32s("entries", n_entries)?;
+            let mut values = vec![0.0f32; entries.len()];
+            bf.f32s_into("bounds", &mut values)?;
+            let mut bound = vec![UNBOUNDED; n_entries];
+            let mut next = 0;
+            for (&e, &b) in entries.iter().zip(&values) {
+                if (e as usize) < next || e as usize >= n_entries || !(b >= 0.0 && b.is_finite()) {
+                    return Err(bf.err(
+                        "entries",
+                        format!("entry {e} out of order, past {n_entries}, or with bound {b}"),
+                    ));
+                }
+                bound[e as usize] = b;
+                next = e as usize + 1;
+            }
+            Some(TableBounds::from_bounds(bound, n_features))
+        } else {
+            None
+        };
         Ok(())
     }
 

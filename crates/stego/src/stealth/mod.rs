@@ -64,6 +64,7 @@ pub use left_entries::LeftEntries;
 use crate::keys::Key;
 use density_cap::cap_gradient;
 use ngp::encoding::LevelIndices;
+use ngp::encoding::reach::EntrySet;
 use ngp::error::{Error, Result};
 use ngp::network::NerfLayout;
 use ngp::occupancy::OccupancyGrid;
@@ -198,6 +199,9 @@ pub struct Stealth {
     left: Option<LeftEntries>,
     /// The density cap's cells, from the cover's grid as of its last update.
     cap_cells: Vec<u32>,
+    /// The cover's entries the last confinement was made from (a training state saves
+    /// them: the weights they were read from have moved on since); empty before.
+    entries: Vec<EntrySet>,
 }
 
 impl Stealth {
@@ -231,6 +235,7 @@ impl Stealth {
             keyed,
             left,
             cap_cells: Vec::new(),
+            entries: Vec::new(),
         })
     }
 }
@@ -251,12 +256,8 @@ impl TrainPolicy for Stealth {
         if self.keyed.is_empty() {
             return Vec::new();
         }
-        let maps = confinement_maps(&self.layout, published);
-        self.keyed
-            .iter()
-            .enumerate()
-            .map(|(i, k)| (i + 1, confine::confine_indices(k, &maps)))
-            .collect()
+        self.entries = cover_entries(&self.layout, published);
+        self.confined_indices()
     }
 
     fn grid_updated(
@@ -307,6 +308,102 @@ impl TrainPolicy for Stealth {
             ops.restore_mlp()?;
         }
         Ok(())
+    }
+
+    /// The parts (to refuse a state saved with other options), the cover's entries of the
+    /// last confinement and the density cap's cells; the keys' indices and the bound rule
+    /// are rebuilt from the keys and the layout.
+    fn save_state(&self) -> Result<Option<Vec<u8>>> {
+        use ngp::train::state::{encode, map, u32s};
+        use rmpv::Value;
+        let entries = self
+            .entries
+            .iter()
+            .map(|set| {
+                let words: Vec<u8> = set.words().iter().flat_map(|w| w.to_le_bytes()).collect();
+                map(vec![("words", Value::Binary(words))])
+            })
+            .collect();
+        Ok(Some(encode(&map(vec![
+            ("format", Value::from(STATE_FORMAT)),
+            ("parts", Value::from(format!("{:?}", self.parts))),
+            ("entries", Value::Array(entries)),
+            ("cap_cells", u32s(&self.cap_cells)),
+        ]))))
+    }
+
+    fn restore_state(
+        &mut self,
+        bytes: Option<&[u8]>,
+        origin: &std::path::Path,
+    ) -> Result<Vec<(usize, LevelIndices)>> {
+        use ngp::train::state::{Fields, open};
+        let Some(bytes) = bytes else {
+            return Err(Error::format(origin, "holds no stealth state"));
+        };
+        let doc = open(origin, bytes)?;
+        let f = Fields::top(origin, &doc)?;
+        if f.str("format")? != STATE_FORMAT {
+            return Err(f.err("format", format!("not a stealth state ({STATE_FORMAT})")));
+        }
+        if f.str("parts")? != format!("{:?}", self.parts) {
+            return Err(f.err(
+                "parts",
+                "saved with other stealth options (--cover-only-mlp, --density-cap)",
+            ));
+        }
+        let levels = &self.layout.grid.levels;
+        // Confinement records its entries from its installation on, and only it does.
+        let n_saved = if self.keyed.is_empty() {
+            0
+        } else {
+            levels.len()
+        };
+        let saved = f.maps("entries", n_saved)?;
+        let mut entries = Vec::with_capacity(saved.len());
+        for (lv, ef) in levels.iter().zip(&saved) {
+            let mut raw = vec![0u8; (lv.size as usize).div_ceil(64) * 8];
+            ef.bytes_into("words", &mut raw)?;
+            let words = raw
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect();
+            entries.push(
+                EntrySet::from_words(lv.size, words)
+                    .ok_or_else(|| ef.err("words", "a bit past the level's last entry"))?,
+            );
+        }
+        let cells =
+            ngp::occupancy::N_CELLS * ngp::occupancy::n_cascades(self.layout.config.aabb_scale);
+        self.cap_cells = f.u32s("cap_cells", cells)?;
+        if let Some(&c) = self.cap_cells.iter().find(|&&c| c as usize >= cells) {
+            return Err(f.err("cap_cells", format!("cell {c} past the grid's {cells}")));
+        }
+        self.entries = entries;
+        Ok(self.confined_indices())
+    }
+}
+
+/// A stealth policy's state document (inside a training state).
+const STATE_FORMAT: &str = "stegongp-stealth-state";
+
+impl Stealth {
+    /// The hidden scenes' index functions: the keys', confined to [`Self::entries`]; none
+    /// without confinement.
+    fn confined_indices(&self) -> Vec<(usize, LevelIndices)> {
+        if self.keyed.is_empty() {
+            return Vec::new();
+        }
+        let maps: Vec<std::sync::Arc<[u32]>> = self
+            .entries
+            .iter()
+            .map(|s| std::sync::Arc::from(confinement_map(s)))
+            .collect();
+        self.keyed
+            .iter()
+            .enumerate()
+            .map(|(i, k)| (i + 1, confine::confine_indices(k, &maps)))
+            .collect()
     }
 }
 

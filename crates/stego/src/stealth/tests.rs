@@ -189,3 +189,170 @@ fn a_density_cap_holds_the_covers_grid_down() {
     assert_eq!(capped, 0);
     assert!(params == free_params, "an idle cap moved the weights");
 }
+
+/// A stealth run saved between two steps — with hidden-only steps' gradients waiting in the
+/// buffers, held-back table gradients, bounds on the entries the cover left and confined
+/// hidden indices — and restored into a fresh trainer with a fresh policy goes on bit for
+/// bit as the run that never stopped (every part on, the random-scene schedule whose
+/// hidden steps update nothing).
+#[test]
+fn a_stealth_run_restored_goes_on_bit_for_bit() {
+    // With the MLP shared, a hidden-only step leaves its MLP gradient waiting; with the
+    // cover's own MLP, it keeps none.
+    for cover_only_mlp in [false, true] {
+        stealth_restores_bit_for_bit(cover_only_mlp);
+    }
+}
+
+fn stealth_restores_bit_for_bit(cover_only_mlp: bool) {
+    let dir = tempfile::tempdir().unwrap();
+    let load = |name: &str, scene: SceneKind, seed: u64| {
+        let d = dir.path().join(name);
+        let opts = SynthOptions {
+            scene,
+            resolution: 16,
+            n_train: 4,
+            n_val: 0,
+            n_test: 1,
+            seed,
+            aabb_scale: 1,
+        };
+        generate(&opts, &d).unwrap();
+        Arc::new(Dataset::load(&d, Split::Train, &LoadOptions::default()).unwrap())
+    };
+    let cover = load("cover", SceneKind::Object, 1);
+    let hidden = load("hidden", SceneKind::Text("HI".into()), 2);
+    let model = ModelConfig {
+        grid: GridConfig {
+            n_levels: 4,
+            n_features: 2,
+            log2_hashmap_size: 10,
+            base_resolution: 16,
+        },
+        aabb_scale: 1,
+    };
+    let layout = NerfLayout::new(model).unwrap();
+    let key = crate::keys::generate_prf(4).unwrap();
+    let parts = StealthParts {
+        cover_only_mlp,
+        // Low enough that these few steps' cover exceeds it.
+        density_cap: Some(DensityCap {
+            max_optical_thickness: 0.002,
+            weight: 1.0,
+            samples: 1024,
+        }),
+        ..StealthParts::of(&StealthOptions::default())
+    };
+    let build_with = |parts: Option<StealthParts>| {
+        let specs = [cover.clone(), hidden.clone()]
+            .into_iter()
+            .map(|dataset| SceneSpec {
+                dataset,
+                indices: reference_indices(&layout.grid),
+            })
+            .collect();
+        let tc = TrainConfig {
+            seed: 3,
+            batch_samples: 1 << 10,
+            occupancy_fraction: 0.05,
+            schedule: Schedule::RandomScene,
+            workers: 2,
+            ..Default::default()
+        };
+        let mut t = Trainer::new(model, specs, tc).unwrap();
+        if let Some(parts) = parts {
+            let policy =
+                Stealth::with_parts(layout.clone(), std::slice::from_ref(&key), parts).unwrap();
+            t.set_policy(Box::new(policy)).unwrap();
+        }
+        t
+    };
+    let build = || build_with(Some(parts));
+    const END: u32 = 40;
+    let mut whole = build();
+    // The first hidden-only step after the cover's twelfth: with the MLP shared, its
+    // gradient waits in the buffers, the hardest place to stop.
+    let mut first = build();
+    let mut cover_steps = 0;
+    loop {
+        let trained_cover = first.train_step().primary_loss.is_some();
+        cover_steps += trained_cover as u32;
+        if cover_steps >= 12 && !trained_cover {
+            break;
+        }
+        assert!(first.step < END - 5, "no hidden-only step");
+    }
+    let waiting = first.gradient().iter().any(|&g| g != 0.0);
+    assert_eq!(
+        waiting, !cover_only_mlp,
+        "a gradient waits iff the MLP is shared"
+    );
+    let stop = first.step;
+    let held = first.held_back().expect("the gate was used");
+    assert!(
+        held.iter().any(|&g| g != 0.0),
+        "nothing held back at {stop}"
+    );
+    let bounded = first.table_bounds().expect("bounds were set");
+    assert!(
+        bounded.bounds().iter().any(|&b| b >= 0.0),
+        "no bound at {stop}"
+    );
+    let saved = first.save_state().unwrap();
+    let origin = std::path::Path::new("stealth.state");
+    let mut resumed = build();
+    resumed.restore_state(&saved, origin).unwrap();
+    assert_eq!(resumed.step, stop);
+    assert!(
+        resumed.gradient() == first.gradient(),
+        "the waiting gradient"
+    );
+    assert!(
+        resumed.indices(1) == first.indices(1),
+        "the confined indices"
+    );
+    assert!(
+        build().indices(1) != first.indices(1),
+        "the confinement has not moved since installation: the test proves nothing"
+    );
+    for _ in 0..END {
+        whole.train_step();
+    }
+    for _ in stop..END {
+        first.train_step();
+        resumed.train_step();
+    }
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    for t in [&first, &resumed] {
+        assert_eq!((t.step, t.weight_steps), (whole.step, whole.weight_steps));
+        assert!(bits(&t.params) == bits(&whole.params), "weights differ");
+        assert!(
+            bits(&t.inference_params()) == bits(&whole.inference_params()),
+            "published weights differ"
+        );
+        for i in 0..2 {
+            assert!(bits(&t.grid(i).density) == bits(&whole.grid(i).density));
+        }
+        assert!(t.indices(1) == whole.indices(1));
+        assert!(bits(t.held_back().unwrap()) == bits(whole.held_back().unwrap()));
+        assert!(t.table_bounds() == whole.table_bounds());
+    }
+    // A state saved with other stealth options, or none, is refused by name.
+    let other = StealthParts {
+        cover_only_mlp: !cover_only_mlp,
+        ..parts
+    };
+    let e = build_with(Some(other))
+        .restore_state(&saved, origin)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("stealth.state") && e.contains("stealth options"),
+        "{e}"
+    );
+    let e = build_with(None)
+        .restore_state(&saved, origin)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("stealth.state") && e.contains("policy"), "{e}");
+}
