@@ -1,7 +1,7 @@
 //! `stegongp experiment pairs` on two tiny generated pairs sharing a cover: the report's
 //! shape (Table 1, per-pair and stego-against-plain tables, image grids), a rerun that trains
 //! nothing and reports the same numbers, and a pairs file naming a missing scene refused
-//! before any training.
+//! before any training; an experiment killed inside a model goes on inside it.
 
 use std::path::Path;
 use testkit::cli::{report_table as table, run_ok, stegongp};
@@ -146,4 +146,109 @@ fn a_missing_scene_is_refused_before_training() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("COVER:HIDDEN"));
     let out = stegongp(&["experiment", "fidelity", "--minutes", "1"]);
     assert!(!out.status.success());
+}
+
+/// An experiment killed (-9) inside a model goes on inside it when rerun: the model's state
+/// (`MODEL.ingp.state`, owner-only) is taken back, the models written are those of a run
+/// that was never interrupted, byte for byte, and no state is left behind.
+#[test]
+fn a_killed_experiment_resumes_inside_the_model_it_was_training() {
+    use std::os::unix::fs::PermissionsExt;
+    use std::process::Stdio;
+    use std::time::{Duration, Instant};
+    let d = tempfile::tempdir().unwrap();
+    let (cover, text) = (d.path().join("cover"), d.path().join("text"));
+    synth(&cover, "object", "1");
+    synth(&text, "text", "2");
+    let pair = format!("{}:{}", cover.display(), text.display());
+    let args = |out: &Path| -> Vec<String> {
+        [
+            "experiment",
+            "pairs",
+            "--pair",
+            &pair,
+            "--out",
+            out.to_str().unwrap(),
+            "--steps",
+            "30",
+            "--batch",
+            "2048",
+            "--levels",
+            "8",
+            "--log2-t",
+            "12",
+            "--eval-views",
+            "1",
+            "--occupancy-fraction",
+            "0.02",
+            "--no-lpips",
+            "--save-every",
+            "5",
+        ]
+        .map(String::from)
+        .to_vec()
+    };
+    let models = |out: &Path, ext: &str| -> Vec<(String, Vec<u8>)> {
+        let dir = out.join("pairs/models");
+        let mut v: Vec<_> = std::fs::read_dir(&dir)
+            .map(|r| r.filter_map(|e| e.ok()).map(|e| e.path()).collect())
+            .unwrap_or_else(|_| Vec::new())
+            .into_iter()
+            .filter(|p: &std::path::PathBuf| p.to_string_lossy().ends_with(ext))
+            .map(|p| {
+                let name = p.file_name().unwrap().to_string_lossy().into_owned();
+                (name, std::fs::read(&p).unwrap_or_default())
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let whole = d.path().join("whole");
+    let a: Vec<String> = args(&whole);
+    run_ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert_eq!(models(&whole, ".ingp").len(), 3);
+    assert!(
+        models(&whole, ".state").is_empty(),
+        "a state was left behind"
+    );
+
+    // Killed once the first model has saved a state (the first of 6 during its 30 steps).
+    let part = d.path().join("part");
+    let mut child = std::process::Command::new(testkit::cli::bin())
+        .args(args(&part))
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    let state = loop {
+        if let Some((name, _)) = models(&part, ".state").into_iter().next() {
+            break part.join("pairs/models").join(name);
+        }
+        assert!(t0.elapsed() < Duration::from_secs(120), "no state appeared");
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "finished before a state"
+        );
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let mode = std::fs::metadata(&state).unwrap().permissions().mode() & 0o777;
+    assert_eq!(mode, 0o600, "a model's state is owner-only");
+    let p: Vec<String> = args(&part);
+    let err = run_ok(&p.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(err.contains("resumed") && err.contains(".state"), "{err}");
+    assert!(
+        models(&part, ".state").is_empty(),
+        "a state was left behind"
+    );
+    let (w, r) = (models(&whole, ".ingp"), models(&part, ".ingp"));
+    assert_eq!(
+        w.iter().map(|m| &m.0).collect::<Vec<_>>(),
+        r.iter().map(|m| &m.0).collect::<Vec<_>>()
+    );
+    for ((name, a), (_, b)) in w.iter().zip(&r) {
+        assert!(a == b, "{name}: the resumed experiment wrote another model");
+    }
 }

@@ -8,7 +8,7 @@ use stegongp::experiments::{
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
 use stegongp::stego::SchemeKind;
-use stegongp::stego::recipe::HiddenOptions;
+use stegongp::stego::recipe::{HiddenOptions, SaveEvery};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
@@ -97,6 +97,25 @@ pub struct Args {
     /// Skip LPIPS (PSNR and SSIM only).
     #[arg(long)]
     pub no_lpips: bool,
+    /// detectability and pairs, which keep their models: each model in training saves its
+    /// state every N steps or M minutes (`Mm`) beside it (`MODEL.ingp.state`, owner-only,
+    /// removed once the model is written), so that a rerun after an interruption goes on
+    /// inside the model it was training; `off` for never.
+    #[arg(long, value_name = "N|Mm|off", default_value = "10m", value_parser = parse_state_every)]
+    pub save_every: StateEvery,
+}
+
+/// `--save-every`: how often, or never.
+#[derive(Clone, Copy, Debug)]
+pub struct StateEvery(Option<SaveEvery>);
+
+fn parse_state_every(s: &str) -> std::result::Result<StateEvery, String> {
+    if s.trim() == "off" {
+        return Ok(StateEvery(None));
+    }
+    s.parse()
+        .map(|e| StateEvery(Some(e)))
+        .map_err(|e: String| format!("{e}, or off"))
 }
 
 /// detectability's defaults: 16 levels, so the hashed levels the statistics read are there;
@@ -237,6 +256,7 @@ pub fn run(mut a: Args) -> Result<()> {
         lpips: !a.no_lpips,
         verbose: true,
         device: std::sync::Arc::new(device),
+        save_every: a.save_every.0,
     };
     let report = if pairs_exp {
         let mut pairs = a.pairs.clone();

@@ -389,7 +389,7 @@ fn model(
     let config = model_config(cfg, arm, scenes, seed, combo);
     let stem = format!("{}_{i:02}", arm.name());
     let path = models_dir.join(format!("{stem}.ingp"));
-    let (info, _) = reuse_or_train(&path, &config, cfg.verbose, || {
+    let (info, _) = reuse_or_train(&path, &config, cfg.verbose, cfg.save_every, |state| {
         let mcfg = ExpConfig {
             cover: scenes.0.to_path_buf(),
             hidden: vec![scenes.1.to_path_buf()],
@@ -411,7 +411,7 @@ fn model(
         };
         // Key number i under the pair's seed: stego and stealth pair i share their key.
         let key = arm.hides().then_some(i as u64);
-        let run = train_pair(&mcfg, key, &stem)?;
+        let run = train_pair(&mcfg, key, &stem, state)?;
         let fields = json!({
             "train_s": run.train_seconds, "eval_s": run.eval_seconds,
             "cover_psnr": run.cover.psnr,
@@ -1107,6 +1107,7 @@ mod tests {
             lpips: false,
             verbose: false,
             device: std::sync::Arc::new(Device::default()),
+            save_every: None,
         }
     }
 

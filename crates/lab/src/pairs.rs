@@ -18,7 +18,7 @@ use super::report::{Report, Table, save_grid};
 use super::setup::{
     Budget, ExpConfig, Experiment, Scene, experiment_key, load_scene, train_scenes,
 };
-use super::store::reuse_or_train;
+use super::store::{ModelState, reuse_or_train};
 use ngp::error::{Error, Result};
 use ngp::eval::{ground_truth, spread_views};
 use ngp::lpips::Lpips;
@@ -247,12 +247,13 @@ impl Models<'_> {
         &mut self,
         stem: &str,
         config: Value,
-        train: impl FnOnce() -> Result<(Model, u32, f64)>,
+        train: impl FnOnce(Option<&mut ModelState>) -> Result<(Model, u32, f64)>,
     ) -> Result<Stored> {
         let tag = format!("{:016x}", fnv64(&config.to_string()));
         let path = self.dir.join(format!("{stem}-{}.ingp", &tag[..8]));
-        let (v, reused) = reuse_or_train(&path, &config, self.cfg.verbose, || {
-            let (model, steps, train_s) = train()?;
+        let every = self.cfg.save_every;
+        let (v, reused) = reuse_or_train(&path, &config, self.cfg.verbose, every, |state| {
+            let (model, steps, train_s) = train(state)?;
             let fields = json!({"steps": steps, "train_s": train_s});
             Ok((model, fields.as_object().cloned().unwrap_or_default()))
         })?;
@@ -397,12 +398,12 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         let plain_c = models.get(
             &format!("plain-{cl}"),
             json!({"base": base, "role": "plain", "scene": cover_dir, "downscale": cfg.downscale, "budget": budget_json}),
-            || {
+            |state| {
                 let budget = match opts.minutes {
                     Some(m) => Budget::Seconds(m * 60.0),
                     None => Budget::Steps(cfg.steps),
                 };
-                let t = train_scenes(cfg, config, &[(&cover, &pi)], budget, &format!("plain {cl}"))?;
+                let t = train_scenes(cfg, config, &[(&cover, &pi)], budget, &format!("plain {cl}"), state)?;
                 Ok((t.model, t.steps, t.seconds))
             },
         )?;
@@ -416,8 +417,8 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         let plain_h = models.get(
             &format!("plain-{hl}"),
             json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps}),
-            || {
-                let t = train_scenes(cfg, config, &[(&hidden, &pi)], Budget::Steps(steps), &format!("plain {hl}"))?;
+            |state| {
+                let t = train_scenes(cfg, config, &[(&hidden, &pi)], Budget::Steps(steps), &format!("plain {hl}"), state)?;
                 Ok((t.model, t.steps, t.seconds))
             },
         )?;
@@ -444,13 +445,14 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         if cfg.stealth() {
             cfg.record_density_cap(&mut stego_config);
         }
-        let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, || {
+        let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, |state| {
             let t = train_scenes(
                 cfg,
                 config,
                 &[(&cover, &pi), (&hidden, &key)],
                 Budget::Steps(steps),
                 &format!("stego {cl} + {hl}"),
+                state,
             )?;
             Ok((t.model, t.steps, t.seconds))
         })?;

@@ -2,6 +2,7 @@
 //! they load, their keys, and training and scoring one model through the one recipe
 //! ([`stego::recipe`]).
 
+use super::store::ModelState;
 use backend::Device;
 use ngp::data::{Dataset, LoadOptions, Split};
 use ngp::encoding::GridConfig;
@@ -16,7 +17,7 @@ use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 pub use stego::recipe::Budget;
-use stego::recipe::{HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss};
+use stego::recipe::{HiddenOptions, HiddenScene, Recipe, SaveEvery, StepOptions, StoredLoss};
 use stego::{Key, SchemeKind, generate_with, open_scene_on};
 
 /// One of the experiments, named as `stegongp experiment NAME` takes it; the name is also
@@ -128,6 +129,9 @@ pub struct ExpConfig {
     pub verbose: bool,
     /// Where every model trains and renders (shared: one device for the whole run).
     pub device: Arc<Device>,
+    /// How often a model of the experiments that keep their models (detectability, pairs)
+    /// saves its training state, so that a rerun goes on inside it; `None`: never.
+    pub save_every: Option<SaveEvery>,
 }
 
 impl ExpConfig {
@@ -222,6 +226,7 @@ pub(crate) fn train_scenes(
     scenes: &[(&Scene, &Key)],
     budget: Budget,
     label: &str,
+    mut state: Option<&mut ModelState>,
 ) -> Result<Trained> {
     let Some(((cover, _), hidden)) = scenes.split_first() else {
         return Err(Error::Config(format!("{label}: no scene to train")));
@@ -257,7 +262,13 @@ pub(crate) fn train_scenes(
     };
     let in_label = |e: Error| Error::Other(format!("{label}: {e}"));
     let mut training = recipe.start(&cfg.device).map_err(in_label)?;
-    training.run(|_, _| Ok(()))?;
+    if let Some(st) = state.as_deref_mut() {
+        st.resume(&mut training)?;
+    }
+    training.run(|t, _| match state.as_deref_mut() {
+        Some(st) => st.after_step(t),
+        None => Ok(()),
+    })?;
     let trained = training.finish().map_err(in_label)?;
     let t = trained.totals;
     if cfg.verbose {
@@ -305,6 +316,7 @@ impl Ctx<'_> {
             scenes,
             Budget::Steps(self.cfg.steps),
             label,
+            None,
         )
     }
 
@@ -386,7 +398,12 @@ pub(crate) struct PairRun {
 /// of `cfg.scheme` (m = 1, drawn from `cfg.seed`), and scores the cover without a key and
 /// the hidden scene with its key on held-out views: the same training (schedule, stealth)
 /// and viewing as every other experiment, one scene pair at a time.
-pub(crate) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Result<PairRun> {
+pub(crate) fn train_pair(
+    cfg: &ExpConfig,
+    key: Option<u64>,
+    label: &str,
+    state: Option<&mut ModelState>,
+) -> Result<PairRun> {
     let cover = load_scene(&cfg.cover, cfg.downscale, None)?;
     let box_scale = Some(cover.train.aabb_scale);
     let hidden = match (key, cfg.hidden.first()) {
@@ -405,7 +422,14 @@ pub(crate) fn train_pair(cfg: &ExpConfig, key: Option<u64>, label: &str) -> Resu
     if let Some(k) = &key {
         scenes.push((&ctx.hidden[0], k));
     }
-    let trained = ctx.train(cfg.grid, &scenes, label)?;
+    let trained = train_scenes(
+        cfg,
+        ctx.model_config(cfg.grid),
+        &scenes,
+        Budget::Steps(cfg.steps),
+        label,
+        state,
+    )?;
     let t0 = std::time::Instant::now();
     let (cover, _) = ctx.score(&trained.model, &pi, &ctx.cover)?;
     let hidden = key
