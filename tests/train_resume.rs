@@ -43,6 +43,41 @@ fn bytes(p: &Path) -> Vec<u8> {
     std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
 
+/// The checkpoint's `snapshot.optimizer` is laid out as tiny-cuda-nn's `Ema` ∘
+/// `ExponentialDecay` ∘ `Adam` serialise it (what instant-ngp's loader reads back): fp16 EMA
+/// weights, f32 moments and u32 step counts of every parameter, the step and rates.
+fn assert_ngp_optimizer_layout(checkpoint: &Path) {
+    use rmpv::Value;
+    let doc = rmpv::decode::read_value(&mut bytes(checkpoint).as_slice()).unwrap();
+    let get = |v: &Value, k: &str| -> Value {
+        v.as_map()
+            .and_then(|m| m.iter().find(|(x, _)| x.as_str() == Some(k)))
+            .map(|(_, v)| v.clone())
+            .unwrap_or_else(|| panic!("no {k}"))
+    };
+    let snap = get(&doc, "snapshot");
+    let n = get(&snap, "n_params").as_u64().unwrap() as usize;
+    let bin = |v: Value| v.as_slice().map(<[u8]>::len).unwrap();
+    let ema = get(&snap, "optimizer");
+    assert_eq!(bin(get(&ema, "weights_ema_binary")), n * 2);
+    let decay = get(&ema, "nested");
+    assert_eq!(get(&decay, "learning_rate").as_f64(), Some(1e-2f32 as f64));
+    assert_eq!(get(&decay, "learning_rate_factor").as_f64(), Some(1.0));
+    let adam = get(&decay, "nested");
+    for k in [
+        "first_moments_binary",
+        "second_moments_binary",
+        "param_steps_binary",
+    ] {
+        assert_eq!(bin(get(&adam, k)), n * 4, "{k}");
+    }
+    assert_eq!(
+        get(&adam, "current_step").as_u64(),
+        get(&snap, "training_step").as_u64()
+    );
+    assert!(get(&adam, "base_learning_rate").as_f64().is_some());
+}
+
 #[test]
 fn a_resumed_run_writes_the_uninterrupted_runs_model() {
     let d = tempfile::tempdir().unwrap();
@@ -53,8 +88,29 @@ fn a_resumed_run_writes_the_uninterrupted_runs_model() {
     // Stopped at step 16 (a state every 8 steps and at the end), then resumed to 40.
     let part = d.path().join("part.ingp");
     let err = train(&scene, &part, &["--steps", "16", "--save-every", "8"]);
-    let state = d.path().join("part.ingp.state");
-    assert!(err.contains("part.ingp.state"), "{err}");
+    let state = d.path().join("part.checkpoint.msgpack");
+    assert!(err.contains("part.checkpoint.msgpack"), "{err}");
+    // The checkpoint is a snapshot with its optimizer state, as instant-ngp saves one: our
+    // tools open it as a model; the published model has neither optimizer nor run state.
+    let inspect = |p: &Path| -> serde_json::Value {
+        let out = stegongp(&["inspect", p.to_str().unwrap(), "--json"]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let c = inspect(&state);
+    assert_eq!(c["has_optimizer_state"], true, "{c}");
+    assert_eq!(c["has_run_state"], true, "{c}");
+    assert_ngp_optimizer_layout(&state);
+    assert_eq!(c["training_step"], 16, "{c}");
+    assert_eq!(inspect(&part)["has_optimizer_state"], false);
+    let raw = bytes(&state);
+    let needle = b"stegongp_run_state";
+    assert!(raw.windows(needle.len()).any(|w| w == needle));
+    assert!(!bytes(&part).windows(needle.len()).any(|w| w == needle));
     let resumed = d.path().join("resumed.ingp");
     let err = train(
         &scene,
@@ -190,7 +246,7 @@ fn a_run_killed_at_any_moment_resumes_to_the_same_model() {
     let reference = bytes(&whole);
     for (trial, delay_ms) in [250u64, 700, 1300].into_iter().enumerate() {
         let out = d.path().join(format!("killed{trial}.ingp"));
-        let state = d.path().join(format!("killed{trial}.ingp.state"));
+        let state = d.path().join(format!("killed{trial}.checkpoint.msgpack"));
         let mut child = Command::new(bin())
             .arg("train")
             .arg(&scene)
@@ -231,18 +287,18 @@ fn a_state_from_another_run_or_no_state_is_refused_by_name() {
     synth(&scene, "object");
     let m = d.path().join("m.ingp");
     train(&scene, &m, &["--steps", "4", "--save-every", "4"]);
-    let state = d.path().join("m.ingp.state");
+    let state = d.path().join("m.checkpoint.msgpack");
     let out = d.path().join("o.ingp");
     let (s, o) = (state.to_str().unwrap(), out.to_str().unwrap());
     let sc = scene.to_str().unwrap();
     // Another seed: the options differ.
     let mut other: Vec<&str> = vec!["train", sc, "--out", o, "--resume", s, "--steps", "8"];
     other.extend(RUN.iter().map(|x| if *x == "3" { "4" } else { x }));
-    fails_naming(&stegongp(&other), &["m.ingp.state", "options"]);
-    // A model is not a state.
+    fails_naming(&stegongp(&other), &["m.checkpoint.msgpack", "options"]);
+    // A model is not a state: it has no run state to go on from.
     let mut wrong: Vec<&str> = vec!["train", sc, "--out", o, "--resume", m.to_str().unwrap()];
     wrong.extend_from_slice(RUN);
-    fails_naming(&stegongp(&wrong), &["m.ingp"]);
+    fails_naming(&stegongp(&wrong), &["m.ingp", "run state"]);
     // Bad --save-every values and the state over the model.
     for bad in ["0", "-3", "5x", "0m", "nanm"] {
         let flag = format!("--save-every={bad}");

@@ -80,10 +80,10 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         info.training_step,
         info.loss,
         info.n_images,
-        if info.has_optimizer_state {
-            "yes"
-        } else {
-            "no"
+        match (info.has_optimizer_state, info.has_run_state) {
+            (_, true) => "yes (a training checkpoint: train --resume goes on from it)",
+            (true, false) => "yes",
+            (false, false) => "no",
         }
     );
     Ok(())

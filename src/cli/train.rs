@@ -74,8 +74,10 @@ pub struct Args {
     pub profile_every: u32,
     /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
     /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it (CPU only;
-    /// with --stealth too). A stego run's state describes its hidden scenes: it is written
-    /// owner-only and must be kept like the keys.
+    /// with --stealth too). A plain run's is a checkpoint snapshot with its optimizer
+    /// state, as instant-ngp saves one (it loads it and trains on; our tools render it); a
+    /// stego run's describes its hidden scenes: a secret file, owner-only, to keep like the
+    /// keys.
     #[arg(long, value_name = "N|Mm", value_parser = parse_every)]
     pub save_every: Option<SaveEvery>,
     /// Where --save-every writes (default: the model's path with `.state` added).
@@ -94,12 +96,18 @@ fn parse_every(s: &str) -> std::result::Result<SaveEvery, String> {
     s.parse()
 }
 
-/// The state's path: `--state`, else the model's with `.state` added.
+/// The state's path: `--state`, else beside the model: a plain run's checkpoint snapshot
+/// (`MODEL.checkpoint.msgpack`: raw msgpack, quick to write, what instant-ngp reads as
+/// well as `.ingp`), a stego run's secret state (`MODEL.ingp.state`).
 fn state_path(a: &Args) -> PathBuf {
     a.state.clone().unwrap_or_else(|| {
-        let mut p = a.out.clone().into_os_string();
-        p.push(".state");
-        PathBuf::from(p)
+        if a.hidden.is_empty() {
+            a.out.with_extension("checkpoint.msgpack")
+        } else {
+            let mut p = a.out.clone().into_os_string();
+            p.push(".state");
+            PathBuf::from(p)
+        }
     })
 }
 
@@ -272,7 +280,13 @@ pub fn run(a: Args) -> Result<()> {
     let mut resume_seconds = 0.0;
     if let (Some(bytes), Some(p)) = (&resume_bytes, &a.resume) {
         let t0 = std::time::Instant::now();
-        training.restore_state(bytes, p)?;
+        if stegongp::stego::recipe::is_run_state(bytes) {
+            training.restore_state(bytes, p)?;
+        } else {
+            let snap = stegongp::ngp::snapshot::from_bytes(bytes)
+                .map_err(|m| stegongp::ngp::error::Error::format(p, m))?;
+            training.restore_checkpoint(snap, p)?;
+        }
         resume_seconds = t0.elapsed().as_secs_f64() + read_seconds;
         if !a.json {
             eprintln!(
@@ -349,7 +363,11 @@ pub fn run(a: Args) -> Result<()> {
         }
         saved_step = Some(step);
         let t0 = std::time::Instant::now();
-        training.save_state_to(&state_file)?;
+        if a.hidden.is_empty() {
+            training.save_checkpoint(&state_file)?;
+        } else {
+            training.save_state_to(&state_file)?;
+        }
         state_saves += 1;
         state_save_seconds += t0.elapsed().as_secs_f64();
         Ok(())
@@ -437,15 +455,17 @@ pub fn run(a: Args) -> Result<()> {
     if a.save_every.is_some() {
         save_state(&training)?;
         if !a.json {
-            eprintln!(
-                "training state: {} (owner-only{}; --resume goes on from it)",
-                state_file.display(),
-                if a.hidden.is_empty() {
-                    ""
-                } else {
-                    "; it describes the hidden scenes: keep it like the keys, delete it when done"
-                }
-            );
+            if a.hidden.is_empty() {
+                eprintln!(
+                    "training state: {} (a snapshot with its optimizer state: --resume goes on from it, instant-ngp loads it)",
+                    state_file.display()
+                );
+            } else {
+                eprintln!(
+                    "training state: {} (owner-only; --resume goes on from it; it describes the hidden scenes: keep it like the keys, delete it when done)",
+                    state_file.display()
+                );
+            }
         }
     }
     let device_phases_ms: Vec<Phase> = training

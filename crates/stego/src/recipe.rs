@@ -494,6 +494,14 @@ impl SaveEvery {
 pub const RUN_STATE_FORMAT: &str = "stegongp-run-state";
 pub const RUN_STATE_VERSION: u64 = 1;
 
+/// Whether `bytes` are a run-state document ([`Training::save_state`]) rather than a
+/// checkpoint snapshot ([`Training::save_checkpoint`]): its format name opens it.
+pub fn is_run_state(bytes: &[u8]) -> bool {
+    let head = &bytes[..bytes.len().min(64)];
+    head.windows(RUN_STATE_FORMAT.len())
+        .any(|w| w == RUN_STATE_FORMAT.as_bytes())
+}
+
 /// A recipe's training in progress.
 pub struct Training<'d> {
     trainer: Box<dyn TrainBackend + 'd>,
@@ -681,6 +689,67 @@ impl Training<'_> {
         Ok(())
     }
 
+    /// A plain run's checkpoint as instant-ngp writes one with its optional optimizer
+    /// state: the model as it would be published now, `snapshot.optimizer` in
+    /// tiny-cuda-nn's layout (instant-ngp loads it and trains on), and the rest of the run
+    /// state beside it (`snapshot.stegongp_run_state`), so that `--resume` goes on exactly.
+    /// `.msgpack` writes it raw (fast), `.ingp` gzipped; atomically. Refused for a run with
+    /// hidden scenes: its optimizer state describes them ([`Self::save_state_to`]).
+    pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
+        use ngp::train::state::{encode, open};
+        use rmpv::Value;
+        if self.trainer.n_scenes() > 1 {
+            return Err(Error::Config(
+                "a run with hidden scenes saves its state as a secret file, not a snapshot".into(),
+            ));
+        }
+        let here = Path::new("the run state");
+        let mut run = open(here, &self.save_state()?)?;
+        let trainer = take(&mut run, "trainer")
+            .and_then(|v| match v {
+                Value::Binary(b) => Some(b),
+                _ => None,
+            })
+            .ok_or_else(|| Error::Other("a run state without its trainer's".into()))?;
+        let mut trainer = open(here, &trainer)?;
+        let optimizer = take(&mut trainer, "optimizer");
+        put(&mut run, "trainer", Value::Binary(encode(&trainer)));
+        let mut snap = self.model()?.to_snapshot();
+        snap.preserved.optimizer = optimizer;
+        snap.preserved.run_state = Some(encode(&run));
+        ngp::snapshot::save(path, &snap)
+    }
+
+    /// Takes back a [`save_checkpoint`](Self::save_checkpoint) (read from `path`) before
+    /// the first step.
+    pub fn restore_checkpoint(&mut self, snap: ngp::snapshot::Snapshot, path: &Path) -> Result<()> {
+        use ngp::train::state::{encode, open};
+        use rmpv::Value;
+        let Some(run) = snap.preserved.run_state else {
+            return Err(Error::format(
+                path,
+                "a snapshot without a StegoNGP run state (train --save-every writes one); it \
+                 cannot be resumed exactly",
+            ));
+        };
+        let mut run = open(path, &run)?;
+        let trainer = match take(&mut run, "trainer") {
+            Some(Value::Binary(b)) => b,
+            _ => {
+                return Err(Error::format(
+                    path,
+                    "field snapshot.stegongp_run_state.trainer: missing",
+                ));
+            }
+        };
+        let mut trainer = open(path, &trainer)?;
+        if let Some(o) = snap.preserved.optimizer {
+            put(&mut trainer, "optimizer", o);
+        }
+        put(&mut run, "trainer", Value::Binary(encode(&trainer)));
+        self.restore_state(&encode(&run), path)
+    }
+
     /// [`save_state`](Self::save_state) written to `path` as a key is: owner-only,
     /// atomically. A stego run's state describes its hidden scenes, so it is as secret as
     /// their keys; it never goes into the published model.
@@ -708,5 +777,24 @@ impl Training<'_> {
             model: self.model()?,
             totals: self.totals,
         })
+    }
+}
+
+/// Removes `key` from a msgpack map and returns its value.
+fn take(doc: &mut rmpv::Value, key: &str) -> Option<rmpv::Value> {
+    let rmpv::Value::Map(m) = doc else {
+        return None;
+    };
+    let i = m.iter().position(|(k, _)| k.as_str() == Some(key))?;
+    Some(m.remove(i).1)
+}
+
+/// Sets `key` of a msgpack map (added at the end when absent).
+fn put(doc: &mut rmpv::Value, key: &str, value: rmpv::Value) {
+    if let rmpv::Value::Map(m) = doc {
+        match m.iter_mut().find(|(k, _)| k.as_str() == Some(key)) {
+            Some((_, v)) => *v = value,
+            None => m.push((rmpv::Value::from(key), value)),
+        }
     }
 }

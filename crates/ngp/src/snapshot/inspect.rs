@@ -52,6 +52,8 @@ pub struct SnapshotInfo {
     pub loss: f32,
     pub n_images: usize,
     pub has_optimizer_state: bool,
+    /// A `train --save-every` checkpoint: `train --resume` goes on from it exactly.
+    pub has_run_state: bool,
 }
 
 pub fn inspect(path: &Path) -> Result<SnapshotInfo> {
@@ -133,5 +135,6 @@ pub fn inspect(path: &Path) -> Result<SnapshotInfo> {
         loss: snap.loss,
         n_images: snap.dataset.as_ref().map_or(0, |d| d.images.len()),
         has_optimizer_state: snap.has_optimizer_state(),
+        has_run_state: snap.preserved.run_state.is_some(),
     })
 }

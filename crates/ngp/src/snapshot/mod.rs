@@ -254,6 +254,9 @@ pub struct Preserved {
     pub cam_pos_offset: Option<rmpv::Value>,
     pub cam_rot_offset: Option<rmpv::Value>,
     pub extra_dims_opt: Option<rmpv::Value>,
+    /// `snapshot.stegongp_run_state`: a training checkpoint's run state beside the
+    /// optimizer's (`train --save-every`); never in a published model.
+    pub run_state: Option<Vec<u8>>,
 }
 
 /// A whole model file.

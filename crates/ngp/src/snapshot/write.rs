@@ -268,5 +268,8 @@ fn snapshot_value(snap: &Snapshot, n_params: usize) -> Value {
         ("background_color", fv(&v.background_color)),
         ("camera", camera),
     ]);
+    if let Some(r) = &p.run_state {
+        e.push(("stegongp_run_state", Value::Binary(r.clone())));
+    }
     map(e)
 }

@@ -174,32 +174,63 @@ impl Optimizer {
         }
     }
 
-    /// Everything [`restore`](Self::restore) needs, for a training state.
-    pub(super) fn state(&self) -> rmpv::Value {
+    /// Everything [`restore`](Self::restore) needs, for a training state, laid out as
+    /// tiny-cuda-nn serialises its optimizer into a snapshot saved with optimizer state
+    /// (`Ema::serialize` ∘ `ExponentialDecay::serialize` ∘ `Adam::serialize`, keys sorted as
+    /// nlohmann writes them): instant-ngp loads a checkpoint with it and goes on training.
+    /// Its EMA is the debiased weights in fp16, as the reference keeps them; `stegongp`
+    /// adds what an exact resume needs besides (our EMA accumulators in f32 and the steps
+    /// each group's was brought up to), which tiny-cuda-nn ignores. `params` are the
+    /// training weights.
+    pub(super) fn state(&self, params: &[f32]) -> rmpv::Value {
         use super::state::{f32s, map, u32s};
+        use rmpv::Value;
+        let c = self.config;
+        let lr = self.learning_rate();
+        let published = self.ema_params(params);
+        let mut h = vec![half::f16::ZERO; published.len()];
+        half::slice::HalfFloatSliceExt::convert_from_f32_slice(&mut h[..], &published);
+        let ema16: Vec<u8> = h.iter().flat_map(|x| x.to_le_bytes()).collect();
+        let adam = map(vec![
+            ("base_learning_rate", Value::F32(lr)),
+            ("current_step", Value::from(self.step)),
+            ("first_moments_binary", f32s(&self.m)),
+            ("param_steps_binary", u32s(&self.steps)),
+            ("second_moments_binary", f32s(&self.v)),
+        ]);
+        let decay = map(vec![
+            ("learning_rate", Value::F32(c.lr)),
+            ("learning_rate_factor", Value::F32(lr / c.lr)),
+            ("nested", adam),
+        ]);
         map(vec![
-            ("step", rmpv::Value::from(self.step)),
-            ("m", f32s(&self.m)),
-            ("v", f32s(&self.v)),
-            ("param_steps", u32s(&self.steps)),
-            ("ema", f32s(&self.ema)),
-            ("ema_step", u32s(&self.ema_step)),
+            ("nested", decay),
+            (
+                "stegongp",
+                map(vec![
+                    ("ema", f32s(&self.ema)),
+                    ("ema_step", u32s(&self.ema_step)),
+                ]),
+            ),
+            ("weights_ema_binary", Value::Binary(ema16)),
         ])
     }
 
     /// Takes back a [`state`](Self::state); lengths are checked against this optimizer.
     pub(super) fn restore(&mut self, f: &super::state::Fields) -> crate::error::Result<()> {
-        f.f32s_into("m", &mut self.m)?;
-        f.f32s_into("v", &mut self.v)?;
-        f.u32s_into("param_steps", &mut self.steps)?;
-        f.f32s_into("ema", &mut self.ema)?;
-        f.u32s_into("ema_step", &mut self.ema_step)?;
-        self.step = f.u32("step")?;
+        let adam = f.map("nested")?.map("nested")?;
+        adam.f32s_into("first_moments_binary", &mut self.m)?;
+        adam.f32s_into("second_moments_binary", &mut self.v)?;
+        adam.u32s_into("param_steps_binary", &mut self.steps)?;
+        let ours = f.map("stegongp")?;
+        ours.f32s_into("ema", &mut self.ema)?;
+        ours.u32s_into("ema_step", &mut self.ema_step)?;
+        self.step = adam.u32("current_step")?;
         // The bias-correction tables hold a value a step: a forged count must not make
         // them gigabytes (the fuzzer's first run of training states found 2^30).
         if self.step > MAX_STEPS {
-            return Err(f.err(
-                "step",
+            return Err(adam.err(
+                "current_step",
                 format!(
                     "{}: more steps than a training runs (at most {MAX_STEPS})",
                     self.step
@@ -212,8 +243,8 @@ impl Optimizer {
             .chain(&self.ema_step)
             .find(|&&s| s > self.step)
         {
-            return Err(f.err(
-                "param_steps",
+            return Err(adam.err(
+                "param_steps_binary",
                 format!("a step count {bad} beyond the optimizer's {}", self.step),
             ));
         }

@@ -433,7 +433,7 @@ impl Trainer {
             ("step", Value::from(self.step)),
             ("weight_steps", Value::from(self.weight_steps)),
             ("params", f32s(&self.params)),
-            ("optimizer", self.optimizer.state()),
+            ("optimizer", self.optimizer.state(&self.params)),
             (
                 "occupancy_clock",
                 map(vec![
@@ -1332,24 +1332,30 @@ mod tests {
         let e = err(two_scene_trainer(dir.path(), 3).restore_state(&forged, origin));
         assert!(e.contains("field params") && e.contains("16 bytes"), "{e}");
         // A forged step count: refused before the optimizer's tables are grown to it.
-        let mut doc = rmpv::decode::read_value(&mut saved.as_slice()).unwrap();
-        if let rmpv::Value::Map(m) = &mut doc {
-            for (k, v) in m.iter_mut() {
-                if k.as_str() == Some("optimizer")
-                    && let rmpv::Value::Map(o) = v
-                {
-                    for (k, v) in o.iter_mut() {
-                        if k.as_str() == Some("step") {
-                            *v = rmpv::Value::from(u32::MAX);
-                        }
-                    }
-                }
-            }
+        // (Adam's count, two maps down as tiny-cuda-nn nests it.)
+        fn find<'a>(v: &'a mut rmpv::Value, path: &[&str]) -> &'a mut rmpv::Value {
+            let Some((first, rest)) = path.split_first() else {
+                return v;
+            };
+            let rmpv::Value::Map(m) = v else {
+                panic!("not a map at {first}")
+            };
+            let (_, inner) = m
+                .iter_mut()
+                .find(|(k, _)| k.as_str() == Some(first))
+                .unwrap_or_else(|| panic!("no {first}"));
+            find(inner, rest)
         }
+        let mut doc = rmpv::decode::read_value(&mut saved.as_slice()).unwrap();
+        *find(&mut doc, &["optimizer", "nested", "nested", "current_step"]) =
+            rmpv::Value::from(u32::MAX);
         let mut forged = Vec::new();
         rmpv::encode::write_value(&mut forged, &doc).unwrap();
         let e = err(two_scene_trainer(dir.path(), 3).restore_state(&forged, origin));
-        assert!(e.contains("optimizer.step") && e.contains("at most"), "{e}");
+        assert!(
+            e.contains("optimizer.nested.nested.current_step") && e.contains("at most"),
+            "{e}"
+        );
     }
 
     /// [`PolicyOps::density_loss`]'s gradient through the network and the grid equals
