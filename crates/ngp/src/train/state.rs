@@ -2,7 +2,10 @@
 //! needs to go on exactly where it stopped. Restored into a trainer built from the same
 //! scenes and options, the next steps are the ones the uninterrupted run would have taken,
 //! bit for bit (on the CPU, with the same worker count: the gradient partitions are summed
-//! in a fixed order).
+//! in a fixed order). The GPU trainer writes the same document with `device: gpu` in its
+//! fingerprint and what it keeps on the device; a state goes back only into its own kind of
+//! trainer, and on the GPU the next steps are the same steps, not bit for bit (its float
+//! sums depend on the order its threads add in).
 //!
 //! The document is msgpack: `format`, `version`, a `fingerprint` of what must not change
 //! (layout, scenes, options, workers), then the weights, the optimizer's moments and EMA,
@@ -12,11 +15,15 @@
 
 use crate::error::{Error, Result};
 use crate::snapshot::msgpack;
-use rmpv::Value;
+/// The document's values, for backends that write their own states (the GPU trainer's).
+pub use rmpv::Value;
 use std::path::Path;
 
 pub const FORMAT: &str = "stegongp-train-state";
 pub const VERSION: u64 = 1;
+/// The fingerprint entry naming the kind of trainer that saved a state; a state without it
+/// is the CPU trainer's.
+pub const DEVICE: &str = "device";
 
 pub fn f32s(v: &[f32]) -> Value {
     Value::Binary(v.iter().flat_map(|x| x.to_le_bytes()).collect())
@@ -210,6 +217,29 @@ pub fn check_header(f: &Fields, fingerprint: &[(String, String)]) -> Result<()> 
         ));
     }
     let saved = f.map("fingerprint")?;
+    // A state holds what its own kind of trainer keeps between steps: the CPU's and the
+    // GPU's are not interchangeable, and saying so beats naming the options that differ.
+    let device_of = |d: Option<&str>| match d {
+        None | Some("cpu") => "the CPU",
+        Some("gpu") => "the GPU",
+        Some(_) => "an unknown device",
+    };
+    let want = device_of(
+        fingerprint
+            .iter()
+            .find(|(k, _)| k == DEVICE)
+            .map(|(_, v)| v.as_str()),
+    );
+    let got = device_of(saved.str(DEVICE).ok());
+    if got != want {
+        return Err(f.err(
+            "fingerprint",
+            format!(
+                "saved by training on {got}; this run trains on {want} (a state goes on only \
+                 on the kind of device that saved it)"
+            ),
+        ));
+    }
     let differ: Vec<&str> = fingerprint
         .iter()
         .filter(|(k, v)| saved.str(k).map_or(true, |s| s != v))
