@@ -613,6 +613,12 @@ impl ngp::train::TrainBackend for GpuTrainer<'_> {
     fn model(&self, loss: f32) -> ngp::Result<ngp::model::Model> {
         Ok(GpuTrainer::model(self, loss)?)
     }
+    fn save_state(&self) -> ngp::Result<Vec<u8>> {
+        GpuTrainer::save_state(self)
+    }
+    fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> ngp::Result<()> {
+        GpuTrainer::restore_state(self, bytes, origin)
+    }
     fn profile_device(&mut self, every: u32) -> bool {
         GpuTrainer::profile_device(self, every)
     }
