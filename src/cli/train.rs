@@ -73,16 +73,21 @@ pub struct Args {
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub profile_every: u32,
     /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
-    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it. CPU only,
-    /// not with --stealth. A stego run's state describes its hidden scenes: it is written
-    /// owner-only and must be kept like the keys.
+    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it. On the CPU
+    /// and the GPU (a state goes on only on the kind of device that saved it), not with
+    /// --stealth. A stego run's state describes its hidden scenes: it is written owner-only
+    /// and must be kept like the keys.
     #[arg(long, value_name = "N|Mm", value_parser = parse_every)]
     pub save_every: Option<Every>,
     /// Where --save-every writes (default: the model's path with `.state` added).
     #[arg(long, value_name = "PATH")]
     pub state: Option<PathBuf>,
     /// Go on from a state --save-every wrote, with the same data, keys, options and thread
-    /// count; --steps and --minutes count from the run's start, not from the resume.
+    /// count; --steps and --minutes count from the run's start, not from the resume. On the
+    /// CPU the resumed run's model is the uninterrupted run's, byte for byte; on the GPU it
+    /// is the same run (the same steps, schedule and draws) but not bit-identical: the
+    /// device's float sums depend on the order its threads add in, so its quality matches
+    /// within run-to-run noise.
     #[arg(long, value_name = "STATE")]
     pub resume: Option<PathBuf>,
     /// Print a JSON summary on stdout.
@@ -159,6 +164,8 @@ struct Summary {
     state_saves: u32,
     state_save_seconds: f64,
     resume_seconds: f64,
+    /// --resume: the step the run went on from (null otherwise).
+    resumed_at: Option<u32>,
     /// The cover's loss (what the file stores).
     final_loss: f32,
     samples_per_second: f64,
@@ -284,22 +291,18 @@ pub fn run(a: Args) -> Result<()> {
                 .context("loading test views for --checkpoints")?,
         )
     };
+    // Both devices save and resume a plain run (a policy's state is refused above, and by
+    // the trainer, whose error names what it cannot save).
     let device = a.device.open()?;
-    if (a.save_every.is_some() || a.resume.is_some())
-        && !matches!(device, stegongp::backend::Device::Cpu { .. })
-    {
-        bail!(
-            "--save-every and --resume work on the CPU only for now ({}); use --device cpu",
-            device.report()
-        );
-    }
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
     let mut resume_seconds = 0.0;
+    let mut resumed_at = None;
     if let (Some(bytes), Some(p)) = (&resume_bytes, &a.resume) {
         let t0 = std::time::Instant::now();
         training.restore_state(bytes, p)?;
         resume_seconds = t0.elapsed().as_secs_f64() + read_seconds;
+        resumed_at = Some(training.totals().steps);
         if !a.json {
             eprintln!(
                 "resumed from {} at step {} ({:.1} s trained)",
@@ -375,7 +378,9 @@ pub fn run(a: Args) -> Result<()> {
         }
         saved_step = Some(step);
         let t0 = std::time::Instant::now();
-        training.save_state_to(&state_file)?;
+        training
+            .save_state_to(&state_file)
+            .with_context(|| format!("saving the training state to {}", state_file.display()))?;
         state_saves += 1;
         state_save_seconds += t0.elapsed().as_secs_f64();
         Ok(())
@@ -499,6 +504,7 @@ pub fn run(a: Args) -> Result<()> {
         state_saves,
         state_save_seconds,
         resume_seconds,
+        resumed_at,
         final_loss: trained.model.loss,
         samples_per_second: t.samples as f64 / t.seconds,
         marched_samples_per_second: t.marched as f64 / t.seconds,
