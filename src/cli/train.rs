@@ -73,8 +73,9 @@ pub struct Args {
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub profile_every: u32,
     /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
-    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it (CPU only;
-    /// with --stealth too). A plain run's is a checkpoint snapshot with its optimizer
+    /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it, on the
+    /// kind of device that saved it (CPU: exactly; GPU: the same run, within noise; with
+    /// --stealth on the CPU). A plain run's is a checkpoint snapshot with its optimizer
     /// state, as instant-ngp saves one (it loads it and trains on; our tools render it); a
     /// stego run's describes its hidden scenes: a secret file, owner-only, to keep like the
     /// keys.
@@ -84,7 +85,11 @@ pub struct Args {
     #[arg(long, value_name = "PATH")]
     pub state: Option<PathBuf>,
     /// Go on from a state --save-every wrote, with the same data, keys, options and thread
-    /// count; --steps and --minutes count from the run's start, not from the resume.
+    /// count; --steps and --minutes count from the run's start, not from the resume. On the
+    /// CPU the resumed run's model is the uninterrupted run's, byte for byte; on the GPU it
+    /// is the same run (the same steps, schedule and draws) but not bit-identical: the
+    /// device's float sums depend on the order its threads add in, so its quality matches
+    /// within run-to-run noise.
     #[arg(long, value_name = "STATE")]
     pub resume: Option<PathBuf>,
     /// Print a JSON summary on stdout.
@@ -146,6 +151,8 @@ struct Summary {
     state_saves: u32,
     state_save_seconds: f64,
     resume_seconds: f64,
+    /// --resume: the step the run went on from (null otherwise).
+    resumed_at: Option<u32>,
     /// The cover's loss (what the file stores).
     final_loss: f32,
     samples_per_second: f64,
@@ -266,18 +273,23 @@ pub fn run(a: Args) -> Result<()> {
                 .context("loading test views for --checkpoints")?,
         )
     };
+    // Both devices save and resume a plain run (a policy's state is refused above, and by
+    // the trainer, whose error names what it cannot save).
     let device = a.device.open()?;
-    if (a.save_every.is_some() || a.resume.is_some())
+    if a.training.stealth.enabled
+        && (a.save_every.is_some() || a.resume.is_some())
         && !matches!(device, stegongp::backend::Device::Cpu { .. })
     {
         bail!(
-            "--save-every and --resume work on the CPU only for now ({}); use --device cpu",
+            "--save-every and --resume with --stealth work on the CPU only for now ({}): the \
+             GPU does not save a training policy's state yet; use --device cpu",
             device.report()
         );
     }
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
     let mut resume_seconds = 0.0;
+    let mut resumed_at = None;
     if let (Some(bytes), Some(p)) = (&resume_bytes, &a.resume) {
         let t0 = std::time::Instant::now();
         if stegongp::stego::recipe::is_run_state(bytes) {
@@ -288,6 +300,7 @@ pub fn run(a: Args) -> Result<()> {
             training.restore_checkpoint(snap, p)?;
         }
         resume_seconds = t0.elapsed().as_secs_f64() + read_seconds;
+        resumed_at = Some(training.totals().steps);
         if !a.json {
             eprintln!(
                 "resumed from {} at step {} ({:.1} s trained)",
@@ -363,11 +376,12 @@ pub fn run(a: Args) -> Result<()> {
         }
         saved_step = Some(step);
         let t0 = std::time::Instant::now();
-        if a.hidden.is_empty() {
-            training.save_checkpoint(&state_file)?;
+        let saved = if a.hidden.is_empty() {
+            training.save_checkpoint(&state_file)
         } else {
-            training.save_state_to(&state_file)?;
-        }
+            training.save_state_to(&state_file)
+        };
+        saved.with_context(|| format!("saving the training state to {}", state_file.display()))?;
         state_saves += 1;
         state_save_seconds += t0.elapsed().as_secs_f64();
         Ok(())
@@ -489,6 +503,7 @@ pub fn run(a: Args) -> Result<()> {
         state_saves,
         state_save_seconds,
         resume_seconds,
+        resumed_at,
         final_loss: trained.model.loss,
         samples_per_second: t.samples as f64 / t.seconds,
         marched_samples_per_second: t.marched as f64 / t.seconds,

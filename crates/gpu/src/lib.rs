@@ -613,6 +613,16 @@ impl ngp::train::TrainBackend for GpuTrainer<'_> {
     fn model(&self, loss: f32) -> ngp::Result<ngp::model::Model> {
         Ok(GpuTrainer::model(self, loss)?)
     }
+    fn save_state(&self) -> ngp::Result<ngp::train::state::Value> {
+        GpuTrainer::save_state_doc(self)
+    }
+    fn restore_state(
+        &mut self,
+        doc: &ngp::train::state::Value,
+        origin: &std::path::Path,
+    ) -> ngp::Result<()> {
+        GpuTrainer::restore_state_doc(self, doc, origin)
+    }
     fn profile_device(&mut self, every: u32) -> bool {
         GpuTrainer::profile_device(self, every)
     }

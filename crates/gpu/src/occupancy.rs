@@ -555,6 +555,26 @@ impl GpuOccupancy {
             .ok_or_else(|| GpuError::Input("occupancy: inconsistent grid read back".into()))
     }
 
+    /// Replaces the grid on the device with `grid` (a saved one: density, bitfield, mean,
+    /// update count), between updates. The same number of cascades.
+    pub fn restore(&mut self, ctx: &GpuContext, grid: &OccupancyGrid) -> GpuResult<()> {
+        if grid.n_cascades as u32 != self.n_cascades {
+            return Err(GpuError::Input(format!(
+                "occupancy: a grid of {} cascades for one of {}",
+                grid.n_cascades, self.n_cascades
+            )));
+        }
+        ctx.scoped("occupancy restore", || {
+            ctx.queue
+                .write_buffer(&self.density, 0, bytemuck::cast_slice(&grid.density));
+            ctx.queue.write_buffer(&self.bitfield, 0, grid.bitfield());
+            ctx.queue
+                .write_buffer(&self.sums, 0, bytemuck::bytes_of(&grid.mean));
+        })?;
+        self.ema_step = grid.ema_step;
+        Ok(())
+    }
+
     /// The last draw's (warped positions, cells), read back.
     #[allow(clippy::type_complexity)]
     pub fn download_samples(&self, ctx: &GpuContext) -> GpuResult<(Vec<[f32; 3]>, Vec<u32>)> {

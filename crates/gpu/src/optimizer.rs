@@ -227,6 +227,46 @@ impl GpuOptimizer {
             ctx.read_buffer(&self.steps, bytes)?,
         ))
     }
+
+    /// The EMA as the kernel keeps it (not debiased), read back: with the moments and
+    /// [`Self::step`], what a training state saves.
+    pub fn raw_ema(&self, ctx: &GpuContext) -> GpuResult<Vec<f32>> {
+        ctx.read_buffer(&self.ema, 4 * self.n as u64)
+    }
+
+    /// Takes back a saved state: `step` updates taken, the moments, per-parameter update
+    /// counts and the raw EMA ([`Self::moments`], [`Self::raw_ema`]), uploaded. The
+    /// bias-correction table regrows to `step` on the next update, as it would have.
+    pub fn restore(
+        &mut self,
+        ctx: &GpuContext,
+        step: u32,
+        m: &[f32],
+        v: &[f32],
+        steps: &[u32],
+        ema: &[f32],
+    ) -> GpuResult<()> {
+        let n = self.n as usize;
+        if [m.len(), v.len(), steps.len(), ema.len()] != [n; 4] {
+            return Err(GpuError::Input(format!(
+                "optimizer state of {}/{}/{}/{} values for {n} parameters",
+                m.len(),
+                v.len(),
+                steps.len(),
+                ema.len()
+            )));
+        }
+        ctx.scoped("optimizer restore", || {
+            ctx.queue.write_buffer(&self.m, 0, bytemuck::cast_slice(m));
+            ctx.queue.write_buffer(&self.v, 0, bytemuck::cast_slice(v));
+            ctx.queue
+                .write_buffer(&self.steps, 0, bytemuck::cast_slice(steps));
+            ctx.queue
+                .write_buffer(&self.ema, 0, bytemuck::cast_slice(ema));
+        })?;
+        self.step = step;
+        Ok(())
+    }
 }
 
 fn correction_table(ctx: &GpuContext, config: &OptimizerConfig, cap: u32) -> wgpu::Buffer {

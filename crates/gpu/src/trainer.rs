@@ -70,13 +70,15 @@ use ngp::encoding::{LevelIndices, check_indices};
 use ngp::model::Model;
 use ngp::network::ModelConfig;
 use ngp::network::nerf::NerfNetwork;
-use ngp::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
+use ngp::occupancy::{MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid};
 use ngp::render::march::Marcher;
 use ngp::train::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
 use ngp::train::loss::DENSITY_PULL_UP;
+use ngp::train::optimizer::MAX_STEPS;
 use ngp::train::schedule::{
     MAX_RAYS_PER_BATCH, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid,
 };
+use ngp::train::state;
 use ngp::train::{GridUpdates, SceneSpec, StepStats, TrainConfig};
 use std::cell::RefCell;
 use std::sync::Arc;
@@ -1107,6 +1109,224 @@ impl<'c> GpuTrainer<'c> {
             self.batch_counters(0),
         )
         .map_err(|e| GpuError::Input(e.to_string()))
+    }
+
+    /// The parts of a training a saved state must share with the trainer it goes back into,
+    /// by name, as the CPU trainer's, with the device named (a CPU state does not go on
+    /// here, nor this one on the CPU) and no worker count (the GPU has none). Never the
+    /// index functions: a state's errors may be printed, and a key must not be.
+    fn fingerprint(&self) -> Vec<(String, String)> {
+        let mut options = self.config.clone();
+        options.workers = 0;
+        let mut out = vec![
+            (state::DEVICE.to_string(), "gpu".to_string()),
+            (
+                "layout".to_string(),
+                format!("{:?}", self.field.layout().config),
+            ),
+            ("options".to_string(), format!("{options:?}")),
+            ("scenes".to_string(), self.scenes.len().to_string()),
+        ];
+        for (i, s) in self.scenes.iter().enumerate() {
+            let f = &s.dataset.frames;
+            let size = f
+                .first()
+                .map_or((0, 0), |f| (f.camera.width, f.camera.height));
+            out.push((
+                format!("scene {i}"),
+                format!(
+                    "{} images of {}x{}, aabb {}",
+                    f.len(),
+                    size.0,
+                    size.1,
+                    s.dataset.aabb_scale
+                ),
+            ));
+        }
+        out
+    }
+
+    /// The whole training state between two steps ([`ngp::train::state`]), read back from
+    /// the device: the weights; Adam's moments, per-parameter update counts and step; the
+    /// EMA (raw, as the kernel keeps it); every scene's occupancy grid (density, bitfield,
+    /// mean, update count) and rays-per-batch counters; the step counts. Nothing else
+    /// lasts from one step to the next: the seeds are functions of (seed, step, scene) and
+    /// of the grid's update count, the occupancy schedule of `weight_steps`, and the
+    /// gradient is zero after every update. Restored into a trainer built the same way,
+    /// training goes on with the same steps, schedule and draws, though not bit for bit
+    /// (the device's float sums depend on the order threads add in). Not with a training
+    /// policy (stealth), whose own state is not saved yet.
+    pub fn save_state(&self) -> ngp::Result<Vec<u8>> {
+        Ok(state::encode(&self.save_state_doc()?))
+    }
+
+    /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
+    pub fn save_state_doc(&self) -> ngp::Result<state::Value> {
+        use state::{FORMAT, NgpOptimizer, VERSION, Value, f32s, map};
+        if self.policy.is_some() {
+            return Err(ngp::Error::Config(
+                "a training policy's state (stealth training) cannot be saved yet".into(),
+            ));
+        }
+        let ctx = self.ctx;
+        let fingerprint = Value::Map(
+            self.fingerprint()
+                .into_iter()
+                .map(|(k, v)| (Value::from(k), Value::from(v)))
+                .collect(),
+        );
+        let params = self.params()?;
+        let (m, v, steps) = self.optimizer.moments(ctx)?;
+        let ema = self.optimizer.raw_ema(ctx)?;
+        let mut scenes = Vec::with_capacity(self.scenes.len());
+        for s in &self.scenes {
+            let grid = s.occupancy.download(ctx)?;
+            scenes.push(map(vec![
+                ("density", f32s(&grid.density)),
+                ("bitfield", Value::Binary(grid.bitfield().to_vec())),
+                ("mean", Value::F32(grid.mean)),
+                ("grid_updates", Value::from(grid.ema_step)),
+                ("rays_per_batch", Value::from(s.rays_per_batch)),
+                ("measured_samples", Value::from(s.measured_samples)),
+                ("measured_marched", Value::from(s.measured_marched)),
+            ]));
+        }
+        // As the CPU lays it out (tiny-cuda-nn's), with the device's raw EMA for our resume.
+        let optimizer = NgpOptimizer {
+            config: &self.optimizer.config,
+            step: self.optimizer.step,
+            m: &m,
+            v: &v,
+            param_steps: &steps,
+            published: &self.inference_params()?,
+            ours: map(vec![("ema", f32s(&ema))]),
+        }
+        .value();
+        Ok(map(vec![
+            ("format", Value::from(FORMAT)),
+            ("version", Value::from(VERSION)),
+            ("fingerprint", fingerprint),
+            ("step", Value::from(self.step)),
+            ("weight_steps", Value::from(self.weight_steps)),
+            ("params", f32s(&params)),
+            ("optimizer", optimizer),
+            ("scenes", Value::Array(scenes)),
+        ]))
+    }
+
+    /// Takes back a [`save_state`](Self::save_state) into this trainer, which must be fresh
+    /// (no step taken) and built from the same scenes, layout and options; `origin` names
+    /// the state in errors. Every field is read and checked before anything is uploaded.
+    /// After an error, drop the trainer.
+    pub fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> ngp::Result<()> {
+        self.restore_state_doc(&state::open(origin, bytes)?, origin)
+    }
+
+    /// [`restore_state`](Self::restore_state) from the document.
+    pub fn restore_state_doc(
+        &mut self,
+        doc: &state::Value,
+        origin: &std::path::Path,
+    ) -> ngp::Result<()> {
+        use state::{Fields, NgpOptimizer, check_header};
+        if self.policy.is_some() {
+            return Err(ngp::Error::Config(
+                "a training policy's state (stealth training) cannot be restored yet".into(),
+            ));
+        }
+        if self.step != 0 {
+            return Err(ngp::Error::Config(
+                "a training state goes into a trainer that has not stepped".into(),
+            ));
+        }
+        let f = Fields::top(origin, doc)?;
+        check_header(&f, &self.fingerprint())?;
+        let step = f.u32("step")?;
+        let weight_steps = f.u32("weight_steps")?;
+        let n = self.field.layout().n_params;
+        let mut params = vec![0.0f32; n];
+        f.f32s_into("params", &mut params)?;
+        let (o, ours) = NgpOptimizer::fields(&f.map("optimizer")?)?;
+        let (mut m, mut v, mut steps, mut ema) = (
+            vec![0.0f32; n],
+            vec![0.0f32; n],
+            vec![0u32; n],
+            vec![0.0f32; n],
+        );
+        o.f32s_into("first_moments_binary", &mut m)?;
+        o.f32s_into("second_moments_binary", &mut v)?;
+        o.u32s_into("param_steps_binary", &mut steps)?;
+        ours.f32s_into("ema", &mut ema)?;
+        let opt_step = o.u32("current_step")?;
+        // The device's bias-correction table holds a value a step: a forged count must not
+        // make it gigabytes.
+        if opt_step > MAX_STEPS {
+            return Err(o.err(
+                "current_step",
+                format!("{opt_step}: more steps than a training runs (at most {MAX_STEPS})"),
+            ));
+        }
+        if let Some(bad) = steps.iter().find(|&&s| s > opt_step) {
+            return Err(o.err(
+                "param_steps_binary",
+                format!("a step count {bad} beyond the optimizer's {opt_step}"),
+            ));
+        }
+        if opt_step != weight_steps || weight_steps > step {
+            return Err(f.err(
+                "weight_steps",
+                format!("{weight_steps} of {step} steps, but the optimizer took {opt_step} steps"),
+            ));
+        }
+        let scene_fields = f.maps("scenes", self.scenes.len())?;
+        let mut restored = Vec::with_capacity(self.scenes.len());
+        for (s, sf) in self.scenes.iter().zip(scene_fields) {
+            let cells = N_CELLS * s.occupancy.n_cascades as usize;
+            let mut density = vec![0.0f32; cells];
+            sf.f32s_into("density", &mut density)?;
+            let mut bitfield = vec![0u8; cells / 8];
+            sf.bytes_into("bitfield", &mut bitfield)?;
+            let grid = OccupancyGrid::from_parts(
+                density,
+                bitfield,
+                sf.f32("mean")?,
+                sf.u32("grid_updates")?,
+            )
+            .ok_or_else(|| sf.err("density", "does not make an occupancy grid"))?;
+            // The device's ray buffers hold MAX_RAYS rays.
+            let rays = sf.u32("rays_per_batch")?;
+            if rays == 0 || rays > MAX_RAYS {
+                return Err(sf.err(
+                    "rays_per_batch",
+                    format!("{rays}: a batch has 1 to {MAX_RAYS} rays"),
+                ));
+            }
+            restored.push((
+                grid,
+                rays,
+                sf.u32("measured_samples")?,
+                sf.u32("measured_marched")?,
+            ));
+        }
+        let ctx = self.ctx;
+        ctx.scoped("restore parameters", || {
+            ctx.queue
+                .write_buffer(&self.field.params, 0, bytemuck::cast_slice(&params))
+        })?;
+        self.optimizer
+            .restore(ctx, opt_step, &m, &v, &steps, &ema)?;
+        for (s, (grid, rays, samples, marched)) in self.scenes.iter_mut().zip(restored) {
+            s.occupancy.restore(ctx, &grid)?;
+            // The host copies the step reads: the mean switches the density pull-up.
+            s.grid_mean = grid.mean;
+            s.rays_per_batch = rays;
+            s.measured_samples = samples;
+            s.measured_marched = marched;
+        }
+        ctx.wait()?;
+        self.step = step;
+        self.weight_steps = weight_steps;
+        Ok(())
     }
 }
 

@@ -492,7 +492,8 @@ impl SaveEvery {
 
 /// The run-state document ([`Training::save_state`]).
 pub const RUN_STATE_FORMAT: &str = "stegongp-run-state";
-pub const RUN_STATE_VERSION: u64 = 1;
+/// 2: the trainer's state nested as a map (it was a binary).
+pub const RUN_STATE_VERSION: u64 = 2;
 
 /// Whether `bytes` are a run-state document ([`Training::save_state`]) rather than a
 /// checkpoint snapshot ([`Training::save_checkpoint`]): its format name opens it.
@@ -600,7 +601,14 @@ impl Training<'_> {
     /// losses), so that a resumed run ends as the uninterrupted one would (on the CPU, bit
     /// for bit).
     pub fn save_state(&self) -> Result<Vec<u8>> {
-        use ngp::train::state::{encode, map};
+        Ok(ngp::train::state::encode(
+            &self.run_doc(self.trainer.save_state()?),
+        ))
+    }
+
+    /// The run-state document around the trainer's own (`trainer`).
+    fn run_doc(&self, trainer: rmpv::Value) -> rmpv::Value {
+        use ngp::train::state::map;
         use rmpv::Value;
         let t = &self.totals;
         let totals = map(vec![
@@ -621,23 +629,26 @@ impl Training<'_> {
                 Value::from(t.occupancy_evaluations),
             ),
         ]);
-        Ok(encode(&map(vec![
+        map(vec![
             ("format", Value::from(RUN_STATE_FORMAT)),
             ("version", Value::from(RUN_STATE_VERSION)),
             ("totals", totals),
             ("last_loss", Value::F32(self.last_loss)),
             ("smoothed", self.smoothed.map_or(Value::Nil, Value::F32)),
             ("shown", Value::F32(self.shown)),
-            ("trainer", Value::Binary(self.trainer.save_state()?)),
-        ])))
+            ("trainer", trainer),
+        ])
     }
 
     /// Takes back a [`save_state`](Self::save_state) before the first step; `origin` names
     /// the state in errors.
     pub fn restore_state(&mut self, bytes: &[u8], origin: &Path) -> Result<()> {
-        use ngp::train::state::{Fields, open};
-        let doc = open(origin, bytes)?;
-        let f = Fields::top(origin, &doc)?;
+        self.restore_run_doc(&ngp::train::state::open(origin, bytes)?, origin)
+    }
+
+    fn restore_run_doc(&mut self, doc: &rmpv::Value, origin: &Path) -> Result<()> {
+        use ngp::train::state::Fields;
+        let f = Fields::top(origin, doc)?;
         if f.str("format")? != RUN_STATE_FORMAT {
             return Err(f.err("format", format!("not a run state ({RUN_STATE_FORMAT})")));
         }
@@ -671,7 +682,7 @@ impl Training<'_> {
             None
         };
         let shown = f.f32("shown")?;
-        self.trainer.restore_state(f.binary("trainer")?, origin)?;
+        self.trainer.restore_state(f.value("trainer")?, origin)?;
         if self.trainer.step() != totals.steps {
             return Err(f.err(
                 "totals.steps",
@@ -696,58 +707,42 @@ impl Training<'_> {
     /// `.msgpack` writes it raw (fast), `.ingp` gzipped; atomically. Refused for a run with
     /// hidden scenes: its optimizer state describes them ([`Self::save_state_to`]).
     pub fn save_checkpoint(&self, path: &Path) -> Result<()> {
-        use ngp::train::state::{encode, open};
-        use rmpv::Value;
         if self.trainer.n_scenes() > 1 {
             return Err(Error::Config(
                 "a run with hidden scenes saves its state as a secret file, not a snapshot".into(),
             ));
         }
-        let here = Path::new("the run state");
-        let mut run = open(here, &self.save_state()?)?;
-        let trainer = take(&mut run, "trainer")
-            .and_then(|v| match v {
-                Value::Binary(b) => Some(b),
-                _ => None,
-            })
-            .ok_or_else(|| Error::Other("a run state without its trainer's".into()))?;
-        let mut trainer = open(here, &trainer)?;
+        let mut trainer = self.trainer.save_state()?;
         let optimizer = take(&mut trainer, "optimizer");
-        put(&mut run, "trainer", Value::Binary(encode(&trainer)));
         let mut snap = self.model()?.to_snapshot();
         snap.preserved.optimizer = optimizer;
-        snap.preserved.run_state = Some(encode(&run));
+        snap.preserved.run_state = Some(self.run_doc(trainer));
         ngp::snapshot::save(path, &snap)
     }
 
-    /// Takes back a [`save_checkpoint`](Self::save_checkpoint) (read from `path`) before
-    /// the first step.
+    /// Takes back a [`save_checkpoint`](Self::save_checkpoint) (`snap`, read from `path`)
+    /// before the first step.
     pub fn restore_checkpoint(&mut self, snap: ngp::snapshot::Snapshot, path: &Path) -> Result<()> {
-        use ngp::train::state::{encode, open};
-        use rmpv::Value;
-        let Some(run) = snap.preserved.run_state else {
+        let Some(mut run) = snap.preserved.run_state else {
             return Err(Error::format(
                 path,
                 "a snapshot without a StegoNGP run state (train --save-every writes one); it \
                  cannot be resumed exactly",
             ));
         };
-        let mut run = open(path, &run)?;
-        let trainer = match take(&mut run, "trainer") {
-            Some(Value::Binary(b)) => b,
+        match (take(&mut run, "trainer"), snap.preserved.optimizer) {
+            (Some(mut trainer), Some(optimizer)) => {
+                put(&mut trainer, "optimizer", optimizer);
+                put(&mut run, "trainer", trainer);
+            }
             _ => {
                 return Err(Error::format(
                     path,
-                    "field snapshot.stegongp_run_state.trainer: missing",
+                    "field snapshot.optimizer or snapshot.stegongp_run_state.trainer: missing",
                 ));
             }
-        };
-        let mut trainer = open(path, &trainer)?;
-        if let Some(o) = snap.preserved.optimizer {
-            put(&mut trainer, "optimizer", o);
         }
-        put(&mut run, "trainer", Value::Binary(encode(&trainer)));
-        self.restore_state(&encode(&run), path)
+        self.restore_run_doc(&run, path)
     }
 
     /// [`save_state`](Self::save_state) written to `path` as a key is: owner-only,

@@ -256,7 +256,7 @@ pub struct Preserved {
     pub extra_dims_opt: Option<rmpv::Value>,
     /// `snapshot.stegongp_run_state`: a training checkpoint's run state beside the
     /// optimizer's (`train --save-every`); never in a published model.
-    pub run_state: Option<Vec<u8>>,
+    pub run_state: Option<rmpv::Value>,
 }
 
 /// A whole model file.

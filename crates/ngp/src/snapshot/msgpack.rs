@@ -8,6 +8,17 @@ use rmpv::Value;
 
 /// Appends `v` to `out` with nlohmann's choices of widths. Map keys that are not strings
 /// cannot come from nlohmann; they sort after the string keys, in their original order.
+/// The bytes of the binaries in `v`, however deep: what an output buffer is sized by, so
+/// that one holding hundreds of megabytes is not copied as it grows.
+pub fn binary_bytes(v: &Value) -> usize {
+    match v {
+        Value::Binary(b) => b.len(),
+        Value::Array(a) => a.iter().map(binary_bytes).sum(),
+        Value::Map(m) => m.iter().map(|(_, v)| binary_bytes(v)).sum(),
+        _ => 0,
+    }
+}
+
 pub fn encode(v: &Value, out: &mut Vec<u8>) {
     match v {
         Value::Nil => out.push(0xc0),

@@ -749,10 +749,7 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
         cam_pos_offset: nerf.get("cam_pos_offset").cloned(),
         cam_rot_offset: nerf.get("cam_rot_offset").cloned(),
         extra_dims_opt: nerf.get("extra_dims_opt").cloned(),
-        run_state: match snap.get("stegongp_run_state") {
-            Some(Value::Binary(b)) => Some(b.clone()),
-            _ => None,
-        },
+        run_state: snap.get("stegongp_run_state").cloned(),
     };
     Ok(Snapshot {
         config,

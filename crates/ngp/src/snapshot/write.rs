@@ -1,7 +1,7 @@
 //! Snapshot → msgpack document, key for key as `Testbed::save_snapshot` and tcnn's
 //! `Trainer::serialize` fill it (types as the C++ members have them).
 
-use super::msgpack::{encode, f, fv, i, map, s, u};
+use super::msgpack::{binary_bytes, encode, f, fv, i, map, s, u};
 use super::read::config_from_value;
 use super::{
     Aabb, DENSITY_GRID_CELLS, DENSITY_GRID_SIZE, Lens, SNAPSHOT_VERSION, Snapshot, SnapshotDataset,
@@ -48,7 +48,16 @@ pub fn to_msgpack(snap: &Snapshot) -> Result<Vec<u8>> {
     };
     top.push((s("snapshot"), snapshot_value(snap, layout.n_params)));
     let doc = Value::Map(top);
-    let mut out = Vec::with_capacity(layout.n_params * 2 + snap.density_grid.len() * 2 + 65536);
+    // Sized once: a checkpoint's optimizer and run state are hundreds of megabytes, and a
+    // growing buffer would copy them several times over.
+    let preserved = [&snap.preserved.optimizer, &snap.preserved.run_state]
+        .into_iter()
+        .flatten()
+        .map(binary_bytes)
+        .sum::<usize>();
+    let mut out = Vec::with_capacity(
+        layout.n_params * 2 + snap.density_grid.len() * 2 + preserved + (1 << 20),
+    );
     encode(&doc, &mut out);
     Ok(out)
 }
@@ -269,7 +278,7 @@ fn snapshot_value(snap: &Snapshot, n_params: usize) -> Value {
         ("camera", camera),
     ]);
     if let Some(r) = &p.run_state {
-        e.push(("stegongp_run_state", Value::Binary(r.clone())));
+        e.push(("stegongp_run_state", r.clone()));
     }
     map(e)
 }

@@ -36,16 +36,17 @@ pub trait TrainBackend {
     fn set_policy(&mut self, policy: Box<dyn TrainPolicy>) -> Result<()>;
     /// The model as it would be published now, with `loss` as its stored loss.
     fn model(&self, loss: f32) -> Result<Model>;
-    /// The whole training state between two steps ([`state`]), to go on from later; an
-    /// error where this backend cannot save one.
-    fn save_state(&self) -> Result<Vec<u8>> {
+    /// The whole training state between two steps ([`state`]), as a document (a caller
+    /// nests it: the run's state, a checkpoint snapshot), to go on from later; an error
+    /// where this backend cannot save one.
+    fn save_state(&self) -> Result<state::Value> {
         Err(crate::error::Error::Config(
             "this device cannot save a training state yet (the CPU can)".into(),
         ))
     }
     /// Takes back a [`save_state`](Self::save_state) before the first step; `origin`
     /// names it in errors.
-    fn restore_state(&mut self, _bytes: &[u8], _origin: &std::path::Path) -> Result<()> {
+    fn restore_state(&mut self, _doc: &state::Value, _origin: &std::path::Path) -> Result<()> {
         Err(crate::error::Error::Config(
             "this device cannot resume a training state yet (the CPU can)".into(),
         ))
@@ -81,10 +82,10 @@ impl TrainBackend for Trainer {
     fn model(&self, loss: f32) -> Result<Model> {
         Ok(Model::from_trainer(self, loss))
     }
-    fn save_state(&self) -> Result<Vec<u8>> {
-        Trainer::save_state(self)
+    fn save_state(&self) -> Result<state::Value> {
+        Trainer::save_state_doc(self)
     }
-    fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> Result<()> {
-        Trainer::restore_state(self, bytes, origin)
+    fn restore_state(&mut self, doc: &state::Value, origin: &std::path::Path) -> Result<()> {
+        Trainer::restore_state_doc(self, doc, origin)
     }
 }

@@ -183,46 +183,28 @@ impl Optimizer {
     /// each group's was brought up to), which tiny-cuda-nn ignores. `params` are the
     /// training weights.
     pub(super) fn state(&self, params: &[f32]) -> rmpv::Value {
-        use super::state::{f32s, map, u32s};
-        use rmpv::Value;
-        let c = self.config;
-        let lr = self.learning_rate();
-        let published = self.ema_params(params);
-        let mut h = vec![half::f16::ZERO; published.len()];
-        half::slice::HalfFloatSliceExt::convert_from_f32_slice(&mut h[..], &published);
-        let ema16: Vec<u8> = h.iter().flat_map(|x| x.to_le_bytes()).collect();
-        let adam = map(vec![
-            ("base_learning_rate", Value::F32(lr)),
-            ("current_step", Value::from(self.step)),
-            ("first_moments_binary", f32s(&self.m)),
-            ("param_steps_binary", u32s(&self.steps)),
-            ("second_moments_binary", f32s(&self.v)),
-        ]);
-        let decay = map(vec![
-            ("learning_rate", Value::F32(c.lr)),
-            ("learning_rate_factor", Value::F32(lr / c.lr)),
-            ("nested", adam),
-        ]);
-        map(vec![
-            ("nested", decay),
-            (
-                "stegongp",
-                map(vec![
-                    ("ema", f32s(&self.ema)),
-                    ("ema_step", u32s(&self.ema_step)),
-                ]),
-            ),
-            ("weights_ema_binary", Value::Binary(ema16)),
-        ])
+        use super::state::{NgpOptimizer, f32s, map, u32s};
+        NgpOptimizer {
+            config: &self.config,
+            step: self.step,
+            m: &self.m,
+            v: &self.v,
+            param_steps: &self.steps,
+            published: &self.ema_params(params),
+            ours: map(vec![
+                ("ema", f32s(&self.ema)),
+                ("ema_step", u32s(&self.ema_step)),
+            ]),
+        }
+        .value()
     }
 
     /// Takes back a [`state`](Self::state); lengths are checked against this optimizer.
     pub(super) fn restore(&mut self, f: &super::state::Fields) -> crate::error::Result<()> {
-        let adam = f.map("nested")?.map("nested")?;
+        let (adam, ours) = super::state::NgpOptimizer::fields(f)?;
         adam.f32s_into("first_moments_binary", &mut self.m)?;
         adam.f32s_into("second_moments_binary", &mut self.v)?;
         adam.u32s_into("param_steps_binary", &mut self.steps)?;
-        let ours = f.map("stegongp")?;
         ours.f32s_into("ema", &mut self.ema)?;
         ours.u32s_into("ema_step", &mut self.ema_step)?;
         self.step = adam.u32("current_step")?;

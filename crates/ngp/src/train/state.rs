@@ -2,7 +2,10 @@
 //! needs to go on exactly where it stopped. Restored into a trainer built from the same
 //! scenes and options, the next steps are the ones the uninterrupted run would have taken,
 //! bit for bit (on the CPU, with the same worker count: the gradient partitions are summed
-//! in a fixed order).
+//! in a fixed order). The GPU trainer writes the same document with `device: gpu` in its
+//! fingerprint and what it keeps on the device; a state goes back only into its own kind of
+//! trainer, and on the GPU the next steps are the same steps, not bit for bit (its float
+//! sums depend on the order its threads add in).
 //!
 //! The document is msgpack: `format`, `version`, a `fingerprint` of what must not change
 //! (layout, scenes, options, workers), then the weights, the optimizer's moments and EMA,
@@ -12,20 +15,29 @@
 
 use crate::error::{Error, Result};
 use crate::snapshot::msgpack;
-use rmpv::Value;
+/// The document's values, for backends that write their own states (the GPU trainer's).
+pub use rmpv::Value;
 use std::path::Path;
 
 pub const FORMAT: &str = "stegongp-train-state";
 /// 2: a training policy's state, the mechanisms' (held-back gradients, table bounds) and
 /// the gradients a step left waiting in the workers' buffers.
 pub const VERSION: u64 = 2;
+/// The fingerprint entry naming the kind of trainer that saved a state; a state without it
+/// is the CPU trainer's.
+pub const DEVICE: &str = "device";
 
 pub fn f32s(v: &[f32]) -> Value {
-    Value::Binary(v.iter().flat_map(|x| x.to_le_bytes()).collect())
+    u32s(bytemuck::cast_slice(v))
 }
 
 pub fn u32s(v: &[u32]) -> Value {
-    Value::Binary(v.iter().flat_map(|x| x.to_le_bytes()).collect())
+    // Sized once and filled in place: a collected flat_map grows its buffer step by step.
+    let mut out = vec![0u8; v.len() * 4];
+    for (o, x) in out.chunks_exact_mut(4).zip(v) {
+        o.copy_from_slice(&x.to_le_bytes());
+    }
+    Value::Binary(out)
 }
 
 /// The values of `v` whose bits are not zero (−0.0 included), as `{index, value}`: what a
@@ -51,9 +63,57 @@ pub fn map(entries: Vec<(&str, Value)>) -> Value {
 }
 
 pub fn encode(v: &Value) -> Vec<u8> {
-    let mut out = Vec::new();
+    let mut out = Vec::with_capacity(msgpack::binary_bytes(v) + (1 << 16));
     msgpack::encode(v, &mut out);
     out
+}
+
+/// An optimizer's state laid out as tiny-cuda-nn serialises its NeRF optimizer into a
+/// snapshot saved with optimizer state (`Ema::serialize` ∘ `ExponentialDecay::serialize` ∘
+/// `Adam::serialize`, keys sorted as nlohmann writes them): instant-ngp loads a checkpoint
+/// with it and trains on. `published` are the debiased EMA weights (written fp16, as the
+/// reference keeps them); `ours` is what an exact resume needs besides (a backend's own EMA
+/// accumulators), under `stegongp`, which tiny-cuda-nn ignores.
+pub struct NgpOptimizer<'a> {
+    pub config: &'a super::optimizer::OptimizerConfig,
+    pub step: u32,
+    pub m: &'a [f32],
+    pub v: &'a [f32],
+    pub param_steps: &'a [u32],
+    pub published: &'a [f32],
+    pub ours: Value,
+}
+
+impl NgpOptimizer<'_> {
+    pub fn value(self) -> Value {
+        let c = self.config;
+        let lr = c.learning_rate(self.step);
+        let mut h = vec![half::f16::ZERO; self.published.len()];
+        half::slice::HalfFloatSliceExt::convert_from_f32_slice(&mut h[..], self.published);
+        let ema16: Vec<u8> = h.iter().flat_map(|x| x.to_le_bytes()).collect();
+        let adam = map(vec![
+            ("base_learning_rate", Value::F32(lr)),
+            ("current_step", Value::from(self.step)),
+            ("first_moments_binary", f32s(self.m)),
+            ("param_steps_binary", u32s(self.param_steps)),
+            ("second_moments_binary", f32s(self.v)),
+        ]);
+        let decay = map(vec![
+            ("learning_rate", Value::F32(c.lr)),
+            ("learning_rate_factor", Value::F32(lr / c.lr)),
+            ("nested", adam),
+        ]);
+        map(vec![
+            ("nested", decay),
+            ("stegongp", self.ours),
+            ("weights_ema_binary", Value::Binary(ema16)),
+        ])
+    }
+
+    /// The Adam map and `stegongp` of an optimizer state `o` written by [`Self::value`].
+    pub fn fields<'a>(o: &Fields<'a>) -> Result<(Fields<'a>, Fields<'a>)> {
+        Ok((o.map("nested")?.map("nested")?, o.map("stegongp")?))
+    }
 }
 
 /// Reads fields of one map of the document; errors name the file and the field's path.
@@ -110,6 +170,11 @@ impl<'a> Fields<'a> {
             Value::Integer(i) => i.as_f64().ok_or_else(|| self.err(key, "expected a number")),
             _ => Err(self.err(key, "expected a number")),
         }
+    }
+
+    /// A nested document as it is.
+    pub fn value(&self, key: &str) -> Result<&'a Value> {
+        self.get(key)
     }
 
     /// Binary data of any length (a nested document).
@@ -274,6 +339,29 @@ pub fn check_header(f: &Fields, fingerprint: &[(String, String)]) -> Result<()> 
         ));
     }
     let saved = f.map("fingerprint")?;
+    // A state holds what its own kind of trainer keeps between steps: the CPU's and the
+    // GPU's are not interchangeable, and saying so beats naming the options that differ.
+    let device_of = |d: Option<&str>| match d {
+        None | Some("cpu") => "the CPU",
+        Some("gpu") => "the GPU",
+        Some(_) => "an unknown device",
+    };
+    let want = device_of(
+        fingerprint
+            .iter()
+            .find(|(k, _)| k == DEVICE)
+            .map(|(_, v)| v.as_str()),
+    );
+    let got = device_of(saved.str(DEVICE).ok());
+    if got != want {
+        return Err(f.err(
+            "fingerprint",
+            format!(
+                "saved by training on {got}; this run trains on {want} (a state goes on only \
+                 on the kind of device that saved it)"
+            ),
+        ));
+    }
     let differ: Vec<&str> = fingerprint
         .iter()
         .filter(|(k, v)| saved.str(k).map_or(true, |s| s != v))

@@ -369,7 +369,12 @@ impl Trainer {
     /// bounds) and the gradients a step that did not update the weights left waiting in
     /// the workers' buffers.
     pub fn save_state(&self) -> Result<Vec<u8>> {
-        use super::state::{FORMAT, VERSION, encode, f32s, map, sparse, u32s};
+        Ok(super::state::encode(&self.save_state_doc()?))
+    }
+
+    /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
+    pub fn save_state_doc(&self) -> Result<rmpv::Value> {
+        use super::state::{FORMAT, VERSION, f32s, map, sparse, u32s};
         use rmpv::Value;
         let fingerprint = Value::Map(
             self.fingerprint()
@@ -426,7 +431,7 @@ impl Trainer {
                 ])
             })
             .collect();
-        Ok(encode(&map(vec![
+        Ok(map(vec![
             ("format", Value::from(FORMAT)),
             ("version", Value::from(VERSION)),
             ("fingerprint", fingerprint),
@@ -451,21 +456,25 @@ impl Trainer {
                     None => Value::Nil,
                 },
             ),
-        ])))
+        ]))
     }
 
     /// Takes back a [`save_state`](Self::save_state) into this trainer, which must be fresh
     /// (no step taken) and built from the same scenes, layout, options and worker count;
     /// `origin` names the state in errors. After an error, drop the trainer.
     pub fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> Result<()> {
-        use super::state::{Fields, check_header, open};
+        self.restore_state_doc(&super::state::open(origin, bytes)?, origin)
+    }
+
+    /// [`restore_state`](Self::restore_state) from the document.
+    pub fn restore_state_doc(&mut self, doc: &rmpv::Value, origin: &std::path::Path) -> Result<()> {
+        use super::state::{Fields, check_header};
         if self.step != 0 {
             return Err(Error::Config(
                 "a training state goes into a trainer that has not stepped".into(),
             ));
         }
-        let doc = open(origin, bytes)?;
-        let f = Fields::top(origin, &doc)?;
+        let f = Fields::top(origin, doc)?;
         check_header(&f, &self.fingerprint())?;
         let step = f.u32("step")?;
         let weight_steps = f.u32("weight_steps")?;
