@@ -1,8 +1,9 @@
 //! A GPU training saved and resumed (`GpuTrainer::save_state` / `restore_state`, and
 //! `train --save-every` / `--resume --device gpu`): everything restored reads back as saved,
 //! bit for bit; the resumed run takes the steps the uninterrupted one takes and ends within
-//! the device's run-to-run noise of it; states from the other device, from another scene,
-//! cut short or with a policy installed are refused, naming the file.
+//! the device's run-to-run noise of it; a stealth run's policy and mechanisms come back
+//! too; states from the other device, from another scene, cut short, or with a policy where
+//! none was saved (or the reverse) are refused, naming the file.
 #![cfg(feature = "gpu")]
 
 use serde_json::Value;
@@ -184,8 +185,7 @@ fn a_resumed_gpu_run_goes_on_as_the_uninterrupted_one() {
     assert!(off_w <= 0.03, "resumed weights {:.2} % off", 100.0 * off_w);
 }
 
-/// A policy that changes nothing: its state is not saved yet, so with one installed a
-/// trainer neither saves nor restores.
+/// A policy that changes nothing and keeps no state.
 struct Nop;
 impl TrainPolicy for Nop {}
 
@@ -324,12 +324,18 @@ fn states_from_elsewhere_cut_short_or_forged_are_refused_naming_the_file() {
     );
     // Only into a trainer that has not stepped.
     refused(g.restore_state(&gpu_state, &origin), &["has not stepped"]);
-    // Not with a training policy, either way.
+    // A state goes back only where a policy is installed iff one was when it was saved.
     let mut p = gpu_trainer(ctx, &train);
     p.set_policy(Box::new(Nop)).unwrap();
-    let e = p.save_state().expect_err("a policy's state").to_string();
-    assert!(e.contains("training policy"), "{e}");
-    refused(p.restore_state(&gpu_state, &origin), &["training policy"]);
+    let with_policy = p.save_state().unwrap();
+    refused(p.restore_state(&gpu_state, &origin), &[file, "policy"]);
+    refused(
+        gpu_trainer(ctx, &train).restore_state(&with_policy, &origin),
+        &[file, "policy"],
+    );
+    let mut q = gpu_trainer(ctx, &train);
+    q.set_policy(Box::new(Nop)).unwrap();
+    q.restore_state(&with_policy, &origin).unwrap();
     // Through the backend trait, as the recipe calls it.
     let b: &mut dyn TrainBackend = &mut gpu_trainer(ctx, &train);
     let doc = stegongp::ngp::train::state::open(&origin, &gpu_state).unwrap();
@@ -431,4 +437,120 @@ fn the_cli_saves_and_resumes_a_gpu_run() {
         &["part.ingp.state", "saved by training on the GPU"],
     );
     assert!(!out.exists(), "nothing written");
+}
+
+/// A stealth run on the GPU (every part, the random-scene schedule whose hidden steps update
+/// nothing) saved right after a hidden-only step — its gradient waiting in the buffer, table
+/// gradients held back, bounds on the entries the cover left, the confinement the policy
+/// made — and restored into a fresh trainer with a fresh policy reads back the same state,
+/// byte for byte, and takes the same next step.
+#[test]
+fn a_stealth_gpu_run_resumes_with_its_policy_and_mechanisms() {
+    use stegongp::ngp::train::Schedule;
+    use stegongp::stego::generate_prf;
+    use stegongp::stego::stealth::{Stealth, StealthOptions};
+    let Some(ctx) = test_context() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (cover, _) = generated(&dir.path().join("c"), SceneKind::Object, 24, 6, 1, 3).shared();
+    let (hidden, _) = generated(
+        &dir.path().join("h"),
+        SceneKind::Text("HI".into()),
+        24,
+        6,
+        1,
+        4,
+    )
+    .shared();
+    let mut model = model_config();
+    model.grid.n_levels = 8;
+    model.grid.log2_hashmap_size = 12;
+    let layout = NerfLayout::new(model).unwrap();
+    let key = generate_prf(4).unwrap();
+    let options = StealthOptions {
+        enabled: true,
+        ..Default::default()
+    };
+    let build = || {
+        let specs = [cover.clone(), hidden.clone()]
+            .into_iter()
+            .map(|dataset| SceneSpec {
+                dataset,
+                indices: reference_indices(&layout.grid),
+            })
+            .collect();
+        let tc = TrainConfig {
+            schedule: Schedule::RandomScene,
+            batch_samples: 1 << 11,
+            ..config()
+        };
+        let mut t = GpuTrainer::new(ctx, model, specs, tc).unwrap();
+        let policy = Stealth::new(layout.clone(), std::slice::from_ref(&key), &options).unwrap();
+        t.set_policy(Box::new(policy)).unwrap();
+        t
+    };
+    let mut first = build();
+    let mut cover_steps = 0;
+    loop {
+        let trained_cover = first.train_step().unwrap().primary_loss.is_some();
+        cover_steps += trained_cover as u32;
+        if cover_steps >= 6 && !trained_cover {
+            break;
+        }
+        assert!(first.step < 40, "no hidden-only step");
+    }
+    assert!(
+        first.gradient().unwrap().iter().any(|&g| g != 0.0),
+        "no gradient waits after a hidden-only step"
+    );
+    assert!(first.table_bounds().is_some(), "no bounds set");
+    let saved = first.save_state().unwrap();
+    let origin = dir.path().join("stealth.state");
+    let mut resumed = build();
+    assert!(
+        resumed.indices(1) != first.indices(1),
+        "the confinement has not moved"
+    );
+    resumed.restore_state(&saved, &origin).unwrap();
+    assert!(
+        resumed.save_state().unwrap() == saved,
+        "the restored stealth state reads back otherwise"
+    );
+    assert!(
+        resumed.indices(1) == first.indices(1),
+        "the confined indices"
+    );
+    assert!(resumed.table_bounds() == first.table_bounds());
+    assert_eq!(resumed.gradient().unwrap(), first.gradient().unwrap());
+    let (a, b) = (first.train_step().unwrap(), resumed.train_step().unwrap());
+    assert_eq!(
+        (a.n_rays, a.n_marched, a.n_samples, a.primary_loss.is_some()),
+        (b.n_rays, b.n_marched, b.n_samples, b.primary_loss.is_some())
+    );
+    assert!(
+        (a.loss - b.loss).abs() <= 1e-4 * a.loss.max(1e-6),
+        "{} vs {}",
+        a.loss,
+        b.loss
+    );
+    // Without a policy, or into a plain trainer: refused by name.
+    let plain = GpuTrainer::new(
+        ctx,
+        model,
+        [cover.clone(), hidden.clone()]
+            .into_iter()
+            .map(|dataset| SceneSpec {
+                dataset,
+                indices: reference_indices(&layout.grid),
+            })
+            .collect(),
+        TrainConfig {
+            schedule: Schedule::RandomScene,
+            batch_samples: 1 << 11,
+            ..config()
+        },
+    );
+    refused(
+        plain.unwrap().restore_state(&saved, &origin),
+        &["stealth.state", "policy"],
+    );
 }

@@ -75,7 +75,7 @@ pub struct Args {
     /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
     /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it, on the
     /// kind of device that saved it (CPU: exactly; GPU: the same run, within noise; with
-    /// --stealth on the CPU). A plain run's is a checkpoint snapshot with its optimizer
+    /// --stealth too). A plain run's is a checkpoint snapshot with its optimizer
     /// state, as instant-ngp saves one (it loads it and trains on; our tools render it); a
     /// stego run's describes its hidden scenes: a secret file, owner-only, to keep like the
     /// keys.
@@ -276,16 +276,6 @@ pub fn run(a: Args) -> Result<()> {
     // Both devices save and resume a plain run (a policy's state is refused above, and by
     // the trainer, whose error names what it cannot save).
     let device = a.device.open()?;
-    if a.training.stealth.enabled
-        && (a.save_every.is_some() || a.resume.is_some())
-        && !matches!(device, stegongp::backend::Device::Cpu { .. })
-    {
-        bail!(
-            "--save-every and --resume with --stealth work on the CPU only for now ({}): the \
-             GPU does not save a training policy's state yet; use --device cpu",
-            device.report()
-        );
-    }
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;
     let mut resume_seconds = 0.0;

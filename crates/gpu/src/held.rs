@@ -206,7 +206,22 @@ impl GpuHoldBack {
         })
     }
 
-    /// The held-back gradients, read back (for tests).
+    /// Sets the held-back gradients (a restored training state's).
+    pub fn restore_pending(&self, ctx: &GpuContext, pending: &[f32]) -> GpuResult<()> {
+        if 4 * pending.len() as u64 != self.pending.size() {
+            return Err(GpuError::Input(format!(
+                "{} held-back gradients for a buffer of {} bytes",
+                pending.len(),
+                self.pending.size()
+            )));
+        }
+        ctx.scoped("held-back gradients", || {
+            ctx.queue
+                .write_buffer(&self.pending, 0, bytemuck::cast_slice(pending))
+        })
+    }
+
+    /// The held-back gradients, read back (for tests and training states).
     pub fn pending(&self, ctx: &GpuContext) -> GpuResult<Vec<f32>> {
         ctx.read_buffer(&self.pending, self.pending.size())
     }

@@ -484,10 +484,16 @@ impl<'c> GpuTrainer<'c> {
         let Some(policy) = &mut self.policy else {
             return Ok(());
         };
+        let fresh = policy.indices(grid, published);
+        self.upload_indices(fresh)
+    }
+
+    /// New indices for the scenes named, checked all before any is used (an error changes
+    /// nothing), then uploaded.
+    fn upload_indices(&mut self, fresh: Vec<(usize, LevelIndices)>) -> GpuResult<()> {
         let ctx = self.ctx;
         let layout = self.field.layout();
         let n_levels = layout.grid.levels.len();
-        let fresh = policy.indices(grid, published);
         let mut uploaded = Vec::with_capacity(fresh.len());
         for (i, indices) in fresh {
             if i == 0 || i >= self.scenes.len() || indices.len() != n_levels {
@@ -1126,6 +1132,15 @@ impl<'c> GpuTrainer<'c> {
             ),
             ("options".to_string(), format!("{options:?}")),
             ("scenes".to_string(), self.scenes.len().to_string()),
+            (
+                "policy".to_string(),
+                if self.policy.is_some() {
+                    "installed"
+                } else {
+                    "none"
+                }
+                .to_string(),
+            ),
         ];
         for (i, s) in self.scenes.iter().enumerate() {
             let f = &s.dataset.frames;
@@ -1152,22 +1167,19 @@ impl<'c> GpuTrainer<'c> {
     /// mean, update count) and rays-per-batch counters; the step counts. Nothing else
     /// lasts from one step to the next: the seeds are functions of (seed, step, scene) and
     /// of the grid's update count, the occupancy schedule of `weight_steps`, and the
-    /// gradient is zero after every update. Restored into a trainer built the same way,
-    /// training goes on with the same steps, schedule and draws, though not bit for bit
-    /// (the device's float sums depend on the order threads add in). Not with a training
-    /// policy (stealth), whose own state is not saved yet.
+    /// gradient is zero after every update. With a training policy: its own state, the
+    /// mechanisms' (held-back gradients, table bounds) and the gradient a step that did not
+    /// update the weights left in the buffer, as the CPU saves them. Restored into a
+    /// trainer built the same way (its policy too), training goes on with the same steps,
+    /// schedule and draws, though not bit for bit (the device's float sums depend on the
+    /// order threads add in).
     pub fn save_state(&self) -> ngp::Result<Vec<u8>> {
         Ok(state::encode(&self.save_state_doc()?))
     }
 
     /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
     pub fn save_state_doc(&self) -> ngp::Result<state::Value> {
-        use state::{FORMAT, NgpOptimizer, VERSION, Value, f32s, map};
-        if self.policy.is_some() {
-            return Err(ngp::Error::Config(
-                "a training policy's state (stealth training) cannot be saved yet".into(),
-            ));
-        }
+        use state::{FORMAT, NgpOptimizer, VERSION, Value, bounds_value, f32s, map, sparse};
         let ctx = self.ctx;
         let fingerprint = Value::Map(
             self.fingerprint()
@@ -1191,6 +1203,29 @@ impl<'c> GpuTrainer<'c> {
                 ("measured_marched", Value::from(s.measured_marched)),
             ]));
         }
+        // Only a policy leaves anything between steps in these (read back only then).
+        let (mechanisms, gradient, policy) = match &self.policy {
+            None => (Value::Nil, Value::Nil, Value::Nil),
+            Some(p) => {
+                // Per parameter, as the CPU's (the device holds the table's alone).
+                let held = match &self.hold {
+                    Some(h) => {
+                        let mut all = vec![0.0f32; self.field.layout().n_mlp_params()];
+                        all.extend(h.pending(ctx)?);
+                        sparse(&all)
+                    }
+                    None => Value::Nil,
+                };
+                (
+                    map(vec![
+                        ("held", held),
+                        ("bounds", bounds_value(self.bounds.as_ref())),
+                    ]),
+                    sparse(&self.gradient()?),
+                    p.save_state()?.map_or(Value::Nil, Value::Binary),
+                )
+            }
+        };
         // As the CPU lays it out (tiny-cuda-nn's), with the device's raw EMA for our resume.
         let optimizer = NgpOptimizer {
             config: &self.optimizer.config,
@@ -1211,6 +1246,9 @@ impl<'c> GpuTrainer<'c> {
             ("params", f32s(&params)),
             ("optimizer", optimizer),
             ("scenes", Value::Array(scenes)),
+            ("mechanisms", mechanisms),
+            ("gradient", gradient),
+            ("policy", policy),
         ]))
     }
 
@@ -1229,11 +1267,6 @@ impl<'c> GpuTrainer<'c> {
         origin: &std::path::Path,
     ) -> ngp::Result<()> {
         use state::{Fields, NgpOptimizer, check_header};
-        if self.policy.is_some() {
-            return Err(ngp::Error::Config(
-                "a training policy's state (stealth training) cannot be restored yet".into(),
-            ));
-        }
         if self.step != 0 {
             return Err(ngp::Error::Config(
                 "a training state goes into a trainer that has not stepped".into(),
@@ -1308,6 +1341,32 @@ impl<'c> GpuTrainer<'c> {
                 sf.u32("measured_marched")?,
             ));
         }
+        // A policy's mechanisms and waiting gradient (the fingerprint has checked that a
+        // policy is installed here iff one saved).
+        let layout = self.field.layout();
+        let (mut held, mut gradient, mut bounds) = (None, None, None);
+        if self.policy.is_some() {
+            let mf = f.map("mechanisms")?;
+            if mf.has("held") {
+                let mut pending = vec![0.0f32; n];
+                mf.sparse_into("held", &mut pending)?;
+                let table = pending.split_off(layout.n_mlp_params());
+                if pending.iter().any(|&g| g != 0.0) {
+                    return Err(mf.err("held", "holds back an MLP gradient (never held)"));
+                }
+                held = Some(table);
+            }
+            let nf = layout.config.grid.n_features as usize;
+            bounds = state::bounds_from(&mf, "bounds", layout.grid.n_entries as usize, nf)?;
+            let mut g = vec![0.0f32; n];
+            f.sparse_into("gradient", &mut g)?;
+            gradient = Some(g);
+        }
+        let saved_policy = if f.has("policy") {
+            Some(f.binary("policy")?)
+        } else {
+            None
+        };
         let ctx = self.ctx;
         ctx.scoped("restore parameters", || {
             ctx.queue
@@ -1323,10 +1382,44 @@ impl<'c> GpuTrainer<'c> {
             s.measured_samples = samples;
             s.measured_marched = marched;
         }
+        if held.is_some() || bounds.is_some() {
+            let h = self.hold_back()?;
+            if let Some(pending) = &held {
+                h.restore_pending(ctx, pending)?;
+            }
+            if let Some(b) = &bounds {
+                h.upload_bounds(ctx, b)?;
+            }
+        }
+        self.bounds = bounds;
+        if let Some(g) = &gradient {
+            ctx.scoped("restore gradient", || {
+                ctx.queue
+                    .write_buffer(&self.grad, 0, bytemuck::cast_slice(g))
+            })?;
+        }
+        if let Some(p) = &mut self.policy {
+            let fresh = p.restore_state(saved_policy, origin)?;
+            self.upload_indices(fresh)?;
+        }
         ctx.wait()?;
         self.step = step;
         self.weight_steps = weight_steps;
         Ok(())
+    }
+
+    /// The hold-back kernels, made on first use.
+    fn hold_back(&mut self) -> GpuResult<&GpuHoldBack> {
+        if self.hold.is_none() {
+            let layout = self.field.layout();
+            self.hold = Some(GpuHoldBack::new(
+                self.ctx,
+                layout.n_params,
+                layout.n_mlp_params(),
+                layout.config.grid.n_features as usize,
+            )?);
+        }
+        Ok(self.hold.as_ref().expect("made above"))
     }
 }
 
@@ -1342,17 +1435,7 @@ struct GpuOps<'t, 'c> {
 impl GpuOps<'_, '_> {
     /// The hold-back kernels, made on first use.
     fn hold(&mut self) -> GpuResult<()> {
-        if self.t.hold.is_none() {
-            let layout = self.t.field.layout();
-            let h = GpuHoldBack::new(
-                self.t.ctx,
-                layout.n_params,
-                layout.n_mlp_params(),
-                layout.config.grid.n_features as usize,
-            )?;
-            self.t.hold = Some(h);
-        }
-        Ok(())
+        self.t.hold_back().map(|_| ())
     }
 
     fn kept(&mut self) -> GpuResult<()> {

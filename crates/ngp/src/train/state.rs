@@ -116,6 +116,51 @@ impl NgpOptimizer<'_> {
     }
 }
 
+/// A policy's table bounds ([`super::hooks::TableBounds`]) as `{entries, bounds}`, the
+/// bounded entries alone; nil before a policy set any.
+pub fn bounds_value(b: Option<&super::hooks::TableBounds>) -> Value {
+    let Some(b) = b else {
+        return Value::Nil;
+    };
+    let bounded: Vec<u32> = (0..b.bounds().len() as u32)
+        .filter(|&e| b.is_bounded(e as usize))
+        .collect();
+    let values: Vec<f32> = bounded.iter().map(|&e| b.bound(e as usize)).collect();
+    map(vec![("entries", u32s(&bounded)), ("bounds", f32s(&values))])
+}
+
+/// Takes back a [`bounds_value`] (field `key` of `f`) for a table of `n_entries` entries of
+/// `n_features`: entries in order and within the table, bounds finite and ≥ 0.
+pub fn bounds_from(
+    f: &Fields,
+    key: &str,
+    n_entries: usize,
+    n_features: usize,
+) -> Result<Option<super::hooks::TableBounds>> {
+    if !f.has(key) {
+        return Ok(None);
+    }
+    let bf = f.map(key)?;
+    let entries = bf.u32s("entries", n_entries)?;
+    let mut values = vec![0.0f32; entries.len()];
+    bf.f32s_into("bounds", &mut values)?;
+    let mut bound = vec![super::hooks::UNBOUNDED; n_entries];
+    let mut next = 0;
+    for (&e, &b) in entries.iter().zip(&values) {
+        if (e as usize) < next || e as usize >= n_entries || !(b >= 0.0 && b.is_finite()) {
+            return Err(bf.err(
+                "entries",
+                format!("entry {e} out of order, past {n_entries}, or with bound {b}"),
+            ));
+        }
+        bound[e as usize] = b;
+        next = e as usize + 1;
+    }
+    Ok(Some(super::hooks::TableBounds::from_bounds(
+        bound, n_features,
+    )))
+}
+
 /// Reads fields of one map of the document; errors name the file and the field's path.
 pub struct Fields<'a> {
     origin: &'a Path,

@@ -11,7 +11,7 @@
 
 use super::grid_updates::GridUpdates;
 use super::held::{HoldBack, KeptMlp};
-use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy, UNBOUNDED};
+use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
 use super::loss::{DENSITY_PULL_UP, ray_loss};
 use super::optimizer::{Optimizer, OptimizerConfig, Touched};
 use super::schedule::{
@@ -374,7 +374,7 @@ impl Trainer {
 
     /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
     pub fn save_state_doc(&self) -> Result<rmpv::Value> {
-        use super::state::{FORMAT, VERSION, f32s, map, sparse, u32s};
+        use super::state::{FORMAT, VERSION, bounds_value, f32s, map, sparse};
         use rmpv::Value;
         let fingerprint = Value::Map(
             self.fingerprint()
@@ -398,13 +398,6 @@ impl Trainer {
             })
             .collect();
         let (since, updates) = self.grid_updates.clock();
-        let bounds = self.mech.bounds.as_ref().map_or(Value::Nil, |b| {
-            let bounded: Vec<u32> = (0..b.bounds().len() as u32)
-                .filter(|&e| b.is_bounded(e as usize))
-                .collect();
-            let values: Vec<f32> = bounded.iter().map(|&e| b.bound(e as usize)).collect();
-            map(vec![("entries", u32s(&bounded)), ("bounds", f32s(&values))])
-        });
         let mechanisms = map(vec![
             (
                 "held",
@@ -413,7 +406,7 @@ impl Trainer {
                     .as_ref()
                     .map_or(Value::Nil, |h| sparse(h.pending())),
             ),
-            ("bounds", bounds),
+            ("bounds", bounds_value(self.mech.bounds.as_ref())),
         ]);
         let workers = self
             .workers
@@ -550,29 +543,9 @@ impl Trainer {
         } else {
             None
         };
-        self.mech.bounds = if f.has("bounds") {
-            let bf = f.map("bounds")?;
-            let n_features = self.net.layout.config.grid.n_features as usize;
-            let n_entries = (n - self.net.layout.grid_offset) / n_features;
-            let entries = bf.u32s("entries", n_entries)?;
-            let mut values = vec![0.0f32; entries.len()];
-            bf.f32s_into("bounds", &mut values)?;
-            let mut bound = vec![UNBOUNDED; n_entries];
-            let mut next = 0;
-            for (&e, &b) in entries.iter().zip(&values) {
-                if (e as usize) < next || e as usize >= n_entries || !(b >= 0.0 && b.is_finite()) {
-                    return Err(bf.err(
-                        "entries",
-                        format!("entry {e} out of order, past {n_entries}, or with bound {b}"),
-                    ));
-                }
-                bound[e as usize] = b;
-                next = e as usize + 1;
-            }
-            Some(TableBounds::from_bounds(bound, n_features))
-        } else {
-            None
-        };
+        let n_features = self.net.layout.config.grid.n_features as usize;
+        let n_entries = (n - self.net.layout.grid_offset) / n_features;
+        self.mech.bounds = super::state::bounds_from(f, "bounds", n_entries, n_features)?;
         Ok(())
     }
 
