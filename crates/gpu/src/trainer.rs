@@ -1124,41 +1124,13 @@ impl<'c> GpuTrainer<'c> {
     fn fingerprint(&self) -> Vec<(String, String)> {
         let mut options = self.config.clone();
         options.workers = 0;
-        let mut out = vec![
-            (state::DEVICE.to_string(), "gpu".to_string()),
-            (
-                "layout".to_string(),
-                format!("{:?}", self.field.layout().config),
-            ),
-            ("options".to_string(), format!("{options:?}")),
-            ("scenes".to_string(), self.scenes.len().to_string()),
-            (
-                "policy".to_string(),
-                if self.policy.is_some() {
-                    "installed"
-                } else {
-                    "none"
-                }
-                .to_string(),
-            ),
-        ];
-        for (i, s) in self.scenes.iter().enumerate() {
-            let f = &s.dataset.frames;
-            let size = f
-                .first()
-                .map_or((0, 0), |f| (f.camera.width, f.camera.height));
-            out.push((
-                format!("scene {i}"),
-                format!(
-                    "{} images of {}x{}, aabb {}",
-                    f.len(),
-                    size.0,
-                    size.1,
-                    s.dataset.aabb_scale
-                ),
-            ));
-        }
-        out
+        state::fingerprint(
+            Some("gpu"),
+            &self.field.layout().config,
+            &options,
+            self.policy.is_some(),
+            self.scenes.iter().map(|s| s.dataset.as_ref()),
+        )
     }
 
     /// The whole training state between two steps ([`ngp::train::state`]), read back from

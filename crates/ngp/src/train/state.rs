@@ -365,6 +365,50 @@ impl<'a> Fields<'a> {
     }
 }
 
+/// The parts of a training a saved state must share with the trainer it goes back into, by
+/// name: the device kind (`None`: the CPU, whose states predate the entry), the layout and
+/// options, whether a policy is installed, and each scene's image count, size and box.
+/// Never the index functions: a state's errors may be printed, and a key must not be (the
+/// program re-derives them from the same key files).
+pub fn fingerprint<'a>(
+    device: Option<&str>,
+    layout: &crate::network::ModelConfig,
+    options: &super::TrainConfig,
+    policy: bool,
+    scenes: impl ExactSizeIterator<Item = &'a crate::data::Dataset>,
+) -> Vec<(String, String)> {
+    let mut out: Vec<(String, String)> = device
+        .map(|d| (DEVICE.to_string(), d.to_string()))
+        .into_iter()
+        .collect();
+    out.extend([
+        ("layout".to_string(), format!("{layout:?}")),
+        ("options".to_string(), format!("{options:?}")),
+        ("scenes".to_string(), scenes.len().to_string()),
+        (
+            "policy".to_string(),
+            if policy { "installed" } else { "none" }.to_string(),
+        ),
+    ]);
+    for (i, d) in scenes.enumerate() {
+        let size = d
+            .frames
+            .first()
+            .map_or((0, 0), |f| (f.camera.width, f.camera.height));
+        out.push((
+            format!("scene {i}"),
+            format!(
+                "{} images of {}x{}, aabb {}",
+                d.frames.len(),
+                size.0,
+                size.1,
+                d.aabb_scale
+            ),
+        ));
+    }
+    out
+}
+
 /// Parses a state document.
 pub fn open(origin: &Path, bytes: &[u8]) -> Result<Value> {
     msgpack::decode(bytes).map_err(|e| Error::format(origin, e))

@@ -327,40 +327,13 @@ impl Trainer {
     fn fingerprint(&self) -> Vec<(String, String)> {
         let mut options = self.config.clone();
         options.workers = self.workers.len();
-        let mut out = vec![
-            (
-                "layout".to_string(),
-                format!("{:?}", self.net.layout.config),
-            ),
-            ("options".to_string(), format!("{options:?}")),
-            ("scenes".to_string(), self.scenes.len().to_string()),
-            (
-                "policy".to_string(),
-                if self.policy.is_some() {
-                    "installed"
-                } else {
-                    "none"
-                }
-                .to_string(),
-            ),
-        ];
-        for (i, s) in self.scenes.iter().enumerate() {
-            let f = &s.data.frames;
-            let size = f
-                .first()
-                .map_or((0, 0), |f| (f.camera.width, f.camera.height));
-            out.push((
-                format!("scene {i}"),
-                format!(
-                    "{} images of {}x{}, aabb {}",
-                    f.len(),
-                    size.0,
-                    size.1,
-                    s.data.aabb_scale
-                ),
-            ));
-        }
-        out
+        super::state::fingerprint(
+            None,
+            &self.net.layout.config,
+            &options,
+            self.policy.is_some(),
+            self.scenes.iter().map(|s| s.data.as_ref()),
+        )
     }
 
     /// The whole training state between two steps ([`super::state`]): restored into a

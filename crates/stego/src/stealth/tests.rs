@@ -10,15 +10,11 @@ use ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
 use std::sync::Arc;
 use synth::{SceneKind, SynthOptions, generate};
 
-/// Under pacing (stealth) a random-scene step that does not train the cover updates
-/// nothing: no weight, no occupancy grid, no optimizer clock. The hidden scene's MLP
-/// gradient stays in the buffers for the next step that trains the cover, and a model
-/// file records the cover's steps. Without pacing the same steps move the weights.
-#[test]
-fn paced_steps_without_the_cover_wait_for_it() {
-    let dir = tempfile::tempdir().unwrap();
+/// A generated object (the cover) and text (the hidden scene) of 4 views at 16 px, and a
+/// tiny model for both.
+fn cover_and_hidden(dir: &std::path::Path) -> (Arc<Dataset>, Arc<Dataset>, ModelConfig) {
     let load = |name: &str, scene: SceneKind, seed: u64| {
-        let d = dir.path().join(name);
+        let d = dir.join(name);
         let opts = SynthOptions {
             scene,
             resolution: 16,
@@ -31,8 +27,6 @@ fn paced_steps_without_the_cover_wait_for_it() {
         generate(&opts, &d).unwrap();
         Arc::new(Dataset::load(&d, Split::Train, &LoadOptions::default()).unwrap())
     };
-    let cover = load("cover", SceneKind::Object, 1);
-    let hidden = load("hidden", SceneKind::Text("HI".into()), 2);
     let model = ModelConfig {
         grid: GridConfig {
             n_levels: 4,
@@ -42,6 +36,21 @@ fn paced_steps_without_the_cover_wait_for_it() {
         },
         aabb_scale: 1,
     };
+    (
+        load("cover", SceneKind::Object, 1),
+        load("hidden", SceneKind::Text("HI".into()), 2),
+        model,
+    )
+}
+
+/// Under pacing (stealth) a random-scene step that does not train the cover updates
+/// nothing: no weight, no occupancy grid, no optimizer clock. The hidden scene's MLP
+/// gradient stays in the buffers for the next step that trains the cover, and a model
+/// file records the cover's steps. Without pacing the same steps move the weights.
+#[test]
+fn paced_steps_without_the_cover_wait_for_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let (cover, hidden, model) = cover_and_hidden(dir.path());
     let layout = NerfLayout::new(model).unwrap();
     let n_mlp = layout.n_mlp_params();
     let specs = || {
@@ -206,31 +215,7 @@ fn a_stealth_run_restored_goes_on_bit_for_bit() {
 
 fn stealth_restores_bit_for_bit(cover_only_mlp: bool) {
     let dir = tempfile::tempdir().unwrap();
-    let load = |name: &str, scene: SceneKind, seed: u64| {
-        let d = dir.path().join(name);
-        let opts = SynthOptions {
-            scene,
-            resolution: 16,
-            n_train: 4,
-            n_val: 0,
-            n_test: 1,
-            seed,
-            aabb_scale: 1,
-        };
-        generate(&opts, &d).unwrap();
-        Arc::new(Dataset::load(&d, Split::Train, &LoadOptions::default()).unwrap())
-    };
-    let cover = load("cover", SceneKind::Object, 1);
-    let hidden = load("hidden", SceneKind::Text("HI".into()), 2);
-    let model = ModelConfig {
-        grid: GridConfig {
-            n_levels: 4,
-            n_features: 2,
-            log2_hashmap_size: 10,
-            base_resolution: 16,
-        },
-        aabb_scale: 1,
-    };
+    let (cover, hidden, model) = cover_and_hidden(dir.path());
     let layout = NerfLayout::new(model).unwrap();
     let key = crate::keys::generate_prf(4).unwrap();
     let parts = StealthParts {
