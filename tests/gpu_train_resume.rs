@@ -341,7 +341,9 @@ fn states_from_elsewhere_cut_short_or_forged_are_refused_naming_the_file() {
     let doc = stegongp::ngp::train::state::open(&origin, &gpu_state).unwrap();
     b.restore_state(&doc, &origin).unwrap();
     assert_eq!(b.step(), 2);
-    assert!(b.save_state().unwrap() == doc);
+    // (Compared as bytes: a document read back holds the encoder's compact floats.)
+    let again = stegongp::ngp::train::state::encode(&b.save_state().unwrap());
+    assert!(again == gpu_state);
 }
 
 const RUN: &[&str] = &[
@@ -386,7 +388,7 @@ fn the_cli_saves_and_resumes_a_gpu_run() {
     let scene = d.path().join("scene");
     testkit::cli::synth(&scene, "object", 24, 8);
     let part = d.path().join("part.ingp");
-    let state = d.path().join("part.ingp.state");
+    let state = d.path().join("part.checkpoint.msgpack");
     let s = state.to_str().unwrap();
     let first = train_json(
         &scene,
@@ -434,7 +436,7 @@ fn the_cli_saves_and_resumes_a_gpu_run() {
     args.extend_from_slice(RUN);
     fails_naming(
         &stegongp(&args),
-        &["part.ingp.state", "saved by training on the GPU"],
+        &["part.checkpoint.msgpack", "saved by training on the GPU"],
     );
     assert!(!out.exists(), "nothing written");
 }
