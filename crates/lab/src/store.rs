@@ -85,7 +85,9 @@ impl<'a> ModelState<'a> {
         let Some(run) = self.read()? else {
             return Ok(());
         };
-        training.restore_state(&run, &self.path).map_err(damaged)?;
+        training
+            .restore_state_doc(&run, &self.path)
+            .map_err(damaged)?;
         self.saved_at = training.totals().seconds;
         if self.verbose {
             eprintln!(
@@ -101,14 +103,15 @@ impl<'a> ModelState<'a> {
     /// The saved run state, if there is one of this model's config. One of another config is
     /// removed (the model it belonged to is not this run's); a damaged one is an error naming
     /// it.
-    fn read(&self) -> Result<Option<Vec<u8>>> {
+    fn read(&self) -> Result<Option<rmpv::Value>> {
         use ngp::train::state::{Fields, open};
         let bytes = match std::fs::read(&self.path) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(Error::io(&self.path, e)),
         };
-        let doc = open(&self.path, &bytes).map_err(damaged)?;
+        let mut doc = open(&self.path, &bytes).map_err(damaged)?;
+        drop(bytes);
         let f = Fields::top(&self.path, &doc).map_err(damaged)?;
         if f.str("format").map_err(damaged)? != STATE_FORMAT {
             return Err(damaged(f.err("format", "not a model's training state")));
@@ -124,7 +127,16 @@ impl<'a> ModelState<'a> {
             remove(&self.path)?;
             return Ok(None);
         }
-        Ok(Some(f.binary("run").map_err(damaged)?.to_vec()))
+        f.value("run").map_err(damaged)?;
+        // Taken out of the document, not copied: a model's state is hundreds of megabytes.
+        let rmpv::Value::Map(entries) = &mut doc else {
+            unreachable!("Fields::top checked it is a map")
+        };
+        let at = entries
+            .iter()
+            .position(|(k, _)| k.as_str() == Some("run"))
+            .expect("checked above");
+        Ok(Some(entries.swap_remove(at).1))
     }
 
     /// Saves the state if one is due after this step. A device that cannot save one says so
@@ -133,7 +145,7 @@ impl<'a> ModelState<'a> {
         if self.off || !self.every.due(training.totals(), self.saved_at) {
             return Ok(());
         }
-        let run = match training.save_state() {
+        let run = match training.save_state_doc() {
             Ok(run) => run,
             Err(Error::Config(why)) => {
                 eprintln!("  no training state for this model: {why}");
@@ -147,7 +159,7 @@ impl<'a> ModelState<'a> {
         let doc = map(vec![
             ("format", rmpv::Value::from(STATE_FORMAT)),
             ("config", rmpv::Value::from(config)),
-            ("run", rmpv::Value::Binary(run)),
+            ("run", run),
         ]);
         stego::keyfile::write_secret(&self.path, &encode(&doc))?;
         self.saved_at = training.totals().seconds;
@@ -201,7 +213,7 @@ mod tests {
         };
         let path = d.path().join("m.ingp.state");
         std::fs::write(&path, doc(&config)).unwrap();
-        assert_eq!(st.read().unwrap(), Some(vec![1, 2, 3]));
+        assert_eq!(st.read().unwrap(), Some(rmpv::Value::Binary(vec![1, 2, 3])));
         // Another config's (the budget changed): removed, nothing resumed.
         std::fs::write(&path, doc(&json!({"steps": 31, "seed": 1}))).unwrap();
         assert!(st.read().unwrap().is_none());

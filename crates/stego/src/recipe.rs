@@ -601,9 +601,12 @@ impl Training<'_> {
     /// losses), so that a resumed run ends as the uninterrupted one would (on the CPU, bit
     /// for bit).
     pub fn save_state(&self) -> Result<Vec<u8>> {
-        Ok(ngp::train::state::encode(
-            &self.run_doc(self.trainer.save_state()?),
-        ))
+        Ok(ngp::train::state::encode(&self.save_state_doc()?))
+    }
+
+    /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
+    pub fn save_state_doc(&self) -> Result<rmpv::Value> {
+        Ok(self.run_doc(self.trainer.save_state()?))
     }
 
     /// The run-state document around the trainer's own (`trainer`).
@@ -643,10 +646,11 @@ impl Training<'_> {
     /// Takes back a [`save_state`](Self::save_state) before the first step; `origin` names
     /// the state in errors.
     pub fn restore_state(&mut self, bytes: &[u8], origin: &Path) -> Result<()> {
-        self.restore_run_doc(&ngp::train::state::open(origin, bytes)?, origin)
+        self.restore_state_doc(&ngp::train::state::open(origin, bytes)?, origin)
     }
 
-    fn restore_run_doc(&mut self, doc: &rmpv::Value, origin: &Path) -> Result<()> {
+    /// [`restore_state`](Self::restore_state) from the document.
+    pub fn restore_state_doc(&mut self, doc: &rmpv::Value, origin: &Path) -> Result<()> {
         use ngp::train::state::Fields;
         let f = Fields::top(origin, doc)?;
         if f.str("format")? != RUN_STATE_FORMAT {
@@ -742,7 +746,7 @@ impl Training<'_> {
                 ));
             }
         }
-        self.restore_run_doc(&run, path)
+        self.restore_state_doc(&run, path)
     }
 
     /// [`save_state`](Self::save_state) written to `path` as a key is: owner-only,
