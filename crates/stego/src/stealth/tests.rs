@@ -253,16 +253,16 @@ fn stealth_restores_bit_for_bit(cover_only_mlp: bool) {
         t
     };
     let build = || build_with(Some(parts));
-    const END: u32 = 40;
+    const END: u32 = 28;
     let mut whole = build();
-    // The first hidden-only step after the cover's twelfth: with the MLP shared, its
+    // The first hidden-only step after the cover's eighth: with the MLP shared, its
     // gradient waits in the buffers, the hardest place to stop.
     let mut first = build();
     let mut cover_steps = 0;
     loop {
         let trained_cover = first.train_step().primary_loss.is_some();
         cover_steps += trained_cover as u32;
-        if cover_steps >= 12 && !trained_cover {
+        if cover_steps >= 8 && !trained_cover {
             break;
         }
         assert!(first.step < END - 5, "no hidden-only step");
