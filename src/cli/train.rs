@@ -273,8 +273,6 @@ pub fn run(a: Args) -> Result<()> {
                 .context("loading test views for --checkpoints")?,
         )
     };
-    // Both devices save and resume a plain run (a policy's state is refused above, and by
-    // the trainer, whose error names what it cannot save).
     let device = a.device.open()?;
     let occupancy_budget = recipe.occupancy_budget(&device);
     let mut training = recipe.start(&device)?;

@@ -74,7 +74,6 @@ use ngp::occupancy::{MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid};
 use ngp::render::march::Marcher;
 use ngp::train::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
 use ngp::train::loss::DENSITY_PULL_UP;
-use ngp::train::optimizer::MAX_STEPS;
 use ngp::train::schedule::{
     MAX_RAYS_PER_BATCH, initial_rays_per_batch, mix, next_rays_per_batch, starting_grid,
 };
@@ -1165,15 +1164,8 @@ impl<'c> GpuTrainer<'c> {
         let mut scenes = Vec::with_capacity(self.scenes.len());
         for s in &self.scenes {
             let grid = s.occupancy.download(ctx)?;
-            scenes.push(map(vec![
-                ("density", f32s(&grid.density)),
-                ("bitfield", Value::Binary(grid.bitfield().to_vec())),
-                ("mean", Value::F32(grid.mean)),
-                ("grid_updates", Value::from(grid.ema_step)),
-                ("rays_per_batch", Value::from(s.rays_per_batch)),
-                ("measured_samples", Value::from(s.measured_samples)),
-                ("measured_marched", Value::from(s.measured_marched)),
-            ]));
+            let counters = (s.rays_per_batch, s.measured_samples, s.measured_marched);
+            scenes.push(state::scene_value(&grid, counters));
         }
         // Only a policy leaves anything between steps in these (read back only then).
         let (mechanisms, gradient, policy) = match &self.policy {
@@ -1251,32 +1243,16 @@ impl<'c> GpuTrainer<'c> {
         let n = self.field.layout().n_params;
         let mut params = vec![0.0f32; n];
         f.f32s_into("params", &mut params)?;
-        let (o, ours) = NgpOptimizer::fields(&f.map("optimizer")?)?;
         let (mut m, mut v, mut steps, mut ema) = (
             vec![0.0f32; n],
             vec![0.0f32; n],
             vec![0u32; n],
             vec![0.0f32; n],
         );
-        o.f32s_into("first_moments_binary", &mut m)?;
-        o.f32s_into("second_moments_binary", &mut v)?;
-        o.u32s_into("param_steps_binary", &mut steps)?;
+        // Checked there: the device's bias-correction table holds a value a step.
+        let (opt_step, ours) =
+            NgpOptimizer::read_into(&f.map("optimizer")?, &mut m, &mut v, &mut steps)?;
         ours.f32s_into("ema", &mut ema)?;
-        let opt_step = o.u32("current_step")?;
-        // The device's bias-correction table holds a value a step: a forged count must not
-        // make it gigabytes.
-        if opt_step > MAX_STEPS {
-            return Err(o.err(
-                "current_step",
-                format!("{opt_step}: more steps than a training runs (at most {MAX_STEPS})"),
-            ));
-        }
-        if let Some(bad) = steps.iter().find(|&&s| s > opt_step) {
-            return Err(o.err(
-                "param_steps_binary",
-                format!("a step count {bad} beyond the optimizer's {opt_step}"),
-            ));
-        }
         if opt_step != weight_steps || weight_steps > step {
             return Err(f.err(
                 "weight_steps",
@@ -1287,31 +1263,15 @@ impl<'c> GpuTrainer<'c> {
         let mut restored = Vec::with_capacity(self.scenes.len());
         for (s, sf) in self.scenes.iter().zip(scene_fields) {
             let cells = N_CELLS * s.occupancy.n_cascades as usize;
-            let mut density = vec![0.0f32; cells];
-            sf.f32s_into("density", &mut density)?;
-            let mut bitfield = vec![0u8; cells / 8];
-            sf.bytes_into("bitfield", &mut bitfield)?;
-            let grid = OccupancyGrid::from_parts(
-                density,
-                bitfield,
-                sf.f32("mean")?,
-                sf.u32("grid_updates")?,
-            )
-            .ok_or_else(|| sf.err("density", "does not make an occupancy grid"))?;
+            let (grid, (rays, samples, marched)) = state::scene_from(&sf, cells)?;
             // The device's ray buffers hold MAX_RAYS rays.
-            let rays = sf.u32("rays_per_batch")?;
             if rays == 0 || rays > MAX_RAYS {
                 return Err(sf.err(
                     "rays_per_batch",
                     format!("{rays}: a batch has 1 to {MAX_RAYS} rays"),
                 ));
             }
-            restored.push((
-                grid,
-                rays,
-                sf.u32("measured_samples")?,
-                sf.u32("measured_marched")?,
-            ));
+            restored.push((grid, rays, samples, marched));
         }
         // A policy's mechanisms and waiting gradient (the fingerprint has checked that a
         // policy is installed here iff one saved).
@@ -1319,26 +1279,17 @@ impl<'c> GpuTrainer<'c> {
         let (mut held, mut gradient, mut bounds) = (None, None, None);
         if self.policy.is_some() {
             let mf = f.map("mechanisms")?;
-            if mf.has("held") {
-                let mut pending = vec![0.0f32; n];
-                mf.sparse_into("held", &mut pending)?;
-                let table = pending.split_off(layout.n_mlp_params());
-                if pending.iter().any(|&g| g != 0.0) {
-                    return Err(mf.err("held", "holds back an MLP gradient (never held)"));
-                }
-                held = Some(table);
-            }
+            let n_matrix = layout.n_mlp_params();
+            // The device holds the table's part alone.
+            held = state::held_from(&mf, "held", n, n_matrix)?
+                .map(|mut pending| pending.split_off(n_matrix));
             let nf = layout.config.grid.n_features as usize;
             bounds = state::bounds_from(&mf, "bounds", layout.grid.n_entries as usize, nf)?;
             let mut g = vec![0.0f32; n];
             f.sparse_into("gradient", &mut g)?;
             gradient = Some(g);
         }
-        let saved_policy = if f.has("policy") {
-            Some(f.binary("policy")?)
-        } else {
-            None
-        };
+        let saved_policy = f.binary_opt("policy")?;
         let ctx = self.ctx;
         ctx.scoped("restore parameters", || {
             ctx.queue

@@ -129,14 +129,7 @@ impl<'a> ModelState<'a> {
         }
         f.value("run").map_err(damaged)?;
         // Taken out of the document, not copied: a model's state is hundreds of megabytes.
-        let rmpv::Value::Map(entries) = &mut doc else {
-            unreachable!("Fields::top checked it is a map")
-        };
-        let at = entries
-            .iter()
-            .position(|(k, _)| k.as_str() == Some("run"))
-            .expect("checked above");
-        Ok(Some(entries.swap_remove(at).1))
+        Ok(ngp::train::state::take(&mut doc, "run"))
     }
 
     /// Saves the state if one is due after this step. A device that cannot save one says so

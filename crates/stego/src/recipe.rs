@@ -716,6 +716,7 @@ impl Training<'_> {
                 "a run with hidden scenes saves its state as a secret file, not a snapshot".into(),
             ));
         }
+        use ngp::train::state::take;
         let mut trainer = self.trainer.save_state()?;
         let optimizer = take(&mut trainer, "optimizer");
         let mut snap = self.model()?.to_snapshot();
@@ -727,6 +728,7 @@ impl Training<'_> {
     /// Takes back a [`save_checkpoint`](Self::save_checkpoint) (`snap`, read from `path`)
     /// before the first step.
     pub fn restore_checkpoint(&mut self, snap: ngp::snapshot::Snapshot, path: &Path) -> Result<()> {
+        use ngp::train::state::{put, take};
         let Some(mut run) = snap.preserved.run_state else {
             return Err(Error::format(
                 path,
@@ -776,24 +778,5 @@ impl Training<'_> {
             model: self.model()?,
             totals: self.totals,
         })
-    }
-}
-
-/// Removes `key` from a msgpack map and returns its value.
-fn take(doc: &mut rmpv::Value, key: &str) -> Option<rmpv::Value> {
-    let rmpv::Value::Map(m) = doc else {
-        return None;
-    };
-    let i = m.iter().position(|(k, _)| k.as_str() == Some(key))?;
-    Some(m.remove(i).1)
-}
-
-/// Sets `key` of a msgpack map (added at the end when absent).
-fn put(doc: &mut rmpv::Value, key: &str, value: rmpv::Value) {
-    if let rmpv::Value::Map(m) = doc {
-        match m.iter_mut().find(|(k, _)| k.as_str() == Some(key)) {
-            Some((_, v)) => *v = value,
-            None => m.push((rmpv::Value::from(key), value)),
-        }
     }
 }

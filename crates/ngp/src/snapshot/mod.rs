@@ -9,7 +9,7 @@ mod config;
 mod inspect;
 pub mod msgpack;
 mod read;
-mod write;
+pub(crate) mod write;
 
 pub use inspect::{SnapshotInfo, inspect};
 

@@ -6,8 +6,6 @@
 
 use rmpv::Value;
 
-/// Appends `v` to `out` with nlohmann's choices of widths. Map keys that are not strings
-/// cannot come from nlohmann; they sort after the string keys, in their original order.
 /// The bytes of the binaries in `v`, however deep: what an output buffer is sized by, so
 /// that one holding hundreds of megabytes is not copied as it grows.
 pub fn binary_bytes(v: &Value) -> usize {
@@ -19,6 +17,8 @@ pub fn binary_bytes(v: &Value) -> usize {
     }
 }
 
+/// Appends `v` to `out` with nlohmann's choices of widths. Map keys that are not strings
+/// cannot come from nlohmann; they sort after the string keys, in their original order.
 pub fn encode(v: &Value, out: &mut Vec<u8>) {
     match v {
         Value::Nil => out.push(0xc0),

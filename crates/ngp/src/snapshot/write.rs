@@ -62,7 +62,8 @@ pub fn to_msgpack(snap: &Snapshot) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-fn fp16_bytes(v: &[f32]) -> Vec<u8> {
+/// `v` as little-endian fp16, the reference's storage of weights and grids.
+pub(crate) fn fp16_bytes(v: &[f32]) -> Vec<u8> {
     let mut h = vec![half::f16::ZERO; v.len()];
     h.convert_from_f32_slice(v);
     let mut out = Vec::with_capacity(v.len() * 2);

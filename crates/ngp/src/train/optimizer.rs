@@ -201,33 +201,15 @@ impl Optimizer {
 
     /// Takes back a [`state`](Self::state); lengths are checked against this optimizer.
     pub(super) fn restore(&mut self, f: &super::state::Fields) -> crate::error::Result<()> {
-        let (adam, ours) = super::state::NgpOptimizer::fields(f)?;
-        adam.f32s_into("first_moments_binary", &mut self.m)?;
-        adam.f32s_into("second_moments_binary", &mut self.v)?;
-        adam.u32s_into("param_steps_binary", &mut self.steps)?;
+        let (step, ours) =
+            super::state::NgpOptimizer::read_into(f, &mut self.m, &mut self.v, &mut self.steps)?;
         ours.f32s_into("ema", &mut self.ema)?;
         ours.u32s_into("ema_step", &mut self.ema_step)?;
-        self.step = adam.u32("current_step")?;
-        // The bias-correction tables hold a value a step: a forged count must not make
-        // them gigabytes (the fuzzer's first run of training states found 2^30).
-        if self.step > MAX_STEPS {
-            return Err(adam.err(
-                "current_step",
-                format!(
-                    "{}: more steps than a training runs (at most {MAX_STEPS})",
-                    self.step
-                ),
-            ));
-        }
-        if let Some(bad) = self
-            .steps
-            .iter()
-            .chain(&self.ema_step)
-            .find(|&&s| s > self.step)
-        {
-            return Err(adam.err(
-                "param_steps_binary",
-                format!("a step count {bad} beyond the optimizer's {}", self.step),
+        self.step = step;
+        if let Some(bad) = self.ema_step.iter().find(|&&s| s > step) {
+            return Err(ours.err(
+                "ema_step",
+                format!("a step count {bad} beyond the optimizer's {step}"),
             ));
         }
         self.correction.truncate(1);

@@ -40,6 +40,83 @@ pub fn u32s(v: &[u32]) -> Value {
     Value::Binary(out)
 }
 
+/// Bit sets (64 members a word), little-endian.
+pub fn u64s(v: &[u64]) -> Value {
+    Value::Binary(v.iter().flat_map(|x| x.to_le_bytes()).collect())
+}
+
+/// Removes `key` from a map and returns its value (a document split to be nested
+/// elsewhere: a checkpoint's optimizer, an experiment's run state).
+pub fn take(doc: &mut Value, key: &str) -> Option<Value> {
+    let Value::Map(m) = doc else {
+        return None;
+    };
+    let i = m.iter().position(|(k, _)| k.as_str() == Some(key))?;
+    Some(m.remove(i).1)
+}
+
+/// Sets `key` of a map (added at the end when absent).
+pub fn put(doc: &mut Value, key: &str, value: Value) {
+    if let Value::Map(m) = doc {
+        match m.iter_mut().find(|(k, _)| k.as_str() == Some(key)) {
+            Some((_, v)) => *v = value,
+            None => m.push((Value::from(key), value)),
+        }
+    }
+}
+
+/// One scene's part of a trainer's state: its occupancy grid and the batch counters
+/// (rays per batch, trained and marched samples of its last step).
+pub fn scene_value(grid: &crate::occupancy::OccupancyGrid, counters: (u32, u32, u32)) -> Value {
+    map(vec![
+        ("density", f32s(&grid.density)),
+        ("bitfield", Value::Binary(grid.bitfield().to_vec())),
+        ("mean", Value::F32(grid.mean)),
+        ("grid_updates", Value::from(grid.ema_step)),
+        ("rays_per_batch", Value::from(counters.0)),
+        ("measured_samples", Value::from(counters.1)),
+        ("measured_marched", Value::from(counters.2)),
+    ])
+}
+
+/// Takes back a [`scene_value`] for a grid of `cells` cells.
+pub fn scene_from(
+    f: &Fields,
+    cells: usize,
+) -> Result<(crate::occupancy::OccupancyGrid, (u32, u32, u32))> {
+    let mut density = vec![0.0f32; cells];
+    f.f32s_into("density", &mut density)?;
+    let mut bitfield = vec![0u8; cells / 8];
+    f.bytes_into("bitfield", &mut bitfield)?;
+    let grid = crate::occupancy::OccupancyGrid::from_parts(
+        density,
+        bitfield,
+        f.f32("mean")?,
+        f.u32("grid_updates")?,
+    )
+    .ok_or_else(|| f.err("density", "does not make an occupancy grid"))?;
+    let counters = (
+        f.u32("rays_per_batch")?,
+        f.u32("measured_samples")?,
+        f.u32("measured_marched")?,
+    );
+    Ok((grid, counters))
+}
+
+/// Held-back gradients ([`sparse`], one per parameter; field `key` of `f`) for `n`
+/// parameters of which the first `n_matrix` are MLP weights, which are never held back.
+pub fn held_from(f: &Fields, key: &str, n: usize, n_matrix: usize) -> Result<Option<Vec<f32>>> {
+    if !f.has(key) {
+        return Ok(None);
+    }
+    let mut pending = vec![0.0f32; n];
+    f.sparse_into(key, &mut pending)?;
+    if pending[..n_matrix].iter().any(|&g| g != 0.0) {
+        return Err(f.err(key, "holds back an MLP gradient (never held)"));
+    }
+    Ok(Some(pending))
+}
+
 /// The values of `v` whose bits are not zero (−0.0 included), as `{index, value}`: what a
 /// mostly-empty gradient or bound array costs.
 pub fn sparse(v: &[f32]) -> Value {
@@ -88,9 +165,7 @@ impl NgpOptimizer<'_> {
     pub fn value(self) -> Value {
         let c = self.config;
         let lr = c.learning_rate(self.step);
-        let mut h = vec![half::f16::ZERO; self.published.len()];
-        half::slice::HalfFloatSliceExt::convert_from_f32_slice(&mut h[..], self.published);
-        let ema16: Vec<u8> = h.iter().flat_map(|x| x.to_le_bytes()).collect();
+        let ema16 = crate::snapshot::write::fp16_bytes(self.published);
         let adam = map(vec![
             ("base_learning_rate", Value::F32(lr)),
             ("current_step", Value::from(self.step)),
@@ -110,9 +185,38 @@ impl NgpOptimizer<'_> {
         ])
     }
 
-    /// The Adam map and `stegongp` of an optimizer state `o` written by [`Self::value`].
-    pub fn fields<'a>(o: &Fields<'a>) -> Result<(Fields<'a>, Fields<'a>)> {
-        Ok((o.map("nested")?.map("nested")?, o.map("stegongp")?))
+    /// Takes back Adam's part of a [`Self::value`] (`o`) into `m`, `v` and `param_steps`,
+    /// checked: a step count bounded before any table is grown to it, no parameter counting
+    /// more updates than the optimizer. Returns the step count and `stegongp`.
+    pub fn read_into<'a>(
+        o: &Fields<'a>,
+        m: &mut [f32],
+        v: &mut [f32],
+        param_steps: &mut [u32],
+    ) -> Result<(u32, Fields<'a>)> {
+        let adam = o.map("nested")?.map("nested")?;
+        adam.f32s_into("first_moments_binary", m)?;
+        adam.f32s_into("second_moments_binary", v)?;
+        adam.u32s_into("param_steps_binary", param_steps)?;
+        let step = adam.u32("current_step")?;
+        // The bias-correction tables hold a value a step: a forged count must not make
+        // them gigabytes (the fuzzer's first run of training states found 2^30).
+        if step > super::optimizer::MAX_STEPS {
+            return Err(adam.err(
+                "current_step",
+                format!(
+                    "{step}: more steps than a training runs (at most {})",
+                    super::optimizer::MAX_STEPS
+                ),
+            ));
+        }
+        if let Some(bad) = param_steps.iter().find(|&&s| s > step) {
+            return Err(adam.err(
+                "param_steps_binary",
+                format!("a step count {bad} beyond the optimizer's {step}"),
+            ));
+        }
+        Ok((step, o.map("stegongp")?))
     }
 }
 
@@ -230,6 +334,15 @@ impl<'a> Fields<'a> {
         }
     }
 
+    /// Binary data of any length, or `None` where the field is absent or nil.
+    pub fn binary_opt(&self, key: &str) -> Result<Option<&'a [u8]>> {
+        if self.has(key) {
+            self.binary(key).map(Some)
+        } else {
+            Ok(None)
+        }
+    }
+
     /// Whether the field is present and not nil.
     pub fn has(&self, key: &str) -> bool {
         self.get(key).is_ok_and(|v| !v.is_nil())
@@ -321,6 +434,15 @@ impl<'a> Fields<'a> {
         Ok(b.chunks_exact(4)
             .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
             .collect())
+    }
+
+    /// `out.len()` words of a [`u64s`] into `out`.
+    pub fn u64s_into(&self, key: &str, out: &mut [u64]) -> Result<()> {
+        let b = self.bin(key, out.len(), 8)?;
+        for (o, c) in out.iter_mut().zip(b.chunks_exact(8)) {
+            *o = u64::from_le_bytes(c.try_into().expect("8 bytes"));
+        }
+        Ok(())
     }
 
     pub fn bytes_into(&self, key: &str, out: &mut [u8]) -> Result<()> {

@@ -347,7 +347,7 @@ impl Trainer {
 
     /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
     pub fn save_state_doc(&self) -> Result<rmpv::Value> {
-        use super::state::{FORMAT, VERSION, bounds_value, f32s, map, sparse};
+        use super::state::{FORMAT, VERSION, bounds_value, f32s, map, scene_value, sparse, u64s};
         use rmpv::Value;
         let fingerprint = Value::Map(
             self.fingerprint()
@@ -359,15 +359,8 @@ impl Trainer {
             .scenes
             .iter()
             .map(|s| {
-                map(vec![
-                    ("density", f32s(&s.grid.density)),
-                    ("bitfield", Value::Binary(s.grid.bitfield().to_vec())),
-                    ("mean", Value::F32(s.grid.mean)),
-                    ("grid_updates", Value::from(s.grid.ema_step)),
-                    ("rays_per_batch", Value::from(s.rays_per_batch)),
-                    ("measured_samples", Value::from(s.measured_samples)),
-                    ("measured_marched", Value::from(s.measured_marched)),
-                ])
+                let counters = (s.rays_per_batch, s.measured_samples, s.measured_marched);
+                scene_value(&s.grid, counters)
             })
             .collect();
         let (since, updates) = self.grid_updates.clock();
@@ -385,15 +378,9 @@ impl Trainer {
             .workers
             .iter()
             .map(|w| {
-                let touched: Vec<u8> = w
-                    .touched
-                    .words()
-                    .iter()
-                    .flat_map(|x| x.to_le_bytes())
-                    .collect();
                 map(vec![
                     ("grad", sparse(&w.grad)),
-                    ("touched", Value::Binary(touched)),
+                    ("touched", u64s(w.touched.words())),
                 ])
             })
             .collect();
@@ -460,40 +447,19 @@ impl Trainer {
             .set_clock(clock.u64("since")?, clock.u32("updates")?);
         let scene_fields = f.maps("scenes", self.scenes.len())?;
         for (s, sf) in self.scenes.iter_mut().zip(scene_fields) {
-            let mut density = vec![0.0f32; s.grid.density.len()];
-            sf.f32s_into("density", &mut density)?;
-            let mut bitfield = vec![0u8; s.grid.bitfield().len()];
-            sf.bytes_into("bitfield", &mut bitfield)?;
-            s.grid = OccupancyGrid::from_parts(
-                density,
-                bitfield,
-                sf.f32("mean")?,
-                sf.u32("grid_updates")?,
-            )
-            .ok_or_else(|| sf.err("density", "does not make an occupancy grid"))?;
-            s.rays_per_batch = sf.u32("rays_per_batch")?;
-            s.measured_samples = sf.u32("measured_samples")?;
-            s.measured_marched = sf.u32("measured_marched")?;
+            let (grid, counters) = super::state::scene_from(&sf, s.grid.density.len())?;
+            s.grid = grid;
+            (s.rays_per_batch, s.measured_samples, s.measured_marched) = counters;
         }
         self.restore_mechanisms(&f.map("mechanisms")?)?;
         let worker_fields = f.maps("workers", self.workers.len())?;
         for (w, wf) in self.workers.iter_mut().zip(worker_fields) {
             wf.sparse_into("grad", &mut w.grad)?;
-            let words = w.touched.words_mut();
-            let mut raw = vec![0u8; words.len() * 8];
-            wf.bytes_into("touched", &mut raw)?;
-            for (x, c) in words.iter_mut().zip(raw.chunks_exact(8)) {
-                *x = u64::from_le_bytes(c.try_into().expect("8 bytes"));
-            }
+            wf.u64s_into("touched", w.touched.words_mut())?;
         }
         // The fingerprint has checked that a policy is installed here iff one saved.
-        let saved = if f.has("policy") {
-            Some(f.binary("policy")?)
-        } else {
-            None
-        };
         if let Some(p) = &mut self.policy {
-            let fresh = p.restore_state(saved, origin)?;
+            let fresh = p.restore_state(f.binary_opt("policy")?, origin)?;
             self.set_indices(fresh)?;
         }
         self.step = step;
@@ -506,16 +472,11 @@ impl Trainer {
     fn restore_mechanisms(&mut self, f: &super::state::Fields) -> Result<()> {
         let n = self.params.len();
         let n_matrix = self.net.layout.n_mlp_params();
-        self.mech.hold = if f.has("held") {
+        self.mech.hold = super::state::held_from(f, "held", n, n_matrix)?.map(|pending| {
             let mut hold = HoldBack::new(n, n_matrix);
-            f.sparse_into("held", hold.pending_mut())?;
-            if hold.pending()[..n_matrix].iter().any(|&g| g != 0.0) {
-                return Err(f.err("held", "holds back an MLP gradient (never held)"));
-            }
-            Some(hold)
-        } else {
-            None
-        };
+            hold.pending_mut().copy_from_slice(&pending);
+            hold
+        });
         let n_features = self.net.layout.config.grid.n_features as usize;
         let n_entries = (n - self.net.layout.grid_offset) / n_features;
         self.mech.bounds = super::state::bounds_from(f, "bounds", n_entries, n_features)?;

@@ -314,15 +314,12 @@ impl TrainPolicy for Stealth {
     /// last confinement and the density cap's cells; the keys' indices and the bound rule
     /// are rebuilt from the keys and the layout.
     fn save_state(&self) -> Result<Option<Vec<u8>>> {
-        use ngp::train::state::{encode, map, u32s};
+        use ngp::train::state::{encode, map, u32s, u64s};
         use rmpv::Value;
         let entries = self
             .entries
             .iter()
-            .map(|set| {
-                let words: Vec<u8> = set.words().iter().flat_map(|w| w.to_le_bytes()).collect();
-                map(vec![("words", Value::Binary(words))])
-            })
+            .map(|set| map(vec![("words", u64s(set.words()))]))
             .collect();
         Ok(Some(encode(&map(vec![
             ("format", Value::from(STATE_FORMAT)),
@@ -362,12 +359,8 @@ impl TrainPolicy for Stealth {
         let saved = f.maps("entries", n_saved)?;
         let mut entries = Vec::with_capacity(saved.len());
         for (lv, ef) in levels.iter().zip(&saved) {
-            let mut raw = vec![0u8; (lv.size as usize).div_ceil(64) * 8];
-            ef.bytes_into("words", &mut raw)?;
-            let words = raw
-                .chunks_exact(8)
-                .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
-                .collect();
+            let mut words = vec![0u64; (lv.size as usize).div_ceil(64)];
+            ef.u64s_into("words", &mut words)?;
             entries.push(
                 EntrySet::from_words(lv.size, words)
                     .ok_or_else(|| ef.err("words", "a bit past the level's last entry"))?,
