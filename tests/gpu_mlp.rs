@@ -428,8 +428,9 @@ fn wrong_sizes_are_input_errors() {
         None
     )));
     assert!(input(d.kernels.workspace(ctx, 0).map(|_| ())));
-    // A workspace too small for the batch, and a backward with no forward kept.
-    let small = d.kernels.workspace(ctx, N as u32 - 1).unwrap();
+    // A workspace too small for the batch (capacities round up to a multiple of 4), and a
+    // backward with no forward kept.
+    let small = d.kernels.workspace(ctx, N as u32 - 4).unwrap();
     assert!(input(d.kernels.forward(
         ctx,
         &d.batch(),

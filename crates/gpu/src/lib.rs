@@ -456,16 +456,51 @@ pub(crate) fn auto_layout_pipelines<const N: usize>(
     source: &str,
     entries: [&str; N],
 ) -> [wgpu::ComputePipeline; N] {
-    let d = &ctx.device;
-    let module = d.create_shader_module(wgpu::ShaderModuleDescriptor {
+    let module = ctx
+        .device
+        .create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+    pipelines_of(ctx, &module, entries)
+}
+
+/// [`auto_layout_pipelines`] of a module compiled without naga's runtime checks (index
+/// clamping, loop bounding), which keep a driver's compiler from unrolling loops and from
+/// keeping small arrays in registers.
+///
+/// # Safety
+/// Every index the source computes into a buffer, a workgroup array or a private array must
+/// be in bounds for every input the caller lets through, and every loop must end.
+pub(crate) unsafe fn unchecked_auto_layout_pipelines<const N: usize>(
+    ctx: &GpuContext,
+    label: &str,
+    source: &str,
+    entries: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
+    let desc = wgpu::ShaderModuleDescriptor {
         label: Some(label),
         source: wgpu::ShaderSource::Wgsl(source.into()),
-    });
+    };
+    // SAFETY: the caller's contract.
+    let module = unsafe {
+        ctx.device
+            .create_shader_module_trusted(desc, wgpu::ShaderRuntimeChecks::unchecked())
+    };
+    pipelines_of(ctx, &module, entries)
+}
+
+fn pipelines_of<const N: usize>(
+    ctx: &GpuContext,
+    module: &wgpu::ShaderModule,
+    entries: [&str; N],
+) -> [wgpu::ComputePipeline; N] {
+    let d = &ctx.device;
     entries.map(|entry| {
         d.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(entry),
             layout: None,
-            module: &module,
+            module,
             entry_point: Some(entry),
             compilation_options: Default::default(),
             cache: None,

@@ -8,26 +8,36 @@
 //! (`encode_*`), so a trainer's step submits once with no host round trip; the
 //! `forward`/`density`/`backward` wrappers submit and wait, for tests and benchmarks.
 //!
-//! How the work is split:
-//! - forward, density and the backward of the activations run per tile of `T` samples:
-//!   a workgroup loads one layer's weights into workgroup memory at a time and carries its
-//!   tile through every layer in two workgroup-memory activation tiles, touching device
-//!   memory only for the encoding in, the outputs out and (training) the activations and
-//!   per-layer output gradients that the weight gradients need;
+//! How the work is split (`mlp.wgsl` says how a tile goes through a layer):
+//! - forward, density and the backward of the activations run per tile of 128 samples:
+//!   a workgroup carries its tile through every layer in one workgroup-memory tile, each
+//!   row group keeping its block of a layer's products in registers and reading the
+//!   weights straight from device memory (a subgroup reads one address at a time: a
+//!   broadcast from the cache); the forward reads a transposed copy of the weights, which
+//!   a small pass writes before each forward, so that those reads are whole vec4. Device
+//!   memory is touched only for the encoding in, the outputs out and (training) the
+//!   activations and per-layer output gradients that the weight gradients need;
 //! - the weight gradients `dW = dY · Xᵀ` are a reduction over every sample: each workgroup
-//!   sums one chunk of samples for one matrix in registers (through workgroup-memory
-//!   tiles) and writes a partial; a second pass adds the chunks' partials, in order, into
-//!   the gradient buffer. No float atomics: the sum is the same on every run and every
-//!   adapter (a trainer that is reproducible run to run, like the CPU one), and 10 240
-//!   weights hit by thousands of workgroups would serialise atomics (or CAS loops, where
-//!   the adapter has no float atomics) on the same addresses, while the second pass reads
-//!   each partial once.
+//!   sums one chunk of samples for one matrix, at the matrix's own shape, in registers
+//!   (through workgroup-memory tiles padded against bank conflicts) and writes a partial;
+//!   a two-level pass adds the chunks' partials, in a fixed order, into the gradient
+//!   buffer. No float atomics: the sum is the same on every run and every adapter (a
+//!   trainer that is reproducible run to run, like the CPU one), and 10 240 weights hit by
+//!   thousands of workgroups would serialise atomics (or CAS loops, where the adapter has
+//!   no float atomics) on the same addresses, while the reduction reads each partial once.
+//!
+//! The module is compiled without naga's runtime checks
+//! ([`unchecked_auto_layout_pipelines`]): with them the driver's compiler saw every
+//! accumulator array indexed through a clamp and every loop behind a counter, and kept
+//! them in device memory. [`MlpKernels::new`] says why each index is in bounds.
 
 use super::{
-    GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry as entry, check_binding,
+    GpuContext, GpuError, GpuResult, buffer_entry as entry, check_binding,
+    unchecked_auto_layout_pipelines,
 };
 use ngp::network::layout::{DENSITY_OUT, NerfLayout, SH_DIMS};
 use ngp::network::mlp::matrix_offset;
+use std::fmt::Write;
 use std::sync::atomic::{AtomicU32, Ordering};
 use wgpu::util::DeviceExt;
 
@@ -36,6 +46,10 @@ pub const MLP_WGSL: &str = include_str!("mlp.wgsl");
 
 /// Invocations per workgroup (`WG` in `mlp.wgsl`).
 const WORKGROUP: u32 = 128;
+/// Samples per workgroup tile (`T`): 32 lanes of 4.
+const TILE: u32 = 128;
+/// Workgroup memory of the tile: 64 rows × TILE samples of f32.
+const TILE_BYTES: u32 = 64 * TILE * 4;
 /// Hidden width of both MLPs (`WIDTH`).
 const WIDTH: usize = 64;
 /// Rows of the saved activations: density hidden (64), colour input (32), colour hidden ×2.
@@ -43,11 +57,28 @@ pub(crate) const ACT_ROWS: u64 = 224;
 /// Rows of the saved output gradients: density hidden, density out, colour hidden ×2, rgb.
 const DY_ROWS: u64 = 211;
 /// Samples per weight-gradient chunk: each chunk adds one partial of every weight for the
-/// second pass to sum, so the partials cost 1/CH of the products and CH·5 products are one
-/// workgroup's work.
-const CHUNK: u32 = 512;
-/// Weight matrices (density ×2, colour ×3): the y extent of the weight-gradient dispatch.
-const N_MATRICES: u32 = 5;
+/// reduction to sum, so the partials cost 1/CH of the products, and a chunk of each of the
+/// five matrices is one workgroup's work (2^18 samples: 256 chunks, 1280 workgroups).
+const CHUNK: u32 = 1024;
+/// Chunks the reduction's first level sums per thread (`RG_CHUNKS`): 2^18 samples' 256
+/// partials of each weight in 8 groups.
+const REDUCE_GROUP: u32 = 32;
+
+/// One weight matrix's gradient kernel: `rows` × `cols` outputs (`rows_used` of them with a
+/// gradient; `rows_stored` in the parameter vector), invocation `lid` owning rows
+/// `lid % rg + rg·i` (i < rr) and columns `lid / rg + cg·j` (j < cc), with rg·cg = 128.
+struct WgradShape {
+    name: &'static str,
+    off: &'static str,
+    rows_used: u32,
+    rows: u32,
+    rows_stored: u32,
+    cols: u32,
+    dy_row: &'static str,
+    /// The saved-activation row of X, or `None`: X is the encoding.
+    x_row: Option<&'static str>,
+    rg: u32,
+}
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -58,7 +89,8 @@ struct MlpParams {
     store: u32,
     tiles_x: u32,
     n_chunks: u32,
-    _pad: [u32; 2],
+    stage: u32,
+    _pad: u32,
 }
 
 /// Compiled kernels for one network layout.
@@ -66,11 +98,14 @@ pub struct MlpKernels {
     forward: wgpu::ComputePipeline,
     density: wgpu::ComputePipeline,
     backward: wgpu::ComputePipeline,
-    wgrad: wgpu::ComputePipeline,
+    /// One per weight matrix: density ×2, colour ×3.
+    wgrad: [wgpu::ComputePipeline; 5],
     reduce: wgpu::ComputePipeline,
+    transpose: wgpu::ComputePipeline,
+    /// The forward's transposed weights, rewritten before each forward.
+    transposed: wgpu::Buffer,
     /// Bound in place of the saved activations when the forward keeps none (rendering).
     dummy: wgpu::Buffer,
-    tile: u32,
     n_enc: u32,
     /// Floats of the parameter vector's MLP blocks, from its start: what the weight buffer
     /// and the gradient buffer must hold at least.
@@ -159,8 +194,22 @@ pub fn zeroed(ctx: &GpuContext, label: &str, floats: u64) -> GpuResult<wgpu::Buf
 
 impl MlpKernels {
     /// Compiles the kernels for `layout` (the default model and any grid of at most 64
-    /// features). The tile is the largest of 64, 32 or 16 samples whose workgroup memory
-    /// the adapter allows: one layer's weights (64 × 64) and two 64-row tiles.
+    /// features). They need 32 KiB of workgroup memory (one 64-row tile of 128 samples).
+    ///
+    /// Why every index the kernels compute is in bounds (they are compiled without naga's
+    /// runtime checks):
+    /// - workgroup memory: tile rows are below 64 and lanes below 32 by construction (row
+    ///   blocks of R ≤ 64 / 4 per group of 4, DIN ≤ 64); staging rows are below 64 and
+    ///   samples below 33;
+    /// - private arrays: constant indices, or loops with constant bounds below their length;
+    /// - weights: the offsets below and the matrices' sizes stay inside the parameter
+    ///   vector's MLP blocks, which [`Self::check_batch`] checks the buffer holds;
+    /// - samples: every read and write of sample s is behind `s < n`, except the vec4 of a
+    ///   lane whose first sample is below n in `acts` and `dys`, whose leading dimension
+    ///   (the workspace's capacity, a multiple of 4, ≥ n) holds it whole; `enc`, `dirs`,
+    ///   `out`, `d_out`, `d_enc` and the workspace are checked against n and the leading
+    ///   dimensions on the host before every dispatch; partials hold every chunk;
+    /// - every loop's bound is a constant or a count the host checked.
     pub fn new(ctx: &GpuContext, layout: &NerfLayout) -> GpuResult<MlpKernels> {
         let (dm, cm) = (layout.density_mlp, layout.color_mlp);
         let n_enc = layout.grid.config.n_output_dims();
@@ -179,24 +228,22 @@ impl MlpKernels {
                 "unsupported network shape: density {dm:?}, colour {cm:?}"
             )));
         }
-        if dm.n_in > WIDTH || n_enc == 0 || n_enc > dm.n_in {
+        // A row group's share of the encoding rows (DIN / 4) is read as whole vec4.
+        if dm.n_in > WIDTH || dm.n_in % 16 != 0 || n_enc == 0 || n_enc > dm.n_in {
             return Err(GpuError::Input(format!(
-                "{n_enc} grid features (padded to {}): the kernels take 1 to {WIDTH}",
+                "{n_enc} grid features (padded to {}): the kernels take 1 to {WIDTH}, padded \
+                 to a multiple of 16",
                 dm.n_in
             )));
         }
         let limits = ctx.device.limits();
-        let shared = |t: u32| 4 * (WIDTH as u32 * WIDTH as u32 + 2 * WIDTH as u32 * t);
-        let tile = [64, 32, 16]
-            .into_iter()
-            .find(|&t| shared(t) <= limits.max_compute_workgroup_storage_size)
-            .ok_or_else(|| {
-                GpuError::Input(format!(
-                    "the adapter allows {} bytes of workgroup memory; the MLP kernels need {}",
-                    limits.max_compute_workgroup_storage_size,
-                    shared(16)
-                ))
-            })?;
+        if limits.max_compute_workgroup_storage_size < TILE_BYTES {
+            return Err(GpuError::Input(format!(
+                "the adapter allows {} bytes of workgroup memory; the MLP kernels need \
+                 {TILE_BYTES}",
+                limits.max_compute_workgroup_storage_size
+            )));
+        }
         if limits.max_compute_invocations_per_workgroup < WORKGROUP
             || limits.max_compute_workgroup_size_x < WORKGROUP
         {
@@ -219,59 +266,88 @@ impl MlpKernels {
         if c != d + dm.n_params() || mlp_end > u32::MAX as usize {
             return Err(GpuError::Input("MLP blocks not contiguous".into()));
         }
+        // The weights are read as vec4.
+        if offsets.iter().any(|o| o % 4 != 0) {
+            return Err(GpuError::Input(format!(
+                "MLP matrices at {offsets:?}: the kernels read them as vec4"
+            )));
+        }
         let n_weights = (mlp_end - d) as u32;
-        let header = format!(
-            "const T: u32 = {tile}u;\nconst SB: u32 = {sb}u;\nconst N_ENC: u32 = {n_enc}u;\n\
-             const DIN: u32 = {din}u;\nconst OFF_D0: u32 = {}u;\nconst OFF_D1: u32 = {}u;\n\
-             const OFF_C0: u32 = {}u;\nconst OFF_C1: u32 = {}u;\nconst OFF_C2: u32 = {}u;\n\
-             const NW: u32 = {n_weights}u;\nconst CH: u32 = {CHUNK}u;\n",
-            offsets[0],
-            offsets[1],
-            offsets[2],
-            offsets[3],
-            offsets[4],
-            sb = tile / 8,
-            din = dm.n_in,
+        let din = dm.n_in as u32;
+        let mut source = format!(
+            "const N_ENC: u32 = {n_enc}u;\nconst DIN: u32 = {din}u;\nconst RD: u32 = {rd}u;\n\
+             const NW: u32 = {n_weights}u;\nconst CH: u32 = {CHUNK}u;\n\
+             const RG_CHUNKS: u32 = {REDUCE_GROUP}u;\n",
+            rd = din / 4,
         );
-        let source = format!("{header}{MLP_WGSL}");
-        let [forward, density, backward, wgrad, reduce] = ctx.scoped("mlp kernels", || {
-            auto_layout_pipelines(
-                ctx,
-                "mlp.wgsl",
-                &source,
-                [
-                    "forward_main",
-                    "density_main",
-                    "backward_main",
-                    "wgrad_main",
-                    "reduce_main",
-                ],
-            )
+        for (name, o) in ["D0", "D1", "C0", "C1", "C2"].iter().zip(offsets) {
+            let _ = writeln!(source, "const OFF_{name}: u32 = {o}u;");
+            let _ = writeln!(source, "const T{name}: u32 = {}u;", o - d);
+        }
+        source.push_str(MLP_WGSL);
+        source.push_str(&generated_wgsl(din));
+        let wgrad_names: Vec<String> = (0..5).map(|m| format!("wgrad_{m}")).collect();
+        let [
+            forward,
+            density,
+            backward,
+            reduce,
+            transpose,
+            w0,
+            w1,
+            w2,
+            w3,
+            w4,
+        ] = ctx.scoped("mlp kernels", || {
+            // SAFETY: the bounds argument in this function's documentation; every
+            // dispatch below checks its buffers against the counts it passes.
+            unsafe {
+                unchecked_auto_layout_pipelines(
+                    ctx,
+                    "mlp.wgsl",
+                    &source,
+                    [
+                        "forward_main",
+                        "density_main",
+                        "backward_main",
+                        "reduce_main",
+                        "transpose_main",
+                        &wgrad_names[0],
+                        &wgrad_names[1],
+                        &wgrad_names[2],
+                        &wgrad_names[3],
+                        &wgrad_names[4],
+                    ],
+                )
+            }
         })?;
         Ok(MlpKernels {
             forward,
             density,
             backward,
-            wgrad,
+            wgrad: [w0, w1, w2, w3, w4],
             reduce,
+            transpose,
+            transposed: zeroed(ctx, "mlp transposed weights", u64::from(n_weights))?,
             dummy: zeroed(ctx, "mlp no activations", 4)?,
-            tile,
             n_enc: n_enc as u32,
             mlp_end: mlp_end as u64,
             n_weights,
         })
     }
 
-    /// Samples per workgroup tile on this adapter.
+    /// Samples per workgroup tile.
     pub fn tile(&self) -> u32 {
-        self.tile
+        TILE
     }
 
-    /// Buffers for forward-with-backward batches of up to `capacity` samples.
+    /// Buffers for forward-with-backward batches of up to `capacity` samples (rounded up
+    /// to a multiple of 4: the kernels move saved rows 4 samples at a time).
     pub fn workspace(&self, ctx: &GpuContext, capacity: u32) -> GpuResult<MlpWorkspace> {
-        if capacity == 0 {
-            return Err(GpuError::Input("workspace of 0 samples".into()));
+        if capacity == 0 || capacity > u32::MAX - 3 {
+            return Err(GpuError::Input(format!("workspace of {capacity} samples")));
         }
+        let capacity = capacity.next_multiple_of(4);
         let cap = u64::from(capacity);
         let chunks = u64::from(capacity.div_ceil(CHUNK));
         if chunks > u64::from(ctx.device.limits().max_compute_workgroups_per_dimension) {
@@ -309,7 +385,7 @@ impl MlpKernels {
     /// Workgroups for `n` samples, one tile each, folded into y past the dimension limit.
     fn tiles(&self, ctx: &GpuContext, n: u32) -> GpuResult<[u32; 2]> {
         let max = ctx.device.limits().max_compute_workgroups_per_dimension;
-        let t = n.div_ceil(self.tile);
+        let t = n.div_ceil(TILE);
         let x = t.clamp(1, max);
         let y = t.div_ceil(x);
         if y > max {
@@ -339,6 +415,26 @@ impl MlpKernels {
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);
         pass.dispatch_workgroups(x, y, 1);
+    }
+
+    /// Records the transposed copy of `params`' weights the forward kernels read.
+    fn encode_transpose(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        params: &wgpu::Buffer,
+    ) {
+        let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("mlp transpose"),
+            layout: &self.transpose.get_bind_group_layout(0),
+            entries: &[entry(0, params), entry(13, &self.transposed)],
+        });
+        Self::pass(
+            encoder,
+            &self.transpose,
+            &group,
+            [self.n_weights.div_ceil(WORKGROUP), 1],
+        );
     }
 
     /// Records the forward of `batch` with view directions `dirs` (`[x, y, z]` per sample)
@@ -383,7 +479,8 @@ impl MlpKernels {
                     store: keep.is_some() as u32,
                     tiles_x: groups[0],
                     n_chunks: 0,
-                    _pad: [0; 2],
+                    stage: 0,
+                    _pad: 0,
                 },
             );
             let acts = keep.map_or(&self.dummy, |ws| &ws.acts);
@@ -391,14 +488,15 @@ impl MlpKernels {
                 label: Some("mlp forward"),
                 layout: &self.forward.get_bind_group_layout(0),
                 entries: &[
-                    entry(0, batch.params),
                     entry(1, batch.enc),
                     entry(2, dirs),
                     entry(3, out),
                     entry(5, acts),
                     entry(11, &p),
+                    entry(12, &self.transposed),
                 ],
             });
+            self.encode_transpose(ctx, encoder, batch.params);
             Self::pass(encoder, &self.forward, &group, groups);
         })?;
         if let Some(ws) = keep {
@@ -432,19 +530,22 @@ impl MlpKernels {
                     store: 0,
                     tiles_x: groups[0],
                     n_chunks: 0,
-                    _pad: [0; 2],
+                    stage: 0,
+                    _pad: 0,
                 },
             );
             let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("mlp density"),
                 layout: &self.density.get_bind_group_layout(0),
                 entries: &[
-                    entry(0, batch.params),
                     entry(1, batch.enc),
                     entry(4, out),
+                    entry(5, &self.dummy),
                     entry(11, &p),
+                    entry(12, &self.transposed),
                 ],
             });
+            self.encode_transpose(ctx, encoder, batch.params);
             Self::pass(encoder, &self.density, &group, groups);
         })
     }
@@ -486,23 +587,33 @@ impl MlpKernels {
         let groups = self.tiles(ctx, n)?;
         let n_chunks = n.div_ceil(CHUNK);
         ctx.scoped("mlp backward", || {
-            let p = Self::params(
-                ctx,
-                MlpParams {
-                    n,
-                    ld_enc: batch.ld,
-                    ld: ws.capacity,
-                    store: 1,
-                    tiles_x: groups[0],
-                    n_chunks,
-                    _pad: [0; 2],
-                },
-            );
+            let params = |stage| {
+                Self::params(
+                    ctx,
+                    MlpParams {
+                        n,
+                        ld_enc: batch.ld,
+                        ld: ws.capacity,
+                        store: 1,
+                        tiles_x: groups[0],
+                        n_chunks,
+                        stage,
+                        _pad: 0,
+                    },
+                )
+            };
+            let (p, p_final) = (params(0), params(1));
             let d = &ctx.device;
-            let backward = d.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("mlp backward"),
-                layout: &self.backward.get_bind_group_layout(0),
-                entries: &[
+            let group = |pipeline: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry]| {
+                d.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("mlp backward"),
+                    layout: &pipeline.get_bind_group_layout(0),
+                    entries,
+                })
+            };
+            let backward = group(
+                &self.backward,
+                &[
                     entry(0, batch.params),
                     entry(5, &ws.acts),
                     entry(6, &ws.dys),
@@ -510,31 +621,39 @@ impl MlpKernels {
                     entry(8, d_enc),
                     entry(11, &p),
                 ],
-            });
-            let wgrad = d.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("mlp weight gradients"),
-                layout: &self.wgrad.get_bind_group_layout(0),
-                entries: &[
-                    entry(1, batch.enc),
+            );
+            Self::pass(encoder, &self.backward, &backward, groups);
+            for (m, pipeline) in self.wgrad.iter().enumerate() {
+                // The density input matrix's X is the encoding; the others' are saved
+                // activations.
+                let mut entries = vec![
                     entry(5, &ws.acts),
                     entry(6, &ws.dys),
                     entry(9, &ws.partials),
                     entry(11, &p),
-                ],
-            });
-            let reduce = d.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("mlp gradient sum"),
-                layout: &self.reduce.get_bind_group_layout(0),
-                entries: &[entry(9, &ws.partials), entry(10, grad), entry(11, &p)],
-            });
-            Self::pass(encoder, &self.backward, &backward, groups);
-            Self::pass(encoder, &self.wgrad, &wgrad, [n_chunks, N_MATRICES]);
+                ];
+                if m == 0 {
+                    entries.push(entry(1, batch.enc));
+                }
+                let g = group(pipeline, &entries);
+                Self::pass(encoder, pipeline, &g, [n_chunks, 1]);
+            }
+            let x = self.n_weights.div_ceil(WORKGROUP);
+            let first = group(
+                &self.reduce,
+                &[entry(9, &ws.partials), entry(10, grad), entry(11, &p)],
+            );
             Self::pass(
                 encoder,
                 &self.reduce,
-                &reduce,
-                [self.n_weights.div_ceil(WORKGROUP), 1],
+                &first,
+                [x, n_chunks.div_ceil(REDUCE_GROUP)],
             );
+            let last = group(
+                &self.reduce,
+                &[entry(9, &ws.partials), entry(10, grad), entry(11, &p_final)],
+            );
+            Self::pass(encoder, &self.reduce, &last, [x, 1]);
         })
     }
 
@@ -590,4 +709,248 @@ impl MlpKernels {
             self.encode_backward(ctx, e, batch, d_out, ws, grad, d_enc)
         })
     }
+}
+
+/// The functions `mlp.wgsl` calls and the weight-gradient kernels, written out for the
+/// density MLP's `din` inputs: every accumulator index a constant.
+fn generated_wgsl(din: u32) -> String {
+    let mut s = String::new();
+    for r in [16, 4] {
+        layer_product(&mut s, &format!("mmF{r}"), "wt4", r);
+        layer_product(&mut s, &format!("mmB{r}"), "weights4", r);
+        row_writes(&mut s, r);
+    }
+    let rd = din / 4;
+    layer_product(&mut s, "mmBD", "weights4", rd);
+    let _ = writeln!(
+        s,
+        "fn d_enc_rows(a: array<vec4<f32>, {rd}>, row0: u32, sl: u32) {{"
+    );
+    for i in 0..rd {
+        let _ = writeln!(s, "    d_enc4(row0 + {i}u, sl, a[{i}]);");
+    }
+    s.push_str("}\n");
+    for (m, shape) in wgrad_shapes(din).iter().enumerate() {
+        wgrad_kernel(&mut s, m, shape);
+    }
+    s
+}
+
+/// `fn name(b4, stride4, n_k, lane) -> array<vec4<f32>, r>`: rows `r` of a layer's product
+/// for the lane's 4 samples, Σ_k W[row][k] · tile[k], the weights of input k the `r / 4`
+/// vec4 at `b4 + k·stride4` of `weights`.
+fn layer_product(s: &mut String, name: &str, weights: &str, r: u32) {
+    let _ = writeln!(
+        s,
+        "fn {name}(b4: u32, stride4: u32, n_k: u32, lane: u32) -> array<vec4<f32>, {r}> {{\n    \
+         var a: array<vec4<f32>, {r}>;\n    for (var k = 0u; k < n_k; k++) {{\n        \
+         let x = tile[k * LANES + lane];\n        let b = b4 + k * stride4;"
+    );
+    for q in 0..r / 4 {
+        let _ = writeln!(s, "        let w{q} = {weights}[b + {q}u];");
+        for (m, c) in ["x", "y", "z", "w"].iter().enumerate() {
+            let i = 4 * q + m as u32;
+            let _ = writeln!(s, "        a[{i}] = fma(vec4<f32>(w{q}.{c}), x, a[{i}]);");
+        }
+    }
+    s.push_str("    }\n    return a;\n}\n");
+}
+
+/// A row block's writes: `relu{r}`, `put{r}` (into the tile), `keep{r}` (to acts),
+/// `mask{r}` (zero where the saved activation is ≤ 0, as the CPU's ReLU mask), `dy{r}` (to
+/// dys).
+fn row_writes(s: &mut String, r: u32) {
+    let ty = format!("array<vec4<f32>, {r}>");
+    let _ = writeln!(s, "fn relu{r}(a: {ty}) -> {ty} {{\n    var b = a;");
+    for i in 0..r {
+        let _ = writeln!(s, "    b[{i}] = max(a[{i}], vec4<f32>(0.0));");
+    }
+    s.push_str("    return b;\n}\n");
+    let _ = writeln!(s, "fn put{r}(a: {ty}, row0: u32, lane: u32) {{");
+    for i in 0..r {
+        let _ = writeln!(s, "    tile[(row0 + {i}u) * LANES + lane] = a[{i}];");
+    }
+    s.push_str("}\n");
+    for (name, buf) in [("keep", "acts4"), ("dy", "dys4")] {
+        let _ = writeln!(s, "fn {name}{r}(a: {ty}, row0: u32, sl: u32) {{");
+        for i in 0..r {
+            let _ = writeln!(s, "    {buf}[at4(row0 + {i}u, sl)] = a[{i}];");
+        }
+        s.push_str("}\n");
+    }
+    let _ = writeln!(
+        s,
+        "fn mask{r}(a: {ty}, row0: u32, sl: u32) -> {ty} {{\n    var b = a;\n    \
+         if (sl < p.n) {{"
+    );
+    for i in 0..r {
+        let _ = writeln!(
+            s,
+            "        b[{i}] = select(a[{i}], vec4<f32>(0.0), \
+             acts4[at4(row0 + {i}u, sl)] <= vec4<f32>(0.0));"
+        );
+    }
+    s.push_str("    }\n    return b;\n}\n");
+}
+
+/// The five weight matrices' gradient shapes, in the parameter vector's order.
+fn wgrad_shapes(din: u32) -> [WgradShape; 5] {
+    let w = WIDTH as u32;
+    let dout = DENSITY_OUT as u32;
+    [
+        WgradShape {
+            name: "density input",
+            off: "OFF_D0",
+            rows_used: w,
+            rows: w,
+            rows_stored: w,
+            cols: din,
+            dy_row: "G_DH",
+            x_row: None,
+            rg: 16,
+        },
+        WgradShape {
+            name: "density output",
+            off: "OFF_D1",
+            rows_used: dout,
+            rows: dout,
+            rows_stored: dout,
+            cols: w,
+            dy_row: "G_DOUT",
+            x_row: Some("A_DH"),
+            rg: 16,
+        },
+        WgradShape {
+            name: "colour input",
+            off: "OFF_C0",
+            rows_used: w,
+            rows: w,
+            rows_stored: w,
+            cols: dout + SH_DIMS as u32,
+            dy_row: "G_H1",
+            x_row: Some("A_CIN"),
+            rg: 16,
+        },
+        WgradShape {
+            name: "colour hidden",
+            off: "OFF_C1",
+            rows_used: w,
+            rows: w,
+            rows_stored: w,
+            cols: w,
+            dy_row: "G_H2",
+            x_row: Some("A_H1"),
+            rg: 16,
+        },
+        // 3 rgb rows of the 16 stored, computed as 4.
+        WgradShape {
+            name: "colour output",
+            off: "OFF_C2",
+            rows_used: 3,
+            rows: 4,
+            rows_stored: 16,
+            cols: w,
+            dy_row: "G_RGB",
+            x_row: Some("A_H2"),
+            rg: 4,
+        },
+    ]
+}
+
+/// `wgrad_{m}`: per chunk of CH samples, partial dW[o][i] = Σ_s dY[o][s] · X[i][s] of matrix
+/// `m`, to partials[chunk·NW + (offset − OFF_D0) + o·cols + i] (its padded rows: 0). Staged
+/// ST samples at a time; invocation lid owns rows `lid % rg + rg·i` and columns
+/// `lid / rg + cg·j`: per sample rr + cc workgroup reads (distinct banks, or one address)
+/// feed rr·cc multiply-adds.
+fn wgrad_kernel(s: &mut String, m: usize, w: &WgradShape) {
+    let rg = w.rg;
+    let cg = WORKGROUP / rg;
+    let rr = w.rows / rg;
+    let cc = w.cols / cg;
+    debug_assert!(rr * rg == w.rows && cc * cg == w.cols && rr >= 1 && cc >= 1);
+    let _ = writeln!(
+        s,
+        "// {name}: {rows} × {cols}.\n@compute @workgroup_size(128)\nfn wgrad_{m}(\n    \
+         @builtin(workgroup_id) wid: vec3<u32>,\n    \
+         @builtin(local_invocation_index) lid: u32,\n) {{\n    let chunk = wid.x;\n    \
+         let rg = lid % {rg}u;\n    let cg = lid / {rg}u;\n    \
+         var acc: array<f32, {n}>;\n    let begin = chunk * CH;\n    \
+         let end = min(begin + CH, p.n);\n    for (var b = begin; b < end; b += ST) {{\n        \
+         stage_saved(true, {dy}, {used}u, b, end, lid, true);",
+        name = w.name,
+        rows = w.rows_used,
+        cols = w.cols,
+        n = rr * cc,
+        dy = w.dy_row,
+        used = w.rows_used,
+    );
+    if w.rows > w.rows_used {
+        // The computed rows past the used ones read zeros.
+        let _ = writeln!(
+            s,
+            "        for (var e = {u}u * SP + lid; e < {r}u * SP; e += WG) {{ shy[e] = 0.0; }}",
+            u = w.rows_used,
+            r = w.rows
+        );
+    }
+    match w.x_row {
+        Some(x) => {
+            let _ = writeln!(
+                s,
+                "        stage_saved(false, {x}, {c}u, b, end, lid, false);",
+                c = w.cols
+            );
+        }
+        None => s.push_str("        stage_enc(b, end, lid);\n"),
+    }
+    s.push_str("        workgroupBarrier();\n        for (var t = 0u; t < ST; t++) {\n");
+    for i in 0..rr {
+        let _ = writeln!(
+            s,
+            "            let y{i} = shy[(rg + {}u) * SP + t];",
+            rg * i
+        );
+    }
+    for j in 0..cc {
+        let _ = writeln!(
+            s,
+            "            let x{j} = shx[(cg + {}u) * SP + t];",
+            cg * j
+        );
+    }
+    for i in 0..rr {
+        for j in 0..cc {
+            let k = i * cc + j;
+            let _ = writeln!(s, "            acc[{k}] = fma(y{i}, x{j}, acc[{k}]);");
+        }
+    }
+    s.push_str("        }\n        workgroupBarrier();\n    }\n");
+    let _ = writeln!(
+        s,
+        "    let base = chunk * NW + {off} - OFF_D0;",
+        off = w.off
+    );
+    for i in 0..rr {
+        for j in 0..cc {
+            let _ = writeln!(
+                s,
+                "    if (rg + {ri}u < {used}u) {{ partials[base + (rg + {ri}u) * {cols}u + cg + \
+                 {cj}u] = acc[{k}]; }}",
+                ri = rg * i,
+                cj = cg * j,
+                used = w.rows_used,
+                cols = w.cols,
+                k = i * cc + j,
+            );
+        }
+    }
+    if w.rows_stored > w.rows_used {
+        let _ = writeln!(
+            s,
+            "    for (var e = {a}u + lid; e < {b}u; e += WG) {{ partials[base + e] = 0.0; }}",
+            a = w.rows_used * w.cols,
+            b = w.rows_stored * w.cols,
+        );
+    }
+    s.push_str("}\n");
 }

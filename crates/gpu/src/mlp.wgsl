@@ -4,15 +4,30 @@
 // hidden layers, forward and backward.
 //
 // The Rust side (crates/gpu/src/mlp.rs) prepends the constants this file uses and does not
-// declare: T (samples per tile), SB = T / 8 (samples per invocation), N_ENC (grid features
-// L·F), DIN (density inputs, N_ENC padded to 16), OFF_D0, OFF_D1, OFF_C0, OFF_C1, OFF_C2
-// (the five weight matrices' offsets in the parameter vector), NW (weights of both MLPs),
-// CH (samples per weight-gradient chunk).
+// declare (N_ENC grid features L·F, DIN density inputs = N_ENC padded to 16, the five
+// matrices' offsets OFF_* in the parameter vector and T* in the transposed copy, NW weights
+// of both MLPs, CH samples per weight-gradient chunk, RG_CHUNKS chunks per reduction group)
+// and appends the functions it generates: the register-blocked layer products `mmF{R}`
+// (forward, from the transposed weights) and `mmB{R}` (backward, from the weights as
+// stored), their tile and device-memory writes, and one weight-gradient kernel per matrix
+// (`wgrad_{m}`), each written out with constant indices so that every accumulator is a
+// register (a dynamically indexed private array becomes device memory).
 //
-// Layouts (all f32, feature-major like the CPU engine): enc and d_enc `[(l·F + f)·ld_enc + s]`;
+// Layouts (f32, feature-major like the CPU engine): enc and d_enc `[(l·F + f)·ld_enc + s]`;
 // dirs `[3·s + c]`; out and d_out one vec4 per sample, [r, g, b, log-density]; the saved
 // activations `acts[(row)·ld + s]` and per-layer output gradients `dys[(row)·ld + s]` with
-// the row blocks below.
+// the row blocks below, read and written as vec4 of 4 samples (ld is a multiple of 4).
+//
+// How a tile of T = 128 samples goes through a layer: invocation lid is lane lid % 32 of row
+// group g = lid / 32; the lane owns samples 4·lane .. 4·lane + 3 (one vec4 of the tile row),
+// the group owns R consecutive output rows. Per input k it reads one vec4 of the tile
+// (consecutive lanes, consecutive vec4: no bank conflict) and R / 4 vec4 of weights, the
+// same address for the whole subgroup (a broadcast from the cache), for 4·R multiply-adds.
+// The products stay in registers until every invocation has read the tile, then overwrite
+// it in place: one 64 × 128 tile (32 KiB) carries the samples through every layer.
+//
+// Runtime checks: the module is compiled without naga's index clamping and loop bounding
+// (crates/gpu/src/mlp.rs says why each index is in bounds).
 
 struct MlpParams {
     n: u32,
@@ -23,26 +38,35 @@ struct MlpParams {
     // Tiles per dispatch row: dispatches past 65535 workgroups fold into y.
     tiles_x: u32,
     n_chunks: u32,
-    _pad0: u32,
-    _pad1: u32,
+    // reduce_main: 0 sums each group of RG_CHUNKS chunks into the group's first chunk,
+    // 1 sums the groups' first chunks into grad.
+    stage: u32,
+    _pad: u32,
 }
 
-@group(0) @binding(0) var<storage, read> weights: array<f32>;
+@group(0) @binding(0) var<storage, read> weights4: array<vec4<f32>>;
 @group(0) @binding(1) var<storage, read> enc: array<f32>;
 @group(0) @binding(2) var<storage, read> dirs: array<f32>;
 @group(0) @binding(3) var<storage, read_write> out: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read_write> dens_out: array<f32>;
-@group(0) @binding(5) var<storage, read_write> acts: array<f32>;
-@group(0) @binding(6) var<storage, read_write> dys: array<f32>;
+@group(0) @binding(5) var<storage, read_write> acts4: array<vec4<f32>>;
+@group(0) @binding(6) var<storage, read_write> dys4: array<vec4<f32>>;
 @group(0) @binding(7) var<storage, read> d_out: array<vec4<f32>>;
 @group(0) @binding(8) var<storage, read_write> d_enc: array<f32>;
 @group(0) @binding(9) var<storage, read_write> partials: array<f32>;
 @group(0) @binding(10) var<storage, read_write> grad: array<f32>;
 @group(0) @binding(11) var<uniform> p: MlpParams;
+// The forward's weights, transposed (input-major: W[r][k] at T* + k·rows + r) by
+// transpose_main before each forward, so that a row group's R rows of one input are R / 4
+// consecutive vec4.
+@group(0) @binding(12) var<storage, read> wt4: array<vec4<f32>>;
+@group(0) @binding(13) var<storage, read_write> wt_out: array<f32>;
 
 const WIDTH: u32 = 64u;
 const DOUT: u32 = 16u;
 const WG: u32 = 128u;
+const T: u32 = 128u;
+const LANES: u32 = 32u;
 
 // Rows of `acts`: density hidden, colour input [density outputs, SH], colour hidden 1 and 2.
 const A_DH: u32 = 0u;
@@ -57,103 +81,39 @@ const G_H1: u32 = 80u;
 const G_H2: u32 = 144u;
 const G_RGB: u32 = 208u;
 
-// One layer's weights, 64 × 64 at most (DIN ≤ 64), stored so that the 16 output rows an
-// invocation group reads for one input are consecutive (no bank conflicts): M[k·64 + r].
-var<workgroup> wsh: array<f32, 4096>;
-// Two activation tiles of 64 rows × T samples, X at 0 and Y at TILE: each layer reads one and
-// writes the other, so a tile goes through every layer without leaving the workgroup.
-const TILE: u32 = 64u * T;
-const X: u32 = 0u;
-const Y: u32 = TILE;
-var<workgroup> act: array<f32, 2u * TILE>;
+// 64 rows × 32 lanes × vec4 (4 samples): row r of lane l at tile[r·32 + l].
+var<workgroup> tile: array<vec4<f32>, 2048>;
 
 fn tile_start(wid: vec3<u32>) -> u32 {
     return (wid.x + wid.y * p.tiles_x) * T;
 }
 
-// Forward weights: M[k·64 + r] = W[r][k] (W row-major rows × cols at `off`).
-fn load_w_forward(off: u32, rows: u32, cols: u32, lid: u32) {
-    for (var e = lid; e < rows * cols; e += WG) {
-        wsh[(e % cols) * WIDTH + e / cols] = weights[off + e];
-    }
+// Index of the vec4 holding samples sl..sl+3 of `row` in acts or dys (sl and ld are
+// multiples of 4).
+fn at4(row: u32, sl: u32) -> u32 {
+    return (row * p.ld + sl) / 4u;
 }
 
-// Backward weights (the transposed product): M[o·64 + i] = W[o][i].
-fn load_w_backward(off: u32, rows: u32, cols: u32, lid: u32) {
-    for (var e = lid; e < rows * cols; e += WG) {
-        wsh[(e / cols) * WIDTH + e % cols] = weights[off + e];
-    }
+// The lane's 4 samples of one enc row (0 past n).
+fn enc4(r: u32, sl: u32) -> vec4<f32> {
+    var v = vec4<f32>(0.0);
+    let b = r * p.ld_enc + sl;
+    if (sl < p.n) { v.x = enc[b]; }
+    if (sl + 1u < p.n) { v.y = enc[b + 1u]; }
+    if (sl + 2u < p.n) { v.z = enc[b + 2u]; }
+    if (sl + 3u < p.n) { v.w = enc[b + 3u]; }
+    return v;
 }
 
-// dst[r][s] = act(Σ_{k < n_k} M[k·64 + r] · src[k][s]) for r < n_out (≤ 64), all T samples
-// of the tile. Invocation lid owns rows rb + 16·g (g < 4) and samples sb + 8·j (j < SB):
-// per input k, SB tile reads and 4 weight reads feed 4·SB multiply-adds, the four rows as
-// one vec4 so that every index into the accumulators is a constant (dynamically indexed
-// private arrays become memory, or gathers on a SIMD software adapter). Rows past n_out
-// are computed from stale weights and dropped.
-fn layer(src: u32, dst: u32, n_k: u32, n_out: u32, relu: bool, lid: u32) {
-    let rb = lid % 16u;
-    let sb = lid / 16u;
-    var acc: array<vec4<f32>, SB>;
-    for (var k = 0u; k < n_k; k++) {
-        let m = k * WIDTH + rb;
-        let w = vec4<f32>(wsh[m], wsh[m + 16u], wsh[m + 32u], wsh[m + 48u]);
-        for (var j = 0u; j < SB; j++) {
-            acc[j] = fma(w, vec4<f32>(act[src + k * T + sb + 8u * j]), acc[j]);
+// enc rows into the tile; rows N_ENC..DIN (the MLP's padding inputs) and samples past n
+// are 0.
+fn load_enc(g: u32, lane: u32, sl: u32) {
+    for (var r = g; r < DIN; r += 4u) {
+        var v = vec4<f32>(0.0);
+        if (r < N_ENC) {
+            v = enc4(r, sl);
         }
-    }
-    for (var j = 0u; j < SB; j++) {
-        var v = acc[j];
-        if (relu) {
-            v = max(v, vec4<f32>(0.0));
-        }
-        let o = dst + sb + 8u * j;
-        for (var g = 0u; g < 4u; g++) {
-            if (rb + 16u * g < n_out) {
-                act[o + (rb + 16u * g) * T] = v[g];
-            }
-        }
-    }
-}
-
-// The same for n_out ≤ 16 (the MLPs' output layers): one row per invocation.
-fn layer16(src: u32, dst: u32, n_k: u32, n_out: u32, lid: u32) {
-    let rb = lid % 16u;
-    let sb = lid / 16u;
-    var acc: array<f32, SB>;
-    for (var k = 0u; k < n_k; k++) {
-        let w = wsh[k * WIDTH + rb];
-        for (var j = 0u; j < SB; j++) {
-            acc[j] = fma(w, act[src + k * T + sb + 8u * j], acc[j]);
-        }
-    }
-    if (rb < n_out) {
-        for (var j = 0u; j < SB; j++) {
-            act[dst + rb * T + sb + 8u * j] = acc[j];
-        }
-    }
-}
-
-// enc rows into tile X; rows N_ENC..DIN (the MLP's padding inputs) and samples past n are 0.
-fn load_enc(s0: u32, lid: u32) {
-    for (var e = lid; e < DIN * T; e += WG) {
-        let r = e / T;
-        let s = s0 + e % T;
-        var v = 0.0;
-        if (r < N_ENC && s < p.n) {
-            v = enc[r * p.ld_enc + s];
-        }
-        act[X + e] = v;
-    }
-}
-
-// `rows` rows of a tile to acts[(row0 + r)·ld + s].
-fn store_acts(tile: u32, rows: u32, row0: u32, s0: u32, lid: u32) {
-    for (var e = lid; e < rows * T; e += WG) {
-        let s = s0 + e % T;
-        if (s < p.n) {
-            acts[(row0 + e / T) * p.ld + s] = act[tile + e];
-        }
+        tile[r * LANES + lane] = v;
     }
 }
 
@@ -203,12 +163,32 @@ fn sh4(d: vec3<f32>) -> array<f32, 16> {
     );
 }
 
-// The density MLP's hidden layer of the tile into Y (enc and weights loaded here).
-fn density_hidden(s0: u32, lid: u32) {
-    load_enc(s0, lid);
-    load_w_forward(OFF_D0, WIDTH, DIN, lid);
+// Sample s0 + lid's SH into tile rows DOUT..DOUT+16 (0 past n): invocation lid writes
+// component lid % 4 of lane lid / 4's vec4, consecutive words for consecutive invocations.
+fn write_sh(s0: u32, lid: u32) {
+    var v = array<f32, 16>();
+    let s = s0 + lid;
+    if (s < p.n) {
+        v = sh4(vec3<f32>(dirs[3u * s], dirs[3u * s + 1u], dirs[3u * s + 2u]));
+    }
+    let l = lid / 4u;
+    let c = lid % 4u;
+    for (var k = 0u; k < 16u; k++) {
+        tile[(DOUT + k) * LANES + l][c] = v[k];
+    }
+}
+
+// The density MLP's hidden layer of the tile, left in the tile (rows 0..64), and kept in
+// acts when asked.
+fn density_hidden(g: u32, lane: u32, sl: u32, s0: u32, store: bool) {
+    load_enc(g, lane, sl);
     workgroupBarrier();
-    layer(X, Y, DIN, WIDTH, true, lid);
+    let h = relu16(mmF16((TD0 + 16u * g) / 4u, 16u, DIN, lane));
+    workgroupBarrier();
+    put16(h, 16u * g, lane);
+    if (store && sl < p.n) {
+        keep16(h, A_DH + 16u * g, sl);
+    }
     workgroupBarrier();
 }
 
@@ -223,57 +203,50 @@ fn forward_main(
     if (s0 >= p.n) {
         return;
     }
+    let g = lid / LANES;
+    let lane = lid % LANES;
+    let sl = s0 + 4u * lane;
+    let live = sl < p.n;
     let store = p.store != 0u;
-    density_hidden(s0, lid);
-    if (store) {
-        store_acts(Y, WIDTH, A_DH, s0, lid);
-    }
-    load_w_forward(OFF_D1, DOUT, WIDTH, lid);
+    density_hidden(g, lane, sl, s0, store);
+    // Density outputs (linear) into rows 0..16, SH into rows 16..32: the colour input.
+    let d = mmF4((TD1 + 4u * g) / 4u, 4u, WIDTH, lane);
     workgroupBarrier();
-    // Density outputs into X rows 0..16 (linear), SH into rows 16..32: the colour input.
-    layer16(Y, X, WIDTH, DOUT, lid);
-    if (lid < T) {
-        var v = array<f32, 16>();
-        let s = s0 + lid;
-        if (s < p.n) {
-            v = sh4(vec3<f32>(dirs[3u * s], dirs[3u * s + 1u], dirs[3u * s + 2u]));
+    put4(d, 4u * g, lane);
+    write_sh(s0, lid);
+    if (store && live) {
+        keep4(d, A_CIN + 4u * g, sl);
+    }
+    workgroupBarrier();
+    // Row 0, the log-density, is overwritten by the next layer.
+    let log_density = tile[lane];
+    if (store && live) {
+        for (var r = DOUT + g; r < DOUT + 16u; r += 4u) {
+            acts4[at4(A_CIN + r, sl)] = tile[r * LANES + lane];
         }
-        for (var k = 0u; k < 16u; k++) {
-            act[X + (DOUT + k) * T + lid] = v[k];
+    }
+    let h1 = relu16(mmF16((TC0 + 16u * g) / 4u, 16u, DOUT + 16u, lane));
+    workgroupBarrier();
+    put16(h1, 16u * g, lane);
+    if (store && live) {
+        keep16(h1, A_H1 + 16u * g, sl);
+    }
+    workgroupBarrier();
+    let h2 = relu16(mmF16((TC1 + 16u * g) / 4u, 16u, WIDTH, lane));
+    workgroupBarrier();
+    put16(h2, 16u * g, lane);
+    if (store && live) {
+        keep16(h2, A_H2 + 16u * g, sl);
+    }
+    workgroupBarrier();
+    // The colour output's 3 used rows (of the 16 stored): group 0 alone.
+    if (g == 0u && live) {
+        let rgb = mmF4(TC2 / 4u, 4u, WIDTH, lane);
+        for (var c = 0u; c < 4u; c++) {
+            if (sl + c < p.n) {
+                out[sl + c] = vec4<f32>(rgb[0][c], rgb[1][c], rgb[2][c], log_density[c]);
+            }
         }
-    }
-    workgroupBarrier();
-    // Invocation lid < T writes sample lid's output at the end; the log-density is
-    // overwritten in the tile before then, so it keeps it.
-    var log_density = 0.0;
-    if (lid < T) {
-        log_density = act[X + lid];
-    }
-    if (store) {
-        store_acts(X, DOUT + 16u, A_CIN, s0, lid);
-    }
-    load_w_forward(OFF_C0, WIDTH, DOUT + 16u, lid);
-    workgroupBarrier();
-    layer(X, Y, DOUT + 16u, WIDTH, true, lid);
-    workgroupBarrier();
-    if (store) {
-        store_acts(Y, WIDTH, A_H1, s0, lid);
-    }
-    load_w_forward(OFF_C1, WIDTH, WIDTH, lid);
-    workgroupBarrier();
-    layer(Y, X, WIDTH, WIDTH, true, lid);
-    workgroupBarrier();
-    if (store) {
-        store_acts(X, WIDTH, A_H2, s0, lid);
-    }
-    // Only the 3 used rows of the padded 16 × 64 output matrix.
-    load_w_forward(OFF_C2, 3u, WIDTH, lid);
-    workgroupBarrier();
-    layer16(X, Y, WIDTH, 3u, lid);
-    workgroupBarrier();
-    let s = s0 + lid;
-    if (lid < T && s < p.n) {
-        out[s] = vec4<f32>(act[Y + lid], act[Y + T + lid], act[Y + 2u * T + lid], log_density);
     }
 }
 
@@ -287,36 +260,24 @@ fn density_main(
     if (s0 >= p.n) {
         return;
     }
-    density_hidden(s0, lid);
-    load_w_forward(OFF_D1, 1u, WIDTH, lid);
-    workgroupBarrier();
-    layer16(Y, X, WIDTH, 1u, lid);
-    workgroupBarrier();
-    let s = s0 + lid;
-    if (lid < T && s < p.n) {
-        dens_out[s] = act[X + lid];
-    }
-}
-
-// Zeroes the gradient rows of a tile where the ReLU below was off (saved activation ≤ 0,
-// as the CPU's mask), and saves them in dys for the weight gradients.
-fn mask_and_store(tile: u32, rows: u32, act_row0: u32, dy_row0: u32, s0: u32, lid: u32) {
-    for (var e = lid; e < rows * T; e += WG) {
-        let r = e / T;
-        let s = s0 + e % T;
-        if (s < p.n) {
-            var v = act[tile + e];
-            if (acts[(act_row0 + r) * p.ld + s] <= 0.0) {
-                v = 0.0;
+    let g = lid / LANES;
+    let lane = lid % LANES;
+    let sl = s0 + 4u * lane;
+    density_hidden(g, lane, sl, s0, false);
+    if (g == 0u && sl < p.n) {
+        let d = mmF4(TD1 / 4u, 4u, WIDTH, lane);
+        for (var c = 0u; c < 4u; c++) {
+            if (sl + c < p.n) {
+                dens_out[sl + c] = d[0][c];
             }
-            act[tile + e] = v;
-            dys[(dy_row0 + r) * p.ld + s] = v;
         }
     }
 }
 
 // Backward of a tile through both MLPs down to d_enc, after forward_main with p.store on the
-// same samples; every layer's output gradient goes to `dys` for wgrad_main.
+// same samples; every layer's output gradient goes to `dys` for the weight gradients. The
+// backward products read W[o][i] for one output o and R consecutive inputs i: R / 4
+// consecutive vec4 of the weights as stored.
 @compute @workgroup_size(128)
 fn backward_main(
     @builtin(workgroup_id) wid: vec3<u32>,
@@ -326,161 +287,172 @@ fn backward_main(
     if (s0 >= p.n) {
         return;
     }
-    // d rgb into X rows 0..3 (zero past n, so padding samples stay zero all the way down).
-    if (lid < T) {
-        let s = s0 + lid;
-        var g = vec4<f32>(0.0);
-        if (s < p.n) {
-            g = d_out[s];
-            dys[G_RGB * p.ld + s] = g.x;
-            dys[(G_RGB + 1u) * p.ld + s] = g.y;
-            dys[(G_RGB + 2u) * p.ld + s] = g.z;
-        }
-        act[X + lid] = g.x;
-        act[X + T + lid] = g.y;
-        act[X + 2u * T + lid] = g.z;
-    }
-    load_w_backward(OFF_C2, 3u, WIDTH, lid);
-    workgroupBarrier();
-    layer(X, Y, 3u, WIDTH, false, lid);
-    workgroupBarrier();
-    mask_and_store(Y, WIDTH, A_H2, G_H2, s0, lid);
-    load_w_backward(OFF_C1, WIDTH, WIDTH, lid);
-    workgroupBarrier();
-    layer(Y, X, WIDTH, WIDTH, false, lid);
-    workgroupBarrier();
-    mask_and_store(X, WIDTH, A_H1, G_H1, s0, lid);
-    // Only the density-output half of the colour input needs a gradient (SH is fixed).
-    load_w_backward(OFF_C0, WIDTH, DOUT + 16u, lid);
-    workgroupBarrier();
-    layer16(X, Y, WIDTH, DOUT, lid);
-    workgroupBarrier();
-    // The log-density reaches density output 0 directly as well as through the colour MLP.
-    // The density outputs are linear: no mask.
-    for (var e = lid; e < DOUT * T; e += WG) {
-        let s = s0 + e % T;
-        if (s < p.n) {
-            var v = act[Y + e];
-            if (e < T) {
-                v += d_out[s].w;
+    let g = lid / LANES;
+    let lane = lid % LANES;
+    let sl = s0 + 4u * lane;
+    let live = sl < p.n;
+    // d rgb into rows 0..3 (0 past n, so padding samples stay zero all the way down), the
+    // log-density's gradient kept for the density outputs.
+    var d_log_density = vec4<f32>(0.0);
+    if (g == 0u) {
+        var rows = array<vec4<f32>, 3>();
+        for (var c = 0u; c < 4u; c++) {
+            if (sl + c < p.n) {
+                let v = d_out[sl + c];
+                rows[0][c] = v.x;
+                rows[1][c] = v.y;
+                rows[2][c] = v.z;
+                d_log_density[c] = v.w;
             }
-            act[Y + e] = v;
-            dys[(G_DOUT + e / T) * p.ld + s] = v;
+        }
+        tile[lane] = rows[0];
+        tile[LANES + lane] = rows[1];
+        tile[2u * LANES + lane] = rows[2];
+        if (live) {
+            dys4[at4(G_RGB, sl)] = rows[0];
+            dys4[at4(G_RGB + 1u, sl)] = rows[1];
+            dys4[at4(G_RGB + 2u, sl)] = rows[2];
         }
     }
-    load_w_backward(OFF_D1, DOUT, WIDTH, lid);
     workgroupBarrier();
-    layer(Y, X, DOUT, WIDTH, false, lid);
+    // Colour output → hidden 2 (W 16 × 64, 3 used outputs).
+    let h2 = mask16(mmB16((OFF_C2 + 16u * g) / 4u, 16u, 3u, lane), A_H2 + 16u * g, sl);
     workgroupBarrier();
-    mask_and_store(X, WIDTH, A_DH, G_DH, s0, lid);
-    load_w_backward(OFF_D0, WIDTH, DIN, lid);
+    put16(h2, 16u * g, lane);
+    if (live) {
+        dy16(h2, G_H2 + 16u * g, sl);
+    }
     workgroupBarrier();
-    layer(X, Y, WIDTH, N_ENC, false, lid);
+    // Hidden 2 → hidden 1 (W 64 × 64).
+    let h1 = mask16(mmB16((OFF_C1 + 16u * g) / 4u, 16u, WIDTH, lane), A_H1 + 16u * g, sl);
     workgroupBarrier();
-    for (var e = lid; e < N_ENC * T; e += WG) {
-        let s = s0 + e % T;
-        if (s < p.n) {
-            d_enc[(e / T) * p.ld_enc + s] = act[Y + e];
+    put16(h1, 16u * g, lane);
+    if (live) {
+        dy16(h1, G_H1 + 16u * g, sl);
+    }
+    workgroupBarrier();
+    // Hidden 1 → the density-output half of the colour input (W 64 × 32; SH is fixed). The
+    // log-density reaches density output 0 directly as well; the density outputs are
+    // linear: no mask.
+    var d = mmB4((OFF_C0 + 4u * g) / 4u, (DOUT + 16u) / 4u, WIDTH, lane);
+    if (g == 0u) {
+        d[0] += d_log_density;
+    }
+    workgroupBarrier();
+    put4(d, 4u * g, lane);
+    if (live) {
+        dy4(d, G_DOUT + 4u * g, sl);
+    }
+    workgroupBarrier();
+    // Density outputs → density hidden (W 16 × 64).
+    let h = mask16(mmB16((OFF_D1 + 16u * g) / 4u, 16u, DOUT, lane), A_DH + 16u * g, sl);
+    workgroupBarrier();
+    put16(h, 16u * g, lane);
+    if (live) {
+        dy16(h, G_DH + 16u * g, sl);
+    }
+    workgroupBarrier();
+    // Density hidden → the encoding (W 64 × DIN), straight to d_enc.
+    if (live) {
+        d_enc_rows(mmBD((OFF_D0 + RD * g) / 4u, DIN / 4u, WIDTH, lane), RD * g, sl);
+    }
+}
+
+// One sample's d_enc of one row, 4 samples at a time (ld_enc need not be a multiple of 4).
+fn d_enc4(row: u32, sl: u32, v: vec4<f32>) {
+    if (row < N_ENC) {
+        let b = row * p.ld_enc + sl;
+        d_enc[b] = v.x;
+        if (sl + 1u < p.n) { d_enc[b + 1u] = v.y; }
+        if (sl + 2u < p.n) { d_enc[b + 2u] = v.z; }
+        if (sl + 3u < p.n) { d_enc[b + 3u] = v.w; }
+    }
+}
+
+// Weight-gradient staging: ST samples of the rows of dY and X, row-major with a stride of
+// ST + 1 words so that the consecutive samples of a row written by consecutive invocations,
+// and the same sample of distinct rows read by them, fall in distinct banks.
+const ST: u32 = 32u;
+const SP: u32 = 33u;
+var<workgroup> shy: array<f32, 2112>;
+var<workgroup> shx: array<f32, 2112>;
+
+// Rows `row0 ..< row0 + rows` of a saved buffer (acts or dys, `from_dys`), samples
+// b ..< b + ST, into `sh` rows 0..rows, 0 past `end`: one vec4 per invocation.
+fn stage_saved(from_dys: bool, row0: u32, rows: u32, b: u32, end: u32, lid: u32, to_y: bool) {
+    for (var e = lid; e < rows * (ST / 4u); e += WG) {
+        let r = e / (ST / 4u);
+        let q = e % (ST / 4u);
+        let s = b + 4u * q;
+        var v = vec4<f32>(0.0);
+        if (s < end) {
+            if (from_dys) {
+                v = dys4[at4(row0 + r, s)];
+            } else {
+                v = acts4[at4(row0 + r, s)];
+            }
+            if (s + 1u >= end) { v.y = 0.0; }
+            if (s + 2u >= end) { v.z = 0.0; }
+            if (s + 3u >= end) { v.w = 0.0; }
+        }
+        let o = r * SP + 4u * q;
+        if (to_y) {
+            shy[o] = v.x;
+            shy[o + 1u] = v.y;
+            shy[o + 2u] = v.z;
+            shy[o + 3u] = v.w;
+        } else {
+            shx[o] = v.x;
+            shx[o + 1u] = v.y;
+            shx[o + 2u] = v.z;
+            shx[o + 3u] = v.w;
         }
     }
 }
 
-// Sub-tile of the weight-gradient product: 32 samples of dY (rows) and of X (columns), both
-// sample-major in wsh so that the rows (columns) an invocation group reads are consecutive.
-const ST: u32 = 32u;
-const WG_X: u32 = 64u * ST;
+// The encoding's rows (DIN, 0 past N_ENC and past `end`) into shx.
+fn stage_enc(b: u32, end: u32, lid: u32) {
+    for (var e = lid; e < DIN * ST; e += WG) {
+        let r = e / ST;
+        let s = b + e % ST;
+        var v = 0.0;
+        if (r < N_ENC && s < end) {
+            v = enc[r * p.ld_enc + s];
+        }
+        shx[r * SP + e % ST] = v;
+    }
+}
 
-// Per (chunk of CH samples, matrix): partial dW[o][i] = Σ_s dY[o][s] · X[i][s] over the
-// chunk, written to partials[chunk·NW + (matrix offset − OFF_D0) + o·cols + i]; reduce_main
-// sums the chunks in order. Matrices (wid.y): 0 density input, 1 density output, 2 colour
-// input, 3 colour hidden, 4 colour output (3 used rows of 16; the padded rows get 0).
+// Forward weights transposed into wt_out: W[r][k] (row-major rows × cols at OFF_*) to
+// T* + k·rows + r.
 @compute @workgroup_size(128)
-fn wgrad_main(
-    @builtin(workgroup_id) wid: vec3<u32>,
-    @builtin(local_invocation_index) lid: u32,
-) {
-    let chunk = wid.x;
-    // (offset, rows, cols, rows with a gradient, cols with an input, dY row, X row,
-    // X from enc).
+fn transpose_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let e = gid.x;
+    if (e >= NW) {
+        return;
+    }
     var off = OFF_D0;
     var rows = WIDTH;
     var cols = DIN;
-    var rows_used = WIDTH;
-    var cols_used = N_ENC;
-    var dy_row = G_DH;
-    var x_row = 0u;
-    var from_enc = true;
-    switch wid.y {
-        case 1u: {
-            off = OFF_D1; rows = DOUT; cols = WIDTH; rows_used = DOUT; cols_used = WIDTH;
-            dy_row = G_DOUT; x_row = A_DH; from_enc = false;
-        }
-        case 2u: {
-            off = OFF_C0; rows = WIDTH; cols = DOUT + 16u; rows_used = WIDTH;
-            cols_used = DOUT + 16u; dy_row = G_H1; x_row = A_CIN; from_enc = false;
-        }
-        case 3u: {
-            off = OFF_C1; rows = WIDTH; cols = WIDTH; rows_used = WIDTH; cols_used = WIDTH;
-            dy_row = G_H2; x_row = A_H1; from_enc = false;
-        }
-        case 4u: {
-            off = OFF_C2; rows = DOUT; cols = WIDTH; rows_used = 3u; cols_used = WIDTH;
-            dy_row = G_RGB; x_row = A_H2; from_enc = false;
-        }
-        default: {}
+    if (e >= OFF_C2 - OFF_D0) {
+        off = OFF_C2; rows = DOUT; cols = WIDTH;
+    } else if (e >= OFF_C1 - OFF_D0) {
+        off = OFF_C1; rows = WIDTH; cols = WIDTH;
+    } else if (e >= OFF_C0 - OFF_D0) {
+        off = OFF_C0; rows = WIDTH; cols = DOUT + 16u;
+    } else if (e >= OFF_D1 - OFF_D0) {
+        off = OFF_D1; rows = DOUT; cols = WIDTH;
     }
-    // Invocation lid owns rows rb + 16·g (g < 4, one vec4) and columns cb + 8·c (c < 8).
-    let rb = lid % 16u;
-    let cb = lid / 16u;
-    var acc: array<vec4<f32>, 8>;
-    let begin = chunk * CH;
-    let end = min(begin + CH, p.n);
-    for (var b = begin; b < end; b += ST) {
-        for (var e = lid; e < WIDTH * ST; e += WG) {
-            let r = e / ST;
-            let s = e % ST;
-            let gs = b + s;
-            var dy = 0.0;
-            var x = 0.0;
-            if (gs < end) {
-                if (r < rows_used) {
-                    dy = dys[(dy_row + r) * p.ld + gs];
-                }
-                if (r < cols_used) {
-                    if (from_enc) {
-                        x = enc[r * p.ld_enc + gs];
-                    } else {
-                        x = acts[(x_row + r) * p.ld + gs];
-                    }
-                }
-            }
-            wsh[s * WIDTH + r] = dy;
-            wsh[WG_X + s * WIDTH + r] = x;
-        }
-        workgroupBarrier();
-        for (var s = 0u; s < ST; s++) {
-            let m = s * WIDTH + rb;
-            let dy = vec4<f32>(wsh[m], wsh[m + 16u], wsh[m + 32u], wsh[m + 48u]);
-            for (var c = 0u; c < 8u; c++) {
-                acc[c] = fma(dy, vec4<f32>(wsh[WG_X + s * WIDTH + cb + 8u * c]), acc[c]);
-            }
-        }
-        workgroupBarrier();
-    }
-    let base = chunk * NW + off - OFF_D0;
-    for (var c = 0u; c < 8u; c++) {
-        let i = cb + 8u * c;
-        for (var g = 0u; g < 4u; g++) {
-            let r = rb + 16u * g;
-            if (r < rows && i < cols) {
-                partials[base + r * cols + i] = acc[c][g];
-            }
-        }
-    }
+    let i = e - (off - OFF_D0);
+    let r = i / cols;
+    let k = i % cols;
+    let w = off + i;
+    wt_out[off - OFF_D0 + k * rows + r] = weights4[w / 4u][w % 4u];
 }
 
-// grad[OFF_D0 + e] += Σ_chunk partials[chunk·NW + e], the chunks in order: the sum is the same
-// on every run and every adapter (no atomics).
+// Stage 0: partials[g·RG_CHUNKS·NW + e] = Σ of the group's chunks (in order); stage 1:
+// grad[OFF_D0 + e] += Σ of the groups' sums (in order). The same sum on every run and every
+// adapter (no atomics).
 @compute @workgroup_size(128)
 fn reduce_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let e = gid.x;
@@ -488,8 +460,17 @@ fn reduce_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     var sum = 0.0;
-    for (var c = 0u; c < p.n_chunks; c++) {
-        sum += partials[c * NW + e];
+    if (p.stage == 0u) {
+        let first = gid.y * RG_CHUNKS;
+        let last = min(first + RG_CHUNKS, p.n_chunks);
+        for (var c = first; c < last; c++) {
+            sum += partials[c * NW + e];
+        }
+        partials[first * NW + e] = sum;
+    } else {
+        for (var c = 0u; c < p.n_chunks; c += RG_CHUNKS) {
+            sum += partials[c * NW + e];
+        }
+        grad[OFF_D0 + e] += sum;
     }
-    grad[OFF_D0 + e] += sum;
 }
