@@ -211,3 +211,58 @@ fn a_batch_past_the_workspace_trains_in_chunks_like_one_pass() {
         p1.len()
     );
 }
+
+/// A run that reads its measurements two steps late (as `train --device gpu` does): every
+/// step is one submission (and one per occupancy update) that the host never waits for;
+/// the measurements of each step arrive two steps later and the last two with
+/// `flush_stats`; it learns as the run that reads each step at its end does, to the noise
+/// of the device's sums. That run waits once a step, at its end, and submits once too.
+#[test]
+fn a_pipelined_run_never_waits_for_its_step_and_learns_the_same() {
+    let Some(ctx) = test_context() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let (train, test) = scene(dir.path());
+    let train = Arc::new(train);
+    const N: u32 = 40;
+    let mut models = Vec::new();
+    for lag in [0, stegongp::gpu::trainer::MAX_LAG] {
+        let mut t = gpu_trainer(ctx, &train);
+        t.set_read_lag(lag).unwrap();
+        let mut measured = 0;
+        let mut samples = 0u64;
+        for step in 0..N {
+            let s = t.train_step().unwrap();
+            assert_eq!(
+                s.submissions,
+                1 + s.occupancy_updates,
+                "lag {lag}, step {step}"
+            );
+            assert_eq!(s.host_waits, u32::from(lag == 0), "lag {lag}, step {step}");
+            // A step reports what was measured `lag` steps before it.
+            assert_eq!(
+                s.primary_loss.is_some(),
+                step >= lag,
+                "lag {lag}, step {step}"
+            );
+            measured += s.primary_loss.is_some() as u32;
+            samples += s.n_samples;
+        }
+        let rest = t.flush_stats().unwrap();
+        assert_eq!(rest.primary_loss.is_some(), lag > 0);
+        assert!(t.flush_stats().unwrap().primary_loss.is_none());
+        eprintln!(
+            "lag {lag}: {measured} steps reported in the run, {} trained samples, {} in the \
+             flush",
+            samples, rest.n_samples
+        );
+        assert_eq!(measured + lag, N);
+        assert!(rest.n_samples > 0 || lag == 0);
+        models.push(psnr_of(&t.model(rest.loss).unwrap(), &test));
+    }
+    eprintln!(
+        "PSNR after {N} steps: read in step {:.2} dB, two steps late {:.2} dB",
+        models[0], models[1]
+    );
+    assert!(models[0] > 11.0, "{:.2} dB: did not learn", models[0]);
+    assert!((models[0] - models[1]).abs() < 0.5, "{models:?}");
+}

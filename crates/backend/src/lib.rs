@@ -181,9 +181,13 @@ impl Device {
         match self {
             Device::Cpu { .. } => Ok(Box::new(Trainer::new(model, scenes, config)?)),
             #[cfg(feature = "gpu")]
-            Device::Gpu(ctx) => Ok(Box::new(
-                gpu::GpuTrainer::new(ctx, model, scenes, config).map_err(gpu_error)?,
-            )),
+            Device::Gpu(ctx) => {
+                let mut t = gpu::GpuTrainer::new(ctx, model, scenes, config).map_err(gpu_error)?;
+                // A whole run: the device one step ahead of the host, never waiting for it
+                // (a policy installed later reads back in step again).
+                t.set_read_lag(gpu::trainer::MAX_LAG).map_err(gpu_error)?;
+                Ok(Box::new(t))
+            }
         }
     }
 

@@ -23,6 +23,7 @@
 //! ([`GradAtomics`]). The upload and download helpers at the end are for tests and
 //! benchmarks only.
 
+use super::count::{DeviceCount, Slot};
 use super::{GpuContext, GpuError, GpuIndex, GpuResult, INDEX_WGSL};
 use ngp::encoding::{GridLayout, LevelIndex, check_indices};
 use std::num::NonZeroU64;
@@ -459,6 +460,20 @@ impl GridEncoding {
         self.bind(ctx, index, shape, Pass::Backward, data)
     }
 
+    /// The dispatch shape of a pass bound with a leading dimension of `ld`, for a
+    /// [`DeviceCount`] its [`GridDispatch::record_counted`] takes: the rows folded as the
+    /// pass's parameters fold them, one level per z.
+    pub fn count_slot(&self, ctx: &GpuContext, ld: u32) -> GpuResult<Slot> {
+        let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
+        let [gx, _] = fold_groups(ld, self.max_groups_x.min(max_dim), max_dim)?;
+        Ok(Slot {
+            divisor: WORKGROUP,
+            max_x: gx,
+            z: self.layout.levels.len() as u32,
+            fixed_x: 0,
+        })
+    }
+
     fn bind(
         &self,
         ctx: &GpuContext,
@@ -525,6 +540,41 @@ impl GridDispatch {
         pass.set_bind_group(0, &self.bind_group, &[]);
         let [x, y, z] = self.groups;
         pass.dispatch_workgroups(x, y, z);
+    }
+
+    /// Records the dispatch with the sample count known only on the device: `count`'s n
+    /// copied into the parameters, its [`Self::count_slot`] arguments dispatched (nothing
+    /// when n is 0). The count's maximum must not exceed the bound `ld`.
+    pub fn record_counted(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        count: &DeviceCount,
+    ) -> GpuResult<()> {
+        if count.max() > self.ld {
+            return input(format!(
+                "a count of up to {} samples past the bound ld {}",
+                count.max(),
+                self.ld
+            ));
+        }
+        let slot = count.slot(self.count_slot())?;
+        count.copy_n(encoder, &self.params);
+        let mut pass = encoder.begin_compute_pass(&Default::default());
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &self.bind_group, &[]);
+        count.dispatch(&mut pass, slot);
+        Ok(())
+    }
+
+    /// The dispatch shape a [`DeviceCount`] must provide for [`Self::record_counted`]
+    /// ([`GridEncoding::count_slot`] of this dispatch's `ld`).
+    pub fn count_slot(&self) -> Slot {
+        Slot {
+            divisor: WORKGROUP,
+            max_x: self.groups[0],
+            z: self.groups[2],
+            fixed_x: 0,
+        }
     }
 
     /// Runs the dispatch alone and waits for it (tests, benchmarks).

@@ -7,6 +7,7 @@
 //! GPU the CPU engine is faster than emulating one. CI has no GPU and tests on lavapipe.
 
 pub mod compact;
+pub mod count;
 pub mod field;
 pub mod grid;
 pub mod held;
@@ -17,6 +18,7 @@ pub mod occupancy;
 pub mod optimizer;
 pub mod profile;
 pub mod rays;
+pub mod readback;
 pub mod render;
 pub mod renderer;
 pub mod trainer;
@@ -657,6 +659,9 @@ impl ngp::train::TrainBackend for GpuTrainer<'_> {
         origin: &std::path::Path,
     ) -> ngp::Result<()> {
         GpuTrainer::restore_state_doc(self, doc, origin)
+    }
+    fn flush_stats(&mut self) -> ngp::Result<ngp::train::StepStats> {
+        Ok(GpuTrainer::flush_stats(self)?)
     }
     fn profile_device(&mut self, every: u32) -> bool {
         GpuTrainer::profile_device(self, every)

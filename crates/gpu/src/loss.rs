@@ -36,7 +36,9 @@ struct LossParams {
     aabb_max: [f32; 3],
     near_distance: f32,
     near_push_down: f32,
-    _pad: [u32; 3],
+    mean_gate: u32,
+    mean_below: f32,
+    _pad: u32,
 }
 
 /// What one batch's loss depends on beyond its samples.
@@ -44,8 +46,12 @@ struct LossParams {
 pub struct LossConfig {
     /// Scales the loss gradient: scene weight / rays in the batch.
     pub loss_norm: f32,
-    /// `DENSITY_PULL_UP` while the scene's grid mean is below 0.01, else 0.
+    /// `DENSITY_PULL_UP` while the scene's grid mean is below 0.01, else 0 (or
+    /// `DENSITY_PULL_UP` gated on the device by `pull_up_below_mean`).
     pub pull_up: f32,
+    /// `Some(t)`: the pull-up applies only while the occupancy grid's mean, read on the
+    /// device from [`LossBuffers::grid_mean`], is below `t`.
+    pub pull_up_below_mean: Option<f32>,
     /// The scene's box in ngp space (where cascade 0 lies in warped coordinates).
     pub aabb_min: [f32; 3],
     pub aabb_max: [f32; 3],
@@ -56,6 +62,7 @@ impl LossConfig {
         LossConfig {
             loss_norm,
             pull_up,
+            pull_up_below_mean: None,
             aabb_min: marcher.aabb_min,
             aabb_max: marcher.aabb_max,
         }
@@ -73,6 +80,8 @@ pub struct LossBuffers<'a> {
     pub pos: &'a wgpu::Buffer,
     pub d_raw: &'a wgpu::Buffer,
     pub ray_out: &'a wgpu::Buffer,
+    /// The occupancy grid's mean (the f32 at byte 0), for a gated pull-up.
+    pub grid_mean: Option<&'a wgpu::Buffer>,
 }
 
 /// A batch in host memory (see [`LossBuffers`] for the layout).
@@ -87,7 +96,8 @@ pub struct HostBatch<'a> {
 
 pub struct LossKernel {
     pipeline: wgpu::ComputePipeline,
-    uniform: wgpu::Buffer,
+    /// Bound as the grid mean when the pull-up is not gated.
+    no_mean: wgpu::Buffer,
 }
 
 impl LossKernel {
@@ -109,13 +119,13 @@ impl LossKernel {
                     compilation_options: Default::default(),
                     cache: None,
                 });
-            let uniform = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("loss params"),
-                size: std::mem::size_of::<LossParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            let no_mean = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("loss no grid mean"),
+                size: 16,
+                usage: wgpu::BufferUsages::STORAGE,
                 mapped_at_creation: false,
             });
-            LossKernel { pipeline, uniform }
+            LossKernel { pipeline, no_mean }
         })
     }
 
@@ -163,11 +173,28 @@ impl LossKernel {
             aabb_max: cfg.aabb_max,
             near_distance: NEAR_DISTANCE,
             near_push_down: NEAR_PUSH_DOWN,
-            _pad: [0; 3],
+            mean_gate: cfg.pull_up_below_mean.is_some() as u32,
+            mean_below: cfg.pull_up_below_mean.unwrap_or(0.0),
+            _pad: 0,
+        };
+        let grid_mean = match (cfg.pull_up_below_mean, bufs.grid_mean) {
+            (Some(_), Some(b)) => b,
+            (Some(_), None) => {
+                return Err(GpuError::Input(
+                    "loss: a pull-up gated by the grid mean without the mean".into(),
+                ));
+            }
+            (None, _) => &self.no_mean,
         };
         ctx.scoped("loss dispatch", || {
-            ctx.queue
-                .write_buffer(&self.uniform, 0, bytemuck::bytes_of(&params));
+            // Its own parameters: several scenes' losses may be recorded before a submit.
+            let uniform = ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("loss params"),
+                    contents: bytemuck::bytes_of(&params),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                });
             let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("loss"),
                 layout: &self.pipeline.get_bind_group_layout(0),
@@ -179,7 +206,8 @@ impl LossKernel {
                     entry(4, bufs.pos),
                     entry(5, bufs.d_raw),
                     entry(6, bufs.ray_out),
-                    entry(7, &self.uniform),
+                    entry(7, &uniform),
+                    entry(8, grid_mean),
                 ],
             });
             let mut pass = encoder.begin_compute_pass(&Default::default());
@@ -258,6 +286,7 @@ impl LossKernel {
             pos: &b_pos,
             d_raw: &b_draw,
             ray_out: &b_out,
+            grid_mean: None,
         };
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         self.encode(ctx, &mut encoder, &bufs, n_rays, n as u32, cfg)?;

@@ -16,8 +16,11 @@ struct LossParams {
     aabb_max: vec3<f32>,
     near_distance: f32,
     near_push_down: f32,
-    _pad0: u32,
-    _pad1: u32,
+    // 1: the pull-up applies only while the occupancy grid's mean (grid_mean[0], written
+    // on the device by the last update) is below mean_below, as instant-ngp's loss kernel
+    // reads the mean it is given on the device; 0: always.
+    mean_gate: u32,
+    mean_below: f32,
     _pad2: u32,
 }
 
@@ -40,6 +43,7 @@ struct Ray {
 // Per ray: loss (mean over channels), samples used (bitcast).
 @group(0) @binding(6) var<storage, read_write> ray_out: array<vec2<f32>>;
 @group(0) @binding(7) var<uniform> p: LossParams;
+@group(0) @binding(8) var<storage, read> grid_mean: array<f32>;
 
 fn sigmoid(x: f32) -> f32 {
     return 1.0 / (1.0 + exp(-x));
@@ -50,6 +54,10 @@ fn loss_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let r = gid.x + gid.y * p.row_width;
     if (r >= p.n_rays) {
         return;
+    }
+    var pull_up = p.pull_up;
+    if (p.mean_gate != 0u && !(grid_mean[0] < p.mean_below)) {
+        pull_up = 0.0;
     }
     let ray = rays[r];
     let bg = vec3<f32>(ray.bg[0], ray.bg[1], ray.bg[2]);
@@ -108,7 +116,7 @@ fn loss_main(@builtin(global_invocation_id) gid: vec3<u32>) {
             let q = vec3<f32>(pos[3u * i], pos[3u * i + 1u], pos[3u * i + 2u]);
             let x = p.aabb_min + q * (p.aabb_max - p.aabb_min);
             if (all(x >= vec3<f32>(0.0)) && all(x <= vec3<f32>(1.0))) {
-                dd -= p.pull_up;
+                dd -= pull_up;
             }
         }
         if (s.w > -10.0 && dist[i] < p.near_distance) {

@@ -31,6 +31,7 @@
 //! accumulator array indexed through a clamp and every loop behind a counter, and kept
 //! them in device memory. [`MlpKernels::new`] says why each index is in bounds.
 
+use super::count::{DeviceCount, Slot};
 use super::{
     GpuContext, GpuError, GpuResult, buffer_entry as entry, check_binding,
     unchecked_auto_layout_pipelines,
@@ -156,6 +157,40 @@ fn check_len(what: &str, buffer: &wgpu::Buffer, bytes: u64) -> GpuResult<()> {
         )));
     }
     Ok(())
+}
+
+fn check_slice(what: &str, slice: &wgpu::BufferSlice, bytes: u64) -> GpuResult<()> {
+    if slice.size() < bytes {
+        return Err(GpuError::Input(format!(
+            "{what}: {} bytes, need {bytes}",
+            slice.size()
+        )));
+    }
+    Ok(())
+}
+
+fn slice_entry<'a>(binding: u32, slice: &wgpu::BufferSlice<'a>) -> wgpu::BindGroupEntry<'a> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+            buffer: slice.buffer(),
+            offset: slice.offset(),
+            size: std::num::NonZeroU64::new(slice.size()),
+        }),
+    }
+}
+
+/// A dispatch's workgroups: from the host, or slot `.1` of a count on the device.
+#[derive(Clone, Copy)]
+enum Groups<'a> {
+    Host([u32; 2]),
+    Device(&'a DeviceCount, usize),
+}
+
+impl From<[u32; 2]> for Groups<'_> {
+    fn from(g: [u32; 2]) -> Self {
+        Groups::Host(g)
+    }
 }
 
 /// A storage buffer the tests and benchmarks fill from the host (also `COPY_SRC`, so it can
@@ -401,20 +436,24 @@ impl MlpKernels {
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("mlp params"),
                 contents: bytemuck::bytes_of(&p),
-                usage: wgpu::BufferUsages::UNIFORM,
+                // A count known only on the device is copied into `n`.
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             })
     }
 
-    fn pass(
+    fn pass<'a>(
         encoder: &mut wgpu::CommandEncoder,
         pipeline: &wgpu::ComputePipeline,
         group: &wgpu::BindGroup,
-        [x, y]: [u32; 2],
+        groups: impl Into<Groups<'a>>,
     ) {
         let mut pass = encoder.begin_compute_pass(&Default::default());
         pass.set_pipeline(pipeline);
         pass.set_bind_group(0, group, &[]);
-        pass.dispatch_workgroups(x, y, 1);
+        match groups.into() {
+            Groups::Host([x, y]) => pass.dispatch_workgroups(x, y, 1),
+            Groups::Device(c, i) => c.dispatch(&mut pass, i),
+        }
     }
 
     /// Records the transposed copy of `params`' weights the forward kernels read.
@@ -450,9 +489,66 @@ impl MlpKernels {
         out: &wgpu::Buffer,
         keep: Option<&MlpWorkspace>,
     ) -> GpuResult<()> {
+        self.forward_with(ctx, encoder, batch, dirs.slice(..), out, keep, None)
+    }
+
+    /// [`encode_forward`](Self::encode_forward) of the first n samples of `batch`, n known
+    /// only on the device (`count`, at most `batch.n`, which the buffers are checked
+    /// against), `dirs` a slice (a chunk of a larger batch).
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_forward_counted(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        dirs: wgpu::BufferSlice<'_>,
+        out: &wgpu::Buffer,
+        keep: Option<&MlpWorkspace>,
+        count: &DeviceCount,
+    ) -> GpuResult<()> {
+        self.forward_with(ctx, encoder, batch, dirs, out, keep, Some(count))
+    }
+
+    /// Dispatch shapes a [`DeviceCount`] must provide for the counted passes over batches
+    /// of up to `max` samples: tiles, weight-gradient chunks, the reduction's first level.
+    pub fn count_slots(&self, ctx: &GpuContext, max: u32) -> GpuResult<[Slot; 3]> {
+        let [x, _] = self.tiles(ctx, max)?;
+        Ok([
+            Slot {
+                divisor: TILE,
+                max_x: x,
+                z: 1,
+                fixed_x: 0,
+            },
+            Slot {
+                divisor: CHUNK,
+                max_x: ctx.device.limits().max_compute_workgroups_per_dimension,
+                z: 1,
+                fixed_x: 0,
+            },
+            Slot {
+                divisor: CHUNK * REDUCE_GROUP,
+                max_x: 1,
+                z: 1,
+                fixed_x: self.n_weights.div_ceil(WORKGROUP),
+            },
+        ])
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn forward_with(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        dirs: wgpu::BufferSlice<'_>,
+        out: &wgpu::Buffer,
+        keep: Option<&MlpWorkspace>,
+        count: Option<&DeviceCount>,
+    ) -> GpuResult<()> {
         self.check_batch(batch)?;
         let n = u64::from(batch.n);
-        check_len("directions", dirs, bytes_of_floats(3 * n))?;
+        check_slice("directions", &dirs, bytes_of_floats(3 * n))?;
         check_len("outputs", out, bytes_of_floats(4 * n))?;
         if let Some(ws) = keep
             && batch.n > ws.capacity
@@ -462,13 +558,22 @@ impl MlpKernels {
                 batch.n, ws.capacity
             )));
         }
+        if let Some(c) = count
+            && c.max() > batch.n
+        {
+            return Err(GpuError::Input(format!(
+                "a count of up to {} samples, buffers for {}",
+                c.max(),
+                batch.n
+            )));
+        }
         if batch.n == 0 {
             if let Some(ws) = keep {
                 ws.kept.store(0, Ordering::Relaxed);
             }
             return Ok(());
         }
-        let groups = self.tiles(ctx, batch.n)?;
+        let groups = self.dispatch_of(ctx, batch.n, count, 0)?;
         ctx.scoped("mlp forward", || {
             let p = Self::params(
                 ctx,
@@ -477,7 +582,7 @@ impl MlpKernels {
                     ld_enc: batch.ld,
                     ld: keep.map_or(0, |ws| ws.capacity),
                     store: keep.is_some() as u32,
-                    tiles_x: groups[0],
+                    tiles_x: self.tiles_x(ctx, batch.n),
                     n_chunks: 0,
                     stage: 0,
                     _pad: 0,
@@ -489,7 +594,7 @@ impl MlpKernels {
                 layout: &self.forward.get_bind_group_layout(0),
                 entries: &[
                     entry(1, batch.enc),
-                    entry(2, dirs),
+                    slice_entry(2, &dirs),
                     entry(3, out),
                     entry(5, acts),
                     entry(11, &p),
@@ -497,12 +602,38 @@ impl MlpKernels {
                 ],
             });
             self.encode_transpose(ctx, encoder, batch.params);
+            if let Some(c) = count {
+                c.copy_n(encoder, &p);
+            }
             Self::pass(encoder, &self.forward, &group, groups);
         })?;
         if let Some(ws) = keep {
             ws.kept.store(batch.n, Ordering::Relaxed);
         }
         Ok(())
+    }
+
+    /// Workgroups for `n` samples from the host, or slot `which` of `count_slots` from the
+    /// device.
+    fn dispatch_of<'a>(
+        &self,
+        ctx: &GpuContext,
+        n: u32,
+        count: Option<&'a DeviceCount>,
+        which: usize,
+    ) -> GpuResult<Groups<'a>> {
+        match count {
+            None => Ok(Groups::Host(self.tiles(ctx, n)?)),
+            Some(c) => {
+                let slot = self.count_slots(ctx, n)?[which];
+                Ok(Groups::Device(c, c.slot(slot)?))
+            }
+        }
+    }
+
+    /// Tiles per dispatch row for batches of `n` samples (the fold the kernels undo).
+    fn tiles_x(&self, ctx: &GpuContext, n: u32) -> u32 {
+        self.tiles(ctx, n).map_or(1, |[x, _]| x)
     }
 
     /// Records the density-only forward (`NerfNetwork::density`): `out[s]` = log-density
@@ -528,7 +659,7 @@ impl MlpKernels {
                     ld_enc: batch.ld,
                     ld: 0,
                     store: 0,
-                    tiles_x: groups[0],
+                    tiles_x: self.tiles_x(ctx, batch.n),
                     n_chunks: 0,
                     stage: 0,
                     _pad: 0,
@@ -566,6 +697,38 @@ impl MlpKernels {
         grad: &wgpu::Buffer,
         d_enc: &wgpu::Buffer,
     ) -> GpuResult<()> {
+        self.backward_with(ctx, encoder, batch, d_out.slice(..), ws, grad, d_enc, None)
+    }
+
+    /// [`encode_backward`](Self::encode_backward) after an
+    /// [`encode_forward_counted`](Self::encode_forward_counted) with the same `count`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_backward_counted(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        d_out: wgpu::BufferSlice<'_>,
+        ws: &MlpWorkspace,
+        grad: &wgpu::Buffer,
+        d_enc: &wgpu::Buffer,
+        count: &DeviceCount,
+    ) -> GpuResult<()> {
+        self.backward_with(ctx, encoder, batch, d_out, ws, grad, d_enc, Some(count))
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn backward_with(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        d_out: wgpu::BufferSlice<'_>,
+        ws: &MlpWorkspace,
+        grad: &wgpu::Buffer,
+        d_enc: &wgpu::Buffer,
+        count: Option<&DeviceCount>,
+    ) -> GpuResult<()> {
         self.check_batch(batch)?;
         let n = batch.n;
         let kept = ws.kept.load(Ordering::Relaxed);
@@ -574,7 +737,19 @@ impl MlpKernels {
                 "backward of {n} samples; the workspace holds a forward of {kept}"
             )));
         }
-        check_len("output gradients", d_out, bytes_of_floats(4 * u64::from(n)))?;
+        if let Some(c) = count
+            && c.max() > n
+        {
+            return Err(GpuError::Input(format!(
+                "a count of up to {} samples, buffers for {n}",
+                c.max()
+            )));
+        }
+        check_slice(
+            "output gradients",
+            &d_out,
+            bytes_of_floats(4 * u64::from(n)),
+        )?;
         check_len("weight gradients", grad, bytes_of_floats(self.mlp_end))?;
         check_len(
             "encoding gradients",
@@ -584,8 +759,17 @@ impl MlpKernels {
         if n == 0 {
             return Ok(());
         }
-        let groups = self.tiles(ctx, n)?;
+        let tiles = self.dispatch_of(ctx, n, count, 0)?;
         let n_chunks = n.div_ceil(CHUNK);
+        let chunks = match count {
+            None => Groups::Host([n_chunks, 1]),
+            Some(_) => self.dispatch_of(ctx, n, count, 1)?,
+        };
+        let x = self.n_weights.div_ceil(WORKGROUP);
+        let first_level = match count {
+            None => Groups::Host([x, n_chunks.div_ceil(REDUCE_GROUP)]),
+            Some(_) => self.dispatch_of(ctx, n, count, 2)?,
+        };
         ctx.scoped("mlp backward", || {
             let params = |stage| {
                 Self::params(
@@ -595,14 +779,18 @@ impl MlpKernels {
                         ld_enc: batch.ld,
                         ld: ws.capacity,
                         store: 1,
-                        tiles_x: groups[0],
-                        n_chunks,
+                        tiles_x: self.tiles_x(ctx, n),
+                        n_chunks: 0,
                         stage,
                         _pad: 0,
                     },
                 )
             };
             let (p, p_final) = (params(0), params(1));
+            if let Some(c) = count {
+                c.copy_n(encoder, &p);
+                c.copy_n(encoder, &p_final);
+            }
             let d = &ctx.device;
             let group = |pipeline: &wgpu::ComputePipeline, entries: &[wgpu::BindGroupEntry]| {
                 d.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -617,12 +805,12 @@ impl MlpKernels {
                     entry(0, batch.params),
                     entry(5, &ws.acts),
                     entry(6, &ws.dys),
-                    entry(7, d_out),
+                    slice_entry(7, &d_out),
                     entry(8, d_enc),
                     entry(11, &p),
                 ],
             );
-            Self::pass(encoder, &self.backward, &backward, groups);
+            Self::pass(encoder, &self.backward, &backward, tiles);
             for (m, pipeline) in self.wgrad.iter().enumerate() {
                 // The density input matrix's X is the encoding; the others' are saved
                 // activations.
@@ -636,19 +824,13 @@ impl MlpKernels {
                     entries.push(entry(1, batch.enc));
                 }
                 let g = group(pipeline, &entries);
-                Self::pass(encoder, pipeline, &g, [n_chunks, 1]);
+                Self::pass(encoder, pipeline, &g, chunks);
             }
-            let x = self.n_weights.div_ceil(WORKGROUP);
             let first = group(
                 &self.reduce,
                 &[entry(9, &ws.partials), entry(10, grad), entry(11, &p)],
             );
-            Self::pass(
-                encoder,
-                &self.reduce,
-                &first,
-                [x, n_chunks.div_ceil(REDUCE_GROUP)],
-            );
+            Self::pass(encoder, &self.reduce, &first, first_level);
             let last = group(
                 &self.reduce,
                 &[entry(9, &ws.partials), entry(10, grad), entry(11, &p_final)],

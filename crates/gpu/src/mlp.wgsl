@@ -37,7 +37,8 @@ struct MlpParams {
     store: u32,
     // Tiles per dispatch row: dispatches past 65535 workgroups fold into y.
     tiles_x: u32,
-    n_chunks: u32,
+    // Unused: the chunks are ⌈n / CH⌉ (n_chunks()), n may be copied in on the device.
+    _chunks: u32,
     // reduce_main: 0 sums each group of RG_CHUNKS chunks into the group's first chunk,
     // 1 sums the groups' first chunks into grad.
     stage: u32,
@@ -450,6 +451,10 @@ fn transpose_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     wt_out[off - OFF_D0 + k * rows + r] = weights4[w / 4u][w % 4u];
 }
 
+fn n_chunks() -> u32 {
+    return (p.n + CH - 1u) / CH;
+}
+
 // Stage 0: partials[g·RG_CHUNKS·NW + e] = Σ of the group's chunks (in order); stage 1:
 // grad[OFF_D0 + e] += Σ of the groups' sums (in order). The same sum on every run and every
 // adapter (no atomics).
@@ -462,13 +467,13 @@ fn reduce_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var sum = 0.0;
     if (p.stage == 0u) {
         let first = gid.y * RG_CHUNKS;
-        let last = min(first + RG_CHUNKS, p.n_chunks);
+        let last = min(first + RG_CHUNKS, n_chunks());
         for (var c = first; c < last; c++) {
             sum += partials[c * NW + e];
         }
         partials[first * NW + e] = sum;
     } else {
-        for (var c = 0u; c < p.n_chunks; c += RG_CHUNKS) {
+        for (var c = 0u; c < n_chunks(); c += RG_CHUNKS) {
             sum += partials[c * NW + e];
         }
         grad[OFF_D0 + e] += sum;

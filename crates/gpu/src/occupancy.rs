@@ -540,6 +540,12 @@ impl GpuOccupancy {
 
     /// The cascade-0 mean after the last update (what decides the loss's density pull-up),
     /// read back: 4 bytes instead of the whole grid.
+    /// The buffer whose first f32 is the cascade-0 mean after the last update (for a pass
+    /// that reads it on the device, or a copy).
+    pub fn mean_buffer(&self) -> &wgpu::Buffer {
+        &self.sums
+    }
+
     pub fn read_mean(&self, ctx: &GpuContext) -> GpuResult<f32> {
         let mean: Vec<f32> = ctx.read_buffer(&self.sums, 4)?;
         Ok(mean[0])

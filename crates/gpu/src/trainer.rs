@@ -53,6 +53,7 @@
 //! [`Schedule::RandomScene`]: ngp::train::Schedule::RandomScene
 
 use super::compact::{CompactInputs, Compacted};
+use super::count::DeviceCount;
 use super::field::{DensityScratch, GpuField};
 use super::grid::GridShape;
 use super::held::{GpuHoldBack, GpuKeptMlp};
@@ -62,6 +63,7 @@ use super::occupancy::GpuOccupancy;
 use super::optimizer::GpuOptimizer;
 use super::profile::StepProfiler;
 use super::rays::{RayBatch, RayKernels};
+use super::readback::StepReadback;
 use super::{
     GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
 };
@@ -103,6 +105,9 @@ const CAPACITY_FACTOR: u32 = 2;
 /// The encoding's leading dimension is the sample count rounded up to this, so the kernels'
 /// padding work stays small while a bind is valid for a range of counts.
 const LD_GRANULE: u32 = 256;
+/// The most steps a measurement may be read late ([`GpuTrainer::set_read_lag`]): 2 keeps
+/// the device one whole step ahead of the host.
+pub const MAX_LAG: u32 = 2;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -112,22 +117,36 @@ struct DirsParams {
     _pad: [u32; 2],
 }
 
-/// A chunk of compacted samples past the workspace's first: positions, directions and
-/// raw-output gradients of up to the workspace's capacity.
-struct ChunkBuffers {
-    pos: wgpu::Buffer,
-    dirs: wgpu::Buffer,
-    d_raw: wgpu::Buffer,
+/// One chunk of the training pass: the compacted samples `first ..< first + ld`, as many
+/// of them as the compaction wrote (counted on the device; none past the count).
+struct TrainChunk {
+    first: u32,
+    ld: u32,
+    count: DeviceCount,
 }
 
-impl ChunkBuffers {
-    fn new(ctx: &GpuContext, capacity: u32) -> GpuResult<ChunkBuffers> {
-        let c = capacity as u64;
-        ctx.scoped("trainer chunk buffers", || ChunkBuffers {
-            pos: device_buffer(ctx, "chunk positions", 12 * c),
-            dirs: device_buffer(ctx, "chunk directions", 12 * c),
-            d_raw: device_buffer(ctx, "chunk gradients", 16 * c),
-        })
+impl TrainChunk {
+    /// Chunks of `capacity` samples covering a compaction of `budget` samples, their counts
+    /// read from `counters` (word 1: samples written).
+    fn all(
+        ctx: &GpuContext,
+        field: &GpuField,
+        counters: &wgpu::Buffer,
+        budget: u32,
+        capacity: u32,
+    ) -> GpuResult<Vec<TrainChunk>> {
+        let mut chunks = Vec::new();
+        let mut first = 0u32;
+        while first < budget {
+            let ld = capacity.min(budget - first);
+            let grid = field.grid().count_slot(ctx, ld)?;
+            let [tiles, wchunks, reduce] = field.mlp().count_slots(ctx, ld)?;
+            let count =
+                DeviceCount::new(ctx, counters, 1, first, ld, &[grid, tiles, wchunks, reduce])?;
+            chunks.push(TrainChunk { first, ld, count });
+            first += ld;
+        }
+        Ok(chunks)
     }
 }
 
@@ -160,8 +179,17 @@ pub struct GpuTrainer<'c> {
     batch: RayBatch,
     /// The samples of a batch that reach the loss, which the training pass runs on.
     compacted: Compacted,
-    /// Where the training pass's later chunks are copied (the network binds whole buffers).
-    chunk: ChunkBuffers,
+    /// The batch's marched samples, counted on the device.
+    marched: DeviceCount,
+    /// The training pass's chunks of the compacted samples, each counted on the device.
+    chunks: Vec<TrainChunk>,
+    /// Each step's measurements, read back late.
+    readback: StepReadback,
+    /// Steps a measurement is read after the step that made it (0: at the end of that
+    /// step, as the CPU trainer adapts; see [`Self::set_read_lag`]).
+    lag: u32,
+    /// Measurements read and not yet reported in a step's stats.
+    unreported: StepStats,
     loss: LossKernel,
     optimizer: GpuOptimizer,
     /// The gate with hold-back and the table's bounds on the device, once a policy uses
@@ -249,11 +277,14 @@ impl<'c> GpuTrainer<'c> {
             .batch_samples
             .saturating_mul(BUDGET_FACTOR)
             .min(fitting(4 * width));
+        // A multiple of LD_GRANULE: the training pass binds its chunks at offsets of it,
+        // which the device's storage alignment (256 bytes at most) divides.
         let capacity = config
             .batch_samples
             .saturating_mul(CAPACITY_FACTOR)
+            .next_multiple_of(LD_GRANULE)
             .min(fitting(4 * ACT_ROWS))
-            .min(budget);
+            .min(budget / LD_GRANULE * LD_GRANULE);
         if capacity < config.batch_samples {
             return input(format!(
                 "{} samples per batch: the device's {max}-byte bindings hold {capacity}",
@@ -295,7 +326,12 @@ impl<'c> GpuTrainer<'c> {
         )?;
         let ws = field.mlp().workspace(ctx, capacity)?;
         let compacted = Compacted::new(ctx, budget)?;
-        let chunk = ChunkBuffers::new(ctx, capacity)?;
+        let chunks = TrainChunk::all(ctx, &field, &compacted.counters, budget, capacity)?;
+        let grid_slot = field.grid().count_slot(ctx, budget)?;
+        let [tiles, ..] = field.mlp().count_slots(ctx, budget)?;
+        // Word 1 of the batch's counters: samples written (within the budget).
+        let marched = DeviceCount::new(ctx, &batch.counters, 1, 0, budget, &[grid_slot, tiles])?;
+        let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
         let b = budget as u64;
         let (dirs, raw, d_raw, enc, d_enc, grad, ray_out) =
             ctx.scoped("trainer buffers", || {
@@ -340,7 +376,11 @@ impl<'c> GpuTrainer<'c> {
             density_scratch: DensityScratch::default(),
             batch,
             compacted,
-            chunk,
+            marched,
+            chunks,
+            readback,
+            lag: 0,
+            unreported: StepStats::default(),
             loss,
             optimizer,
             hold: None,
@@ -402,19 +442,17 @@ impl<'c> GpuTrainer<'c> {
     /// Sets the workspace's capacity (a multiple of 256, at most the marching budget), so
     /// that tests can make a batch train in chunks.
     pub fn set_workspace_capacity(&mut self, capacity: u32) -> GpuResult<()> {
-        if capacity == 0
-            || !capacity.is_multiple_of(LD_GRANULE)
-            || capacity > self.batch.sample_budget()
-        {
+        let budget = self.batch.sample_budget();
+        if capacity == 0 || !capacity.is_multiple_of(LD_GRANULE) || capacity > budget {
             return input(format!(
-                "workspace capacity {capacity}: a multiple of {LD_GRANULE} up to {}",
-                self.batch.sample_budget()
+                "workspace capacity {capacity}: a multiple of {LD_GRANULE} up to {budget}"
             ));
         }
         let ctx = self.ctx;
         let width = self.field.layout().grid.config.n_output_dims() as u64;
         self.ws = self.field.mlp().workspace(ctx, capacity)?;
-        self.chunk = ChunkBuffers::new(ctx, capacity)?;
+        self.chunks =
+            TrainChunk::all(ctx, &self.field, &self.compacted.counters, budget, capacity)?;
         self.d_enc = ctx.scoped("trainer encoding gradient", || {
             device_buffer(
                 ctx,
@@ -423,6 +461,35 @@ impl<'c> GpuTrainer<'c> {
             )
         })?;
         Ok(())
+    }
+
+    /// Reads each step's measurements (losses, counts; the rays-per-batch adaptation's
+    /// input) `lag` steps after it (at most [`MAX_LAG`]) instead of at its end, so that the
+    /// host records the next steps while the device runs this one and never waits for it:
+    /// each scene's batch then adapts to the measurement of `lag` steps before rather than
+    /// the last (instant-ngp's own counters arrive late too), and a step's stats report
+    /// the measurements read during it. 0, the default, adapts as the CPU trainer does,
+    /// with one wait at the end of each step. Only without a training policy, whose hooks
+    /// read the step's results.
+    pub fn set_read_lag(&mut self, lag: u32) -> GpuResult<()> {
+        if lag > MAX_LAG || (lag > 0 && self.policy.is_some()) {
+            return input(format!(
+                "a read lag of {lag} steps: at most {MAX_LAG}, and 0 with a training policy"
+            ));
+        }
+        self.lag = lag;
+        Ok(())
+    }
+
+    /// The measurements of the steps taken that no step's stats have reported yet (waiting
+    /// for the device where they are not there): what a run adds to its totals when it
+    /// ends.
+    pub fn flush_stats(&mut self) -> GpuResult<StepStats> {
+        let mut stats = std::mem::take(&mut self.unreported);
+        while self.readback.in_flight() > 0 {
+            self.read_measure(&mut stats)?;
+        }
+        Ok(stats)
     }
 
     pub fn n_scenes(&self) -> usize {
@@ -468,6 +535,8 @@ impl<'c> GpuTrainer<'c> {
             return input("a training policy is installed before the first step".into());
         }
         let reads = policy.reads();
+        // Its hooks read each step's results: measurements are read in step.
+        self.lag = 0;
         self.policy = Some(policy);
         if reads.published {
             let grid = self.scenes[0].occupancy.download(self.ctx)?;
@@ -563,7 +632,8 @@ impl<'c> GpuTrainer<'c> {
                 p.mark(&mut encoder, "occupancy update");
             }
             ctx.scoped("occupancy update", || ctx.queue.submit([encoder.finish()]))?;
-            scene.grid_mean = scene.occupancy.read_mean(ctx)?;
+            // The mean switches the loss's density pull-up on the device; the host's copy
+            // comes with the step's measurements.
             self.occupancy_submissions += 1;
             if si == 0 {
                 self.primary_grid_updated()?;
@@ -634,15 +704,25 @@ impl<'c> GpuTrainer<'c> {
     }
 
     /// One training step: the occupancy updates due, the scenes of the step's schedule one
-    /// after another (their gradients summed), one Adam + EMA step. `optimizer_seconds` is
-    /// the time to record and submit the optimizer's work: the step returns without waiting
-    /// for the device, whose time for it (and for the last scene's training pass) shows in
-    /// the next step's first wait.
+    /// after another (their gradients summed), one Adam + EMA step. Nothing is read back
+    /// inside the step: every pass takes its sample count from the device. Without a
+    /// policy, the last scene and the optimizer go in one submission, which also copies
+    /// the step's measurements out; they are read at the step's end (lag 0), or
+    /// [`Self::set_read_lag`] steps later, when the device is long done with them.
     pub fn train_step(&mut self) -> GpuResult<StepStats> {
         let t0 = Instant::now();
         let step = self.step;
         if let Some(p) = self.profiler.get_mut() {
             p.begin_step(step);
+        }
+        let mut stats = StepStats {
+            step,
+            ..std::mem::take(&mut self.unreported)
+        };
+        // The measurements of the steps `lag` behind this one: the batch sizes below
+        // adapt to them.
+        while self.readback.oldest().is_some_and(|s| s + self.lag <= step) {
+            self.read_measure(&mut stats)?;
         }
         let info = StepInfo {
             seed: self.config.seed,
@@ -657,26 +737,41 @@ impl<'c> GpuTrainer<'c> {
             None
         };
         let t_occ = t0.elapsed().as_secs_f64();
-        let mut stats = StepStats {
-            step,
-            occupancy_updates: occupancy.is_some() as u32,
-            occupancy_evaluations: occupancy.unwrap_or(0),
-            ..Default::default()
-        };
-        for si in ids {
-            self.train_scene(si, &mut stats)?;
-            stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops))?;
+        stats.occupancy_updates = occupancy.is_some() as u32;
+        stats.occupancy_evaluations = occupancy.unwrap_or(0);
+        let ctx = self.ctx;
+        let mut trained = Vec::with_capacity(ids.len());
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        for (i, &si) in ids.iter().enumerate() {
+            self.mark_submission(&mut encoder);
+            trained.push((si, self.encode_scene(si, &mut encoder)?));
+            // Each scene's uniforms are written at its submission: the next scene's are
+            // written after it. A policy's hooks follow their scene's submission.
+            if i + 1 < ids.len() || self.policy.is_some() {
+                let done = std::mem::replace(
+                    &mut encoder,
+                    ctx.device.create_command_encoder(&Default::default()),
+                );
+                ctx.scoped("training step", || ctx.queue.submit([done.finish()]))?;
+                stats.submissions += 1;
+                stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops))?;
+            }
         }
         let t_rays = t0.elapsed().as_secs_f64();
-        // The policy's work before the update and the optimizer's go in one submission. The
-        // CPU steps the optimizer even when nothing was trained (its MLP weights still take
-        // L2 and momentum).
-        let (penalised, encoder) = self.run_policy(|p, ops| p.before_update(info, ops))?;
+        // The policy's work before the update and the optimizer's go in the step's last
+        // submission. The CPU steps the optimizer even when nothing was trained (its MLP
+        // weights still take L2 and momentum).
+        let (penalised, hooked) = self.run_policy(|p, ops| p.before_update(info, ops))?;
         stats.penalised += penalised;
-        let ctx = self.ctx;
-        let mut encoder =
-            encoder.unwrap_or_else(|| ctx.device.create_command_encoder(&Default::default()));
-        self.mark_submission(&mut encoder);
+        if let Some(h) = hooked {
+            // Recorded after the scenes' submissions: it goes first in the next one.
+            let done = std::mem::replace(&mut encoder, h);
+            ctx.scoped("training step", || ctx.queue.submit([done.finish()]))?;
+            stats.submissions += 1;
+        }
+        if self.policy.is_some() {
+            self.mark_submission(&mut encoder);
+        }
         if update {
             self.optimizer
                 .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
@@ -686,7 +781,11 @@ impl<'c> GpuTrainer<'c> {
             self.weight_steps += 1;
         }
         self.mark(&mut encoder, "optimizer (Adam + EMA)");
-        ctx.scoped("optimizer", || ctx.queue.submit([encoder.finish()]))?;
+        self.readback.encode_copy(&mut encoder)?;
+        let submission = ctx.scoped("training step", || ctx.queue.submit([encoder.finish()]))?;
+        self.readback.submitted(step, trained, submission);
+        stats.submissions += 1 + self.occupancy_submissions;
+        self.occupancy_submissions = 0;
         // A profiled step reads its timestamps back: one more wait.
         if let Some(p) = self.profiler.get_mut()
             && p.is_active()
@@ -694,14 +793,10 @@ impl<'c> GpuTrainer<'c> {
             p.end_step(ctx)?;
             stats.host_waits += 1;
         }
-        // Without the update the gradient buffer keeps what the policy left in it for the
-        // next step that updates the weights. The step does not wait for the device here:
-        // the queue runs the next step's rays after this update, and the host records them
-        // meanwhile (anything read back waits for it).
-        stats.submissions += 1 + self.occupancy_submissions;
-        stats.host_waits += self.occupancy_submissions;
-        self.occupancy_submissions = 0;
         self.step += 1;
+        if self.lag == 0 {
+            self.read_measure(&mut stats)?;
+        }
         stats.seconds = t0.elapsed().as_secs_f64();
         stats.occupancy_seconds = t_occ;
         stats.rays_seconds = t_rays - t_occ;
@@ -709,120 +804,162 @@ impl<'c> GpuTrainer<'c> {
         Ok(stats)
     }
 
-    /// Scene `si`'s batch, as instant-ngp trains: rays drawn and marched; the network's
-    /// inference pass over every marched sample and the loss on its outputs (which finds
-    /// where each ray stops, and the gradient of the samples before); those samples
-    /// compacted; the grid and network forward keeping activations and the backward over
-    /// them alone, adding into the gradient. The per-ray losses and counters are read back
-    /// into `stats` and the scene's rays-per-batch state.
-    fn train_scene(&mut self, si: usize, stats: &mut StepStats) -> GpuResult<()> {
+    /// Reads the oldest step's measurements into `stats` and the scenes' batch state: the
+    /// losses, the counts, the grid means, and each scene's rays per batch for its next
+    /// draw. A read that had to wait for the device counts as a host wait.
+    fn read_measure(&mut self, stats: &mut StepStats) -> GpuResult<()> {
+        let Some((m, waited)) = self.readback.read_oldest(self.ctx)? else {
+            return Ok(());
+        };
+        // A late read that blocks leaves the device a whole step queued: the device does
+        // not idle for it, so only the in-step read (lag 0) counts as a host wait.
+        stats.host_waits += (waited && self.lag == 0) as u32;
+        let budget = self.batch.sample_budget();
+        for sm in &m.scenes {
+            let [_asked, written, with_samples, dropped] = sm.batch;
+            let [_, trained, unfit, _] = sm.compact;
+            let n = written.min(budget);
+            let scene_loss = sm.loss_sum / sm.n_rays.max(1) as f32;
+            stats.loss += scene_loss;
+            if sm.scene == 0 {
+                stats.primary_loss = Some(scene_loss);
+            }
+            stats.n_rays += with_samples as u64;
+            stats.n_samples += trained as u64;
+            stats.n_marched += n as u64;
+            stats.n_network += n as u64 + trained as u64;
+            stats.dropped_rays += dropped as u64 + unfit as u64;
+            let scene = &mut self.scenes[sm.scene];
+            scene.measured_samples = trained;
+            scene.measured_marched = n;
+            scene.grid_mean = sm.grid_mean;
+            // The reference keeps its ray count when nothing was trained. Rays that did
+            // not fit the marching budget are left out of the count the adaptation
+            // scales, so that a budget that binds shrinks the batch instead of growing it
+            // (their samples are not in `used`); with none dropped this is the CPU's
+            // adaptation.
+            if sm.used > 0 {
+                scene.rays_per_batch = next_rays_per_batch(
+                    sm.n_rays.saturating_sub(dropped),
+                    self.config.batch_samples,
+                    sm.used as u64,
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// Records scene `si`'s batch into `encoder`, as instant-ngp trains it: rays drawn and
+    /// marched; the network's inference pass over every marched sample and the loss on
+    /// its outputs (which finds where each ray stops, and the gradient of the samples
+    /// before); those samples compacted; the grid and network forward keeping activations
+    /// and the backward over them, chunk by chunk of the workspace, adding into the
+    /// gradient; the scene's measurements. Every count after the draw is the device's.
+    /// Returns the rays drawn.
+    fn encode_scene(&mut self, si: usize, encoder: &mut wgpu::CommandEncoder) -> GpuResult<u32> {
         let ctx = self.ctx;
         let step = self.step;
         let scene = &self.scenes[si];
         let n_rays = scene.rays_per_batch;
         // Scene si's batch seed on the CPU.
         let seed = mix(mix(self.config.seed, step as u64), si as u64 + 1);
-
-        // 1. Rays: draw, march, compact; then the counts the network kernels need.
-        let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        self.mark_submission(&mut encoder);
         scene.rays.encode(
             ctx,
-            &mut encoder,
+            encoder,
             &self.batch,
             &scene.occupancy.bitfield,
             n_rays,
             seed,
         )?;
-        self.mark(&mut encoder, "rays: draw and march");
-        ctx.scoped("training rays", || ctx.queue.submit([encoder.finish()]))?;
-        let [_asked, written, with_samples, dropped] = self.batch.read_all_counters(ctx)?;
-        stats.submissions += 1;
-        stats.host_waits += 1;
-        let n = written.min(self.batch.sample_budget());
-
+        self.mark(encoder, "rays: draw and march");
+        self.marched.encode(encoder);
         let loss_norm = scene.loss_weight / n_rays as f32;
-        let pull_up = if scene.grid_mean < MIN_OPTICAL_THICKNESS {
-            DENSITY_PULL_UP
-        } else {
-            0.0
-        };
-        let (loss, used, trained, unfit) = if n > 0 {
-            // 2. Inference over the marched samples, loss, compaction.
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.mark_submission(&mut encoder);
-            self.encode_inference_and_loss(&mut encoder, si, n_rays, n, loss_norm, pull_up)?;
-            ctx.scoped("training inference", || {
-                ctx.queue.submit([encoder.finish()])
-            })?;
-            let back = ctx.read_buffers(&[
-                (&self.ray_out, 8 * n_rays as u64),
-                (&self.compacted.counters, 16),
-            ])?;
-            stats.submissions += 1;
-            stats.host_waits += 1;
-            let out: &[[f32; 2]] = bytemuck::cast_slice(&back[0]);
-            let counters: &[u32] = bytemuck::cast_slice(&back[1]);
-            let (trained, unfit) = (counters[1], counters[2]);
-            // 3. The training pass over the compacted samples, in chunks of the workspace.
-            if trained > 0 {
-                let mut encoder = ctx.device.create_command_encoder(&Default::default());
-                self.mark_submission(&mut encoder);
-                let cap = self.ws.capacity();
-                let mut at = 0u32;
-                while at < trained {
-                    let count = (trained - at).min(cap);
-                    let c = &self.compacted;
-                    let bufs = if at == 0 {
-                        (&c.pos, &c.dirs, &c.d_raw)
-                    } else {
-                        let k = &self.chunk;
-                        let (a, m) = (at as u64, count as u64);
-                        encoder.copy_buffer_to_buffer(&c.pos, 12 * a, &k.pos, 0, 12 * m);
-                        encoder.copy_buffer_to_buffer(&c.dirs, 12 * a, &k.dirs, 0, 12 * m);
-                        encoder.copy_buffer_to_buffer(&c.d_raw, 16 * a, &k.d_raw, 0, 16 * m);
-                        self.mark(&mut encoder, "chunk copies");
-                        (&k.pos, &k.dirs, &k.d_raw)
-                    };
-                    let shape = self.shape(count, cap);
-                    self.encode_network_forward(&mut encoder, si, shape, bufs.0, bufs.1, true)?;
-                    self.encode_network_backward(&mut encoder, si, shape, bufs.0, bufs.2)?;
-                    at += count;
-                }
-                ctx.scoped("training samples", || ctx.queue.submit([encoder.finish()]))?;
-                stats.submissions += 1;
-            }
-            let (l, u) = out.iter().fold((0.0f64, 0u64), |(l, u), o| {
-                (l + o[0] as f64, u + o[1].to_bits() as u64)
-            });
-            (l, u, trained, unfit)
-        } else {
-            (0.0, 0, 0, 0)
-        };
-        let scene_loss = (loss / n_rays as f64) as f32;
-        stats.loss += scene_loss;
-        if si == 0 {
-            stats.primary_loss = Some(scene_loss);
+        self.encode_inference_and_loss(encoder, si, n_rays, loss_norm)?;
+        for k in 0..self.chunks.len() {
+            self.encode_training_chunk(encoder, si, k)?;
         }
-        stats.n_rays += with_samples as u64;
-        stats.n_samples += trained as u64;
-        stats.n_marched += n as u64;
-        stats.n_network += n as u64 + trained as u64;
-        stats.dropped_rays += dropped as u64 + unfit as u64;
-        let scene = &mut self.scenes[si];
-        scene.measured_samples = trained;
-        scene.measured_marched = n;
-        // The reference keeps its ray count when nothing was trained. Rays that did not fit
-        // the marching budget are left out of the count the adaptation scales, so that a
-        // budget that binds shrinks the batch instead of growing it (their samples are not
-        // in `used`); with none dropped this is the CPU's adaptation.
-        if used > 0 {
-            scene.rays_per_batch = next_rays_per_batch(
-                n_rays.saturating_sub(dropped),
-                self.config.batch_samples,
-                used,
-            );
-        }
+        let scene = &self.scenes[si];
+        self.readback.encode_scene(
+            ctx,
+            encoder,
+            si,
+            &self.batch.counters,
+            &self.compacted.counters,
+            &self.ray_out,
+            n_rays,
+            scene.occupancy.mean_buffer(),
+        )?;
+        self.mark(encoder, "measurements");
+        Ok(n_rays)
+    }
+
+    /// Chunk `k` of the training pass over the compacted samples: grid forward keeping
+    /// activations, network forward and backward, grid backward, on as many of the chunk's
+    /// samples as the compaction wrote (none: nothing is dispatched).
+    fn encode_training_chunk(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        k: usize,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let chunk = &self.chunks[k];
+        chunk.count.encode(encoder);
+        let (first, ld) = (chunk.first as u64, chunk.ld as u64);
+        let c = &self.compacted;
+        let pos = c.pos.slice(12 * first..12 * (first + ld));
+        let dirs = c.dirs.slice(12 * first..12 * (first + ld));
+        let d_raw = c.d_raw.slice(16 * first..16 * (first + ld));
+        let shape = GridShape {
+            n_samples: chunk.ld,
+            ld: chunk.ld,
+        };
+        let (grid_bytes, _, enc_bytes) = self.batch_bytes(shape);
+        let grid = self.field.grid();
+        let index = &self.scenes[si].index;
+        grid.bind_forward(
+            ctx,
+            index,
+            pos,
+            self.field.params.slice(grid_bytes.clone()),
+            self.enc.slice(..enc_bytes),
+            shape,
+        )?
+        .record_counted(encoder, &chunk.count)?;
+        self.mark(encoder, "grid forward (trained)");
+        let eb = self.encoded_batch(shape);
+        let mlp = self.field.mlp();
+        mlp.encode_forward_counted(
+            ctx,
+            encoder,
+            &eb,
+            dirs,
+            &self.raw,
+            Some(&self.ws),
+            &chunk.count,
+        )?;
+        self.mark(encoder, "network forward (trained)");
+        mlp.encode_backward_counted(
+            ctx,
+            encoder,
+            &eb,
+            d_raw,
+            &self.ws,
+            &self.grad,
+            &self.d_enc,
+            &chunk.count,
+        )?;
+        self.mark(encoder, "network backward (trained)");
+        grid.bind_backward(
+            ctx,
+            index,
+            pos,
+            self.d_enc.slice(..enc_bytes),
+            self.grad.slice(grid_bytes),
+            shape,
+        )?
+        .record_counted(encoder, &chunk.count)?;
+        self.mark(encoder, "grid backward (trained)");
         Ok(())
     }
 
@@ -833,20 +970,22 @@ impl<'c> GpuTrainer<'c> {
         GridShape { n_samples: n, ld }
     }
 
-    /// Records directions, grid forward and network inference over the batch's `n` marched
-    /// samples of scene `si`, the loss and its gradient to the raw outputs, and the
-    /// compaction of the samples that reach the loss.
+    /// Records directions, grid forward and network inference over the batch's marched
+    /// samples of scene `si` (as many as the device counted), the loss and its gradient to
+    /// the raw outputs, and the compaction of the samples that reach the loss.
     fn encode_inference_and_loss(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         n_rays: u32,
-        n: u32,
         loss_norm: f32,
-        pull_up: f32,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
-        let shape = self.shape(n, self.batch.sample_budget());
+        let budget = self.batch.sample_budget();
+        let shape = GridShape {
+            n_samples: budget,
+            ld: budget,
+        };
 
         // Per-sample directions.
         let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
@@ -877,9 +1016,33 @@ impl<'c> GpuTrainer<'c> {
         })?;
         self.mark(encoder, "directions");
 
-        self.encode_network_forward(encoder, si, shape, &self.batch.pos, &self.dirs, false)?;
+        let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
+        self.field
+            .grid()
+            .bind_forward(
+                ctx,
+                &self.scenes[si].index,
+                self.batch.pos.slice(..pos_bytes),
+                self.field.params.slice(grid_bytes),
+                self.enc.slice(..enc_bytes),
+                shape,
+            )?
+            .record_counted(encoder, &self.marched)?;
+        self.mark(encoder, "grid forward (marched)");
+        let eb = self.encoded_batch(shape);
+        self.field.mlp().encode_forward_counted(
+            ctx,
+            encoder,
+            &eb,
+            self.dirs.slice(..),
+            &self.raw,
+            None,
+            &self.marched,
+        )?;
+        self.mark(encoder, "network inference (marched)");
 
-        // Loss and its gradient to the raw outputs.
+        // Loss and its gradient to the raw outputs; the density pull-up while the grid's
+        // mean (on the device) is below the reference's threshold.
         let bufs = LossBuffers {
             rays: &self.batch.rays,
             raw: &self.raw,
@@ -888,9 +1051,12 @@ impl<'c> GpuTrainer<'c> {
             pos: &self.batch.pos,
             d_raw: &self.d_raw,
             ray_out: &self.ray_out,
+            grid_mean: Some(self.scenes[si].occupancy.mean_buffer()),
         };
-        let cfg = LossConfig::new(&self.marcher, loss_norm, pull_up);
-        self.loss.encode(ctx, encoder, &bufs, n_rays, n, &cfg)?;
+        let mut cfg = LossConfig::new(&self.marcher, loss_norm, DENSITY_PULL_UP);
+        cfg.pull_up_below_mean = Some(MIN_OPTICAL_THICKNESS);
+        self.loss
+            .encode(ctx, encoder, &bufs, n_rays, budget, &cfg)?;
         self.mark(encoder, "loss");
 
         let inputs = CompactInputs {

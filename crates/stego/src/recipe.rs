@@ -398,6 +398,7 @@ impl Recipe {
             last_loss: 0.0,
             smoothed: None,
             shown: 0.0,
+            flushed: false,
         })
     }
 }
@@ -514,6 +515,9 @@ pub struct Training<'d> {
     last_loss: f32,
     smoothed: Option<f32>,
     shown: f32,
+    /// Whether the trainer's measurements not yet reported were added once the budget was
+    /// spent (a GPU reads its steps' measurements late).
+    flushed: bool,
 }
 
 /// A finished training: the model as published, and what it took.
@@ -535,9 +539,20 @@ impl Training<'_> {
     /// One step, or `None` once the budget is spent.
     pub fn step(&mut self) -> Result<Option<StepStats>> {
         if self.done() {
+            if !self.flushed {
+                self.flushed = true;
+                let st = self.trainer.flush_stats()?;
+                self.add(&st);
+            }
             return Ok(None);
         }
         let st = self.trainer.train_step()?;
+        self.add(&st);
+        Ok(Some(st))
+    }
+
+    /// Adds a step's stats (or measurements reported late) to the totals and the losses.
+    fn add(&mut self, st: &StepStats) {
         let t = &mut self.totals;
         t.steps = self.trainer.step();
         t.seconds += st.seconds;
@@ -561,7 +576,6 @@ impl Training<'_> {
             self.last_loss = c;
             self.smoothed = Some(self.smoothed.map_or(c, |e| 0.95 * e + 0.05 * c));
         }
-        Ok(Some(st))
     }
 
     /// Runs to the budget, calling `each` after every step.

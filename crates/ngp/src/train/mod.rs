@@ -51,6 +51,11 @@ pub trait TrainBackend {
             "this device cannot resume a training state yet (the CPU can)".into(),
         ))
     }
+    /// The measurements of steps taken that no step's stats reported yet (a backend that
+    /// reads them late, as a GPU does), for a run's totals once it ends; none here.
+    fn flush_stats(&mut self) -> Result<StepStats> {
+        Ok(StepStats::default())
+    }
     /// Times the device's phases on one step in `every` (a GPU that can write timestamps);
     /// false where this backend cannot.
     fn profile_device(&mut self, _every: u32) -> bool {
