@@ -132,6 +132,8 @@ struct Checkpoint {
     occupancy_seconds: f64,
     rays_seconds: f64,
     optimizer_seconds: f64,
+    /// Waiting for a GPU that runs ahead of the host (0 on the CPU).
+    wait_seconds: f64,
     occupancy_updates: u32,
     occupancy_evaluations: u64,
     /// How long this checkpoint's evaluation took (not counted in the training's time).
@@ -172,6 +174,8 @@ struct Summary {
     occupancy_seconds: f64,
     rays_seconds: f64,
     optimizer_seconds: f64,
+    /// Waiting for a GPU that runs ahead of the host (0 on the CPU).
+    wait_seconds: f64,
     /// Occupancy-grid updates made and the densities they evaluated.
     occupancy_updates: u32,
     occupancy_evaluations: u64,
@@ -446,6 +450,7 @@ pub fn run(a: Args) -> Result<()> {
                 occupancy_seconds: t.occupancy_seconds,
                 rays_seconds: t.rays_seconds,
                 optimizer_seconds: t.optimizer_seconds,
+                wait_seconds: t.wait_seconds,
                 occupancy_updates: t.occupancy_updates,
                 occupancy_evaluations: t.occupancy_evaluations,
                 eval_seconds,
@@ -505,6 +510,7 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_seconds: t.occupancy_seconds,
         rays_seconds: t.rays_seconds,
         optimizer_seconds: t.optimizer_seconds,
+        wait_seconds: t.wait_seconds,
         occupancy_updates: t.occupancy_updates,
         occupancy_evaluations: t.occupancy_evaluations,
         occupancy_budget,

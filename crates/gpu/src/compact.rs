@@ -83,6 +83,25 @@ impl Compacted {
         inputs: &CompactInputs,
         n_rays: u32,
     ) -> GpuResult<()> {
+        self.encode_within(ctx, encoder, inputs, n_rays, self.capacity)
+    }
+
+    /// [`Self::encode`] into the first `capacity` slots (at most the buffers'): a ray whose
+    /// samples would end past them trains nothing and is counted.
+    pub fn encode_within(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        inputs: &CompactInputs,
+        n_rays: u32,
+        capacity: u32,
+    ) -> GpuResult<()> {
+        if capacity > self.capacity {
+            return Err(GpuError::Input(format!(
+                "compaction into {capacity} slots of {}",
+                self.capacity
+            )));
+        }
         if inputs.rays.size() < 32 * n_rays as u64 || inputs.ray_out.size() < 8 * n_rays as u64 {
             return Err(GpuError::Input(format!(
                 "compaction of {n_rays} rays: ray buffers of {} and {} bytes",
@@ -100,7 +119,7 @@ impl Compacted {
         let params = CompactParams {
             n_rays,
             row_width: gx * WORKGROUP,
-            capacity: self.capacity,
+            capacity,
             _pad: 0,
         };
         ctx.scoped("compaction dispatch", || {

@@ -108,6 +108,17 @@ const LD_GRANULE: u32 = 256;
 /// The most steps a measurement may be read late ([`GpuTrainer::set_read_lag`]): 2 keeps
 /// the device one whole step ahead of the host.
 pub const MAX_LAG: u32 = 2;
+/// Weight steps through which the training pass records every chunk: the reference's
+/// occupancy warm-up (an update every step or two until step 256), when a batch's demand
+/// changes fastest.
+const ALL_CHUNKS_WARMUP: u32 = 256;
+
+/// Chunks of `capacity` samples (at most `all`) for a batch expected to ask for
+/// `expected` compacted slots, with half as much again to spare.
+fn chunks_needed(expected: f32, capacity: u32, all: usize) -> usize {
+    let want = (1.5 * expected as f64).ceil().max(1.0);
+    ((want / capacity as f64).ceil() as usize).clamp(1, all)
+}
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -163,6 +174,9 @@ struct GpuScene {
     rays_per_batch: u32,
     measured_samples: u32,
     measured_marched: u32,
+    /// Compacted slots per ray drawn of the scene's last two measured batches, or `None`
+    /// before any: how many chunks its training pass records.
+    recent_asked: Option<[f32; 2]>,
 }
 
 /// One or more scenes trained on the device on one set of weights (scene 0: the one a model
@@ -190,6 +204,8 @@ pub struct GpuTrainer<'c> {
     lag: u32,
     /// Measurements read and not yet reported in a step's stats.
     unreported: StepStats,
+    /// Weight steps through which the training pass records all its chunks.
+    all_chunks_until: u32,
     loss: LossKernel,
     optimizer: GpuOptimizer,
     /// The gate with hold-back and the table's bounds on the device, once a policy uses
@@ -314,6 +330,7 @@ impl<'c> GpuTrainer<'c> {
                 rays_per_batch: initial_rays_per_batch(config.batch_samples),
                 measured_samples: 0,
                 measured_marched: 0,
+                recent_asked: None,
             });
         }
         let batch = RayBatch::new(ctx, MAX_RAYS, budget)?;
@@ -381,6 +398,7 @@ impl<'c> GpuTrainer<'c> {
             readback,
             lag: 0,
             unreported: StepStats::default(),
+            all_chunks_until: ALL_CHUNKS_WARMUP,
             loss,
             optimizer,
             hold: None,
@@ -720,10 +738,12 @@ impl<'c> GpuTrainer<'c> {
             ..std::mem::take(&mut self.unreported)
         };
         // The measurements of the steps `lag` behind this one: the batch sizes below
-        // adapt to them.
+        // adapt to them. Blocking here is the host waiting for the device to finish a step
+        // while it still has the next one queued.
         while self.readback.oldest().is_some_and(|s| s + self.lag <= step) {
             self.read_measure(&mut stats)?;
         }
+        let t_wait = t0.elapsed().as_secs_f64();
         let info = StepInfo {
             seed: self.config.seed,
             step,
@@ -794,13 +814,15 @@ impl<'c> GpuTrainer<'c> {
             stats.host_waits += 1;
         }
         self.step += 1;
+        let t_opt = t0.elapsed().as_secs_f64();
         if self.lag == 0 {
             self.read_measure(&mut stats)?;
         }
         stats.seconds = t0.elapsed().as_secs_f64();
-        stats.occupancy_seconds = t_occ;
+        stats.wait_seconds = t_wait + (stats.seconds - t_opt);
+        stats.occupancy_seconds = t_occ - t_wait;
         stats.rays_seconds = t_rays - t_occ;
-        stats.optimizer_seconds = stats.seconds - t_rays;
+        stats.optimizer_seconds = t_opt - t_rays;
         Ok(stats)
     }
 
@@ -830,6 +852,11 @@ impl<'c> GpuTrainer<'c> {
             stats.n_network += n as u64 + trained as u64;
             stats.dropped_rays += dropped as u64 + unfit as u64;
             let scene = &mut self.scenes[sm.scene];
+            let asked = sm.compact[0] as f32 / sm.n_rays.max(1) as f32;
+            scene.recent_asked = Some(match scene.recent_asked {
+                Some([_, last]) => [last, asked],
+                None => [asked, asked],
+            });
             scene.measured_samples = trained;
             scene.measured_marched = n;
             scene.grid_mean = sm.grid_mean;
@@ -874,8 +901,10 @@ impl<'c> GpuTrainer<'c> {
         self.mark(encoder, "rays: draw and march");
         self.marched.encode(encoder);
         let loss_norm = scene.loss_weight / n_rays as f32;
-        self.encode_inference_and_loss(encoder, si, n_rays, loss_norm)?;
-        for k in 0..self.chunks.len() {
+        let n_chunks = self.chunks_for(si);
+        let slots = self.chunks[..n_chunks].iter().map(|c| c.ld).sum();
+        self.encode_inference_and_loss(encoder, si, n_rays, loss_norm, slots)?;
+        for k in 0..n_chunks {
             self.encode_training_chunk(encoder, si, k)?;
         }
         let scene = &self.scenes[si];
@@ -891,6 +920,37 @@ impl<'c> GpuTrainer<'c> {
         )?;
         self.mark(encoder, "measurements");
         Ok(n_rays)
+    }
+
+    /// Chunks of the training pass to record for scene `si`: all of them (the whole marching
+    /// budget) through the warm-up ([`Self::set_all_chunks_until`]: the occupancy grid's
+    /// first 256 updates by default, while it changes every step or two) and until the
+    /// scene's batches are measured; then enough for 1.5 times what the batch is expected
+    /// to ask for, its rays times the larger per-ray demand of its last two measured
+    /// batches (one chunk of twice the target in steady state, where the rays-per-batch
+    /// adaptation keeps the demand near the target). Only the device knows a batch's
+    /// count, and a chunk recorded empty still costs its dispatches and barriers (1.2 ms a
+    /// step for seven on an H200); a batch that asks for more than the recorded chunks hold
+    /// loses the rays past them, counted as dropped, and its measurement records more
+    /// chunks for the next.
+    fn chunks_for(&self, si: usize) -> usize {
+        let all = self.chunks.len();
+        let scene = &self.scenes[si];
+        match scene.recent_asked {
+            Some(asked) if self.weight_steps >= self.all_chunks_until => chunks_needed(
+                asked[0].max(asked[1]) * scene.rays_per_batch as f32,
+                self.chunks[0].ld,
+                all,
+            ),
+            _ => all,
+        }
+    }
+
+    /// Records every chunk of the training pass until the weights have taken `steps`
+    /// steps (default 256), adapting their number to the measured batches after (see
+    /// `chunks_for`).
+    pub fn set_all_chunks_until(&mut self, steps: u32) {
+        self.all_chunks_until = steps;
     }
 
     /// Chunk `k` of the training pass over the compacted samples: grid forward keeping
@@ -972,13 +1032,15 @@ impl<'c> GpuTrainer<'c> {
 
     /// Records directions, grid forward and network inference over the batch's marched
     /// samples of scene `si` (as many as the device counted), the loss and its gradient to
-    /// the raw outputs, and the compaction of the samples that reach the loss.
+    /// the raw outputs, and the compaction of the samples that reach the loss into its
+    /// first `slots`.
     fn encode_inference_and_loss(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         n_rays: u32,
         loss_norm: f32,
+        slots: u32,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let budget = self.batch.sample_budget();
@@ -1066,7 +1128,8 @@ impl<'c> GpuTrainer<'c> {
             dirs: &self.dirs,
             d_raw: &self.d_raw,
         };
-        self.compacted.encode(ctx, encoder, &inputs, n_rays)?;
+        self.compacted
+            .encode_within(ctx, encoder, &inputs, n_rays, slots)?;
         self.mark(encoder, "compaction");
         Ok(())
     }
@@ -1618,5 +1681,22 @@ impl PolicyOps for GpuOps<'_, '_> {
         update(b);
         let h = t.hold.as_ref().expect("made above");
         Ok(h.upload_bounds(t.ctx, b)?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::chunks_needed;
+
+    #[test]
+    fn chunks_cover_half_as_much_again_as_expected() {
+        // Steady state: 2^18 expected, chunks of 2^19: one.
+        assert_eq!(chunks_needed(262_144.0, 1 << 19, 8), 1);
+        // A third more than the target still fits one; more takes two.
+        assert_eq!(chunks_needed(349_000.0, 1 << 19, 8), 1);
+        assert_eq!(chunks_needed(350_000.0, 1 << 19, 8), 2);
+        // Nothing expected: one; past the budget: all.
+        assert_eq!(chunks_needed(0.0, 1 << 19, 8), 1);
+        assert_eq!(chunks_needed(1e9, 1 << 19, 8), 8);
     }
 }

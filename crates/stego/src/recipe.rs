@@ -425,6 +425,8 @@ pub struct Totals {
     pub occupancy_seconds: f64,
     pub rays_seconds: f64,
     pub optimizer_seconds: f64,
+    /// The steps' time waiting for a separate device (a GPU running ahead of the host).
+    pub wait_seconds: f64,
     /// Occupancy-grid updates made, and the densities they evaluated.
     pub occupancy_updates: u32,
     pub occupancy_evaluations: u64,
@@ -443,15 +445,20 @@ impl Totals {
         self.steps as f64 / self.seconds.max(1e-9)
     }
 
-    /// Where the time went, for a progress line: "occupancy 12% · rays 70% · optimizer 18%".
+    /// Where the time went, for a progress line: "occupancy 12% · rays 70% · optimizer 18%",
+    /// and "· waiting for the device N%" where the host waited for a GPU.
     pub fn phase_split(&self) -> String {
         let pct = |s: f64| 100.0 * s / self.seconds.max(1e-9);
-        format!(
+        let mut s = format!(
             "occupancy {:.0}% · rays {:.0}% · optimizer {:.0}%",
             pct(self.occupancy_seconds),
             pct(self.rays_seconds),
             pct(self.optimizer_seconds)
-        )
+        );
+        if self.wait_seconds > 0.0 {
+            s += &format!(" · waiting for the device {:.0}%", pct(self.wait_seconds));
+        }
+        s
     }
 }
 
@@ -565,6 +572,7 @@ impl Training<'_> {
         t.occupancy_seconds += st.occupancy_seconds;
         t.rays_seconds += st.rays_seconds;
         t.optimizer_seconds += st.optimizer_seconds;
+        t.wait_seconds += st.wait_seconds;
         t.occupancy_updates += st.occupancy_updates;
         t.occupancy_evaluations += st.occupancy_evaluations;
         self.shown = if t.steps == 1 {
@@ -640,6 +648,7 @@ impl Training<'_> {
             ("occupancy_seconds", Value::F64(t.occupancy_seconds)),
             ("rays_seconds", Value::F64(t.rays_seconds)),
             ("optimizer_seconds", Value::F64(t.optimizer_seconds)),
+            ("wait_seconds", Value::F64(t.wait_seconds)),
             ("occupancy_updates", Value::from(t.occupancy_updates)),
             (
                 "occupancy_evaluations",
@@ -690,6 +699,12 @@ impl Training<'_> {
             occupancy_seconds: tf.f64("occupancy_seconds")?,
             rays_seconds: tf.f64("rays_seconds")?,
             optimizer_seconds: tf.f64("optimizer_seconds")?,
+            // Absent from states saved before the GPU's late reads.
+            wait_seconds: if tf.has("wait_seconds") {
+                tf.f64("wait_seconds")?
+            } else {
+                0.0
+            },
             occupancy_updates: tf.u32("occupancy_updates")?,
             occupancy_evaluations: tf.u64("occupancy_evaluations")?,
         };

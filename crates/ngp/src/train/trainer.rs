@@ -127,6 +127,9 @@ pub struct StepStats {
     pub occupancy_seconds: f64,
     pub rays_seconds: f64,
     pub optimizer_seconds: f64,
+    /// Time within `seconds` the host spent waiting for a separate device to finish
+    /// earlier work (a GPU's late measurements), outside the three phases above; 0 here.
+    pub wait_seconds: f64,
     /// Occupancy-grid updates this step made (0 or 1) and the densities they evaluated.
     pub occupancy_updates: u32,
     pub occupancy_evaluations: u64,
