@@ -150,13 +150,7 @@ fn bytes_of_floats(n: u64) -> u64 {
 }
 
 fn check_len(what: &str, buffer: &wgpu::Buffer, bytes: u64) -> GpuResult<()> {
-    if buffer.size() < bytes {
-        return Err(GpuError::Input(format!(
-            "{what}: {} bytes, need {bytes}",
-            buffer.size()
-        )));
-    }
-    Ok(())
+    check_slice(what, &buffer.slice(..), bytes)
 }
 
 fn check_slice(what: &str, slice: &wgpu::BufferSlice, bytes: u64) -> GpuResult<()> {
@@ -492,6 +486,20 @@ impl MlpKernels {
         self.forward_with(ctx, encoder, batch, dirs.slice(..), out, keep, None)
     }
 
+    /// [`encode_forward`](Self::encode_forward) with `dirs` a slice (a chunk of a larger
+    /// batch).
+    pub fn encode_forward_slice(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        dirs: wgpu::BufferSlice<'_>,
+        out: &wgpu::Buffer,
+        keep: Option<&MlpWorkspace>,
+    ) -> GpuResult<()> {
+        self.forward_with(ctx, encoder, batch, dirs, out, keep, None)
+    }
+
     /// [`encode_forward`](Self::encode_forward) of the first n samples of `batch`, n known
     /// only on the device (`count`, at most `batch.n`, which the buffers are checked
     /// against), `dirs` a slice (a chunk of a larger batch).
@@ -698,6 +706,22 @@ impl MlpKernels {
         d_enc: &wgpu::Buffer,
     ) -> GpuResult<()> {
         self.backward_with(ctx, encoder, batch, d_out.slice(..), ws, grad, d_enc, None)
+    }
+
+    /// [`encode_backward`](Self::encode_backward) with `d_out` a slice (a chunk of a larger
+    /// batch).
+    #[allow(clippy::too_many_arguments)]
+    pub fn encode_backward_slice(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        d_out: wgpu::BufferSlice<'_>,
+        ws: &MlpWorkspace,
+        grad: &wgpu::Buffer,
+        d_enc: &wgpu::Buffer,
+    ) -> GpuResult<()> {
+        self.backward_with(ctx, encoder, batch, d_out, ws, grad, d_enc, None)
     }
 
     /// [`encode_backward`](Self::encode_backward) after an

@@ -962,7 +962,6 @@ impl<'c> GpuTrainer<'c> {
         si: usize,
         k: usize,
     ) -> GpuResult<()> {
-        let ctx = self.ctx;
         let chunk = &self.chunks[k];
         chunk.count.encode(encoder);
         let (first, ld) = (chunk.first as u64, chunk.ld as u64);
@@ -974,53 +973,9 @@ impl<'c> GpuTrainer<'c> {
             n_samples: chunk.ld,
             ld: chunk.ld,
         };
-        let (grid_bytes, _, enc_bytes) = self.batch_bytes(shape);
-        let grid = self.field.grid();
-        let index = &self.scenes[si].index;
-        grid.bind_forward(
-            ctx,
-            index,
-            pos,
-            self.field.params.slice(grid_bytes.clone()),
-            self.enc.slice(..enc_bytes),
-            shape,
-        )?
-        .record_counted(encoder, &chunk.count)?;
-        self.mark(encoder, "grid forward (trained)");
-        let eb = self.encoded_batch(shape);
-        let mlp = self.field.mlp();
-        mlp.encode_forward_counted(
-            ctx,
-            encoder,
-            &eb,
-            dirs,
-            &self.raw,
-            Some(&self.ws),
-            &chunk.count,
-        )?;
-        self.mark(encoder, "network forward (trained)");
-        mlp.encode_backward_counted(
-            ctx,
-            encoder,
-            &eb,
-            d_raw,
-            &self.ws,
-            &self.grad,
-            &self.d_enc,
-            &chunk.count,
-        )?;
-        self.mark(encoder, "network backward (trained)");
-        grid.bind_backward(
-            ctx,
-            index,
-            pos,
-            self.d_enc.slice(..enc_bytes),
-            self.grad.slice(grid_bytes),
-            shape,
-        )?
-        .record_counted(encoder, &chunk.count)?;
-        self.mark(encoder, "grid backward (trained)");
-        Ok(())
+        let count = Some(&chunk.count);
+        self.encode_network_forward(encoder, si, shape, pos, dirs, true, count)?;
+        self.encode_network_backward(encoder, si, shape, pos, d_raw, count)
     }
 
     /// The grid shape of `n` samples in buffers of `cap` samples: the leading dimension is
@@ -1078,30 +1033,8 @@ impl<'c> GpuTrainer<'c> {
         })?;
         self.mark(encoder, "directions");
 
-        let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
-        self.field
-            .grid()
-            .bind_forward(
-                ctx,
-                &self.scenes[si].index,
-                self.batch.pos.slice(..pos_bytes),
-                self.field.params.slice(grid_bytes),
-                self.enc.slice(..enc_bytes),
-                shape,
-            )?
-            .record_counted(encoder, &self.marched)?;
-        self.mark(encoder, "grid forward (marched)");
-        let eb = self.encoded_batch(shape);
-        self.field.mlp().encode_forward_counted(
-            ctx,
-            encoder,
-            &eb,
-            self.dirs.slice(..),
-            &self.raw,
-            None,
-            &self.marched,
-        )?;
-        self.mark(encoder, "network inference (marched)");
+        let (pos, dirs) = (self.batch.pos.slice(..), self.dirs.slice(..));
+        self.encode_network_forward(encoder, si, shape, pos, dirs, false, Some(&self.marched))?;
 
         // Loss and its gradient to the raw outputs; the density pull-up while the grid's
         // mean (on the device) is below the reference's threshold.
@@ -1157,32 +1090,33 @@ impl<'c> GpuTrainer<'c> {
     }
 
     /// Grid forward under scene `si`'s index and network forward over the first
-    /// `shape.n_samples` of `pos` and `dirs`, into `raw`; with `keep`, the activations stay
-    /// in the workspace for [`Self::encode_network_backward`] (`shape` within its capacity).
+    /// `shape.n_samples` of `pos` and `dirs` (or as many as `count` says, at most that), into
+    /// `raw`; with `keep`, the activations stay in the workspace for
+    /// [`Self::encode_network_backward`] (`shape` within its capacity).
+    #[allow(clippy::too_many_arguments)]
     fn encode_network_forward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         shape: GridShape,
-        pos: &wgpu::Buffer,
-        dirs: &wgpu::Buffer,
+        pos: wgpu::BufferSlice<'_>,
+        dirs: wgpu::BufferSlice<'_>,
         keep: bool,
+        count: Option<&DeviceCount>,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
-        let grid = self.field.grid();
-        let index = &self.scenes[si].index;
-        let forward = grid.bind_forward(
+        let forward = self.field.grid().bind_forward(
             ctx,
-            index,
+            &self.scenes[si].index,
             pos.slice(..pos_bytes),
             self.field.params.slice(grid_bytes),
             self.enc.slice(..enc_bytes),
             shape,
         )?;
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            forward.record(&mut pass);
+        match count {
+            Some(c) => forward.record_counted(encoder, c)?,
+            None => forward.record(&mut encoder.begin_compute_pass(&Default::default())),
         }
         self.mark(
             encoder,
@@ -1193,14 +1127,12 @@ impl<'c> GpuTrainer<'c> {
             },
         );
         let eb = self.encoded_batch(shape);
-        self.field.mlp().encode_forward(
-            ctx,
-            encoder,
-            &eb,
-            dirs,
-            &self.raw,
-            keep.then_some(&self.ws),
-        )?;
+        let ws = keep.then_some(&self.ws);
+        let mlp = self.field.mlp();
+        match count {
+            Some(c) => mlp.encode_forward_counted(ctx, encoder, &eb, dirs, &self.raw, ws, c)?,
+            None => mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws)?,
+        }
         self.mark(
             encoder,
             if keep {
@@ -1212,29 +1144,28 @@ impl<'c> GpuTrainer<'c> {
         Ok(())
     }
 
-    /// Backward of the last [`Self::encode_network_forward`] that kept its activations,
-    /// from `d_raw`: MLP weight gradients added into `grad`, dL/d(enc) into `d_enc`, then
-    /// the grid's gradient at `pos` added into the grid block of `grad`.
+    /// Backward of the last [`Self::encode_network_forward`] that kept its activations
+    /// (with the same `count`), from `d_raw`: MLP weight gradients added into `grad`,
+    /// dL/d(enc) into `d_enc`, then the grid's gradient at `pos` added into the grid block
+    /// of `grad`.
     fn encode_network_backward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         shape: GridShape,
-        pos: &wgpu::Buffer,
-        d_raw: &wgpu::Buffer,
+        pos: wgpu::BufferSlice<'_>,
+        d_raw: wgpu::BufferSlice<'_>,
+        count: Option<&DeviceCount>,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
         let eb = self.encoded_batch(shape);
-        self.field.mlp().encode_backward(
-            ctx,
-            encoder,
-            &eb,
-            d_raw,
-            &self.ws,
-            &self.grad,
-            &self.d_enc,
-        )?;
+        let mlp = self.field.mlp();
+        let (ws, grad, d_enc) = (&self.ws, &self.grad, &self.d_enc);
+        match count {
+            Some(c) => mlp.encode_backward_counted(ctx, encoder, &eb, d_raw, ws, grad, d_enc, c)?,
+            None => mlp.encode_backward_slice(ctx, encoder, &eb, d_raw, ws, grad, d_enc)?,
+        }
         self.mark(encoder, "network backward (trained)");
         let backward = self.field.grid().bind_backward(
             ctx,
@@ -1244,9 +1175,9 @@ impl<'c> GpuTrainer<'c> {
             self.grad.slice(grid_bytes),
             shape,
         )?;
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            backward.record(&mut pass);
+        match count {
+            Some(c) => backward.record_counted(encoder, c)?,
+            None => backward.record(&mut encoder.begin_compute_pass(&Default::default())),
         }
         self.mark(encoder, "grid backward (trained)");
         Ok(())
@@ -1286,7 +1217,8 @@ impl<'c> GpuTrainer<'c> {
                     .write_buffer(&c.dirs, 0, bytemuck::cast_slice(&dirs));
             })?;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.encode_network_forward(&mut encoder, si, shape, &c.pos, &c.dirs, true)?;
+            let (pos, dirs) = (c.pos.slice(..), c.dirs.slice(..));
+            self.encode_network_forward(&mut encoder, si, shape, pos, dirs, true, None)?;
             ctx.scoped("density loss forward", || {
                 ctx.queue.submit([encoder.finish()])
             })?;
@@ -1304,7 +1236,8 @@ impl<'c> GpuTrainer<'c> {
                     .write_buffer(&c.d_raw, 0, bytemuck::cast_slice(&d_raw));
             })?;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            self.encode_network_backward(&mut encoder, si, shape, &c.pos, &c.d_raw)?;
+            let (pos, d_raw) = (c.pos.slice(..), c.d_raw.slice(..));
+            self.encode_network_backward(&mut encoder, si, shape, pos, d_raw, None)?;
             ctx.scoped("density loss backward", || {
                 ctx.queue.submit([encoder.finish()])
             })?;
