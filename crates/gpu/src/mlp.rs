@@ -483,38 +483,7 @@ impl MlpKernels {
         out: &wgpu::Buffer,
         keep: Option<&MlpWorkspace>,
     ) -> GpuResult<()> {
-        self.forward_with(ctx, encoder, batch, dirs.slice(..), out, keep, None)
-    }
-
-    /// [`encode_forward`](Self::encode_forward) with `dirs` a slice (a chunk of a larger
-    /// batch).
-    pub fn encode_forward_slice(
-        &self,
-        ctx: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: &EncodedBatch,
-        dirs: wgpu::BufferSlice<'_>,
-        out: &wgpu::Buffer,
-        keep: Option<&MlpWorkspace>,
-    ) -> GpuResult<()> {
-        self.forward_with(ctx, encoder, batch, dirs, out, keep, None)
-    }
-
-    /// [`encode_forward`](Self::encode_forward) of the first n samples of `batch`, n known
-    /// only on the device (`count`, at most `batch.n`, which the buffers are checked
-    /// against), `dirs` a slice (a chunk of a larger batch).
-    #[allow(clippy::too_many_arguments)]
-    pub fn encode_forward_counted(
-        &self,
-        ctx: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: &EncodedBatch,
-        dirs: wgpu::BufferSlice<'_>,
-        out: &wgpu::Buffer,
-        keep: Option<&MlpWorkspace>,
-        count: &DeviceCount,
-    ) -> GpuResult<()> {
-        self.forward_with(ctx, encoder, batch, dirs, out, keep, Some(count))
+        self.encode_forward_slice(ctx, encoder, batch, dirs.slice(..), out, keep, None)
     }
 
     /// Dispatch shapes a [`DeviceCount`] must provide for the counted passes over batches
@@ -543,8 +512,11 @@ impl MlpKernels {
         ])
     }
 
+    /// [`encode_forward`](Self::encode_forward) with `dirs` a slice (a chunk of a larger
+    /// batch) and, with `count`, of only the first n samples of `batch`, n known only on the
+    /// device (at most `batch.n`, which the buffers are checked against).
     #[allow(clippy::too_many_arguments)]
-    fn forward_with(
+    pub fn encode_forward_slice(
         &self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,
@@ -705,44 +677,14 @@ impl MlpKernels {
         grad: &wgpu::Buffer,
         d_enc: &wgpu::Buffer,
     ) -> GpuResult<()> {
-        self.backward_with(ctx, encoder, batch, d_out.slice(..), ws, grad, d_enc, None)
+        self.encode_backward_slice(ctx, encoder, batch, d_out.slice(..), ws, grad, d_enc, None)
     }
 
     /// [`encode_backward`](Self::encode_backward) with `d_out` a slice (a chunk of a larger
-    /// batch).
+    /// batch) and, with `count`, after an [`encode_forward_slice`](Self::encode_forward_slice)
+    /// with the same count.
     #[allow(clippy::too_many_arguments)]
     pub fn encode_backward_slice(
-        &self,
-        ctx: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: &EncodedBatch,
-        d_out: wgpu::BufferSlice<'_>,
-        ws: &MlpWorkspace,
-        grad: &wgpu::Buffer,
-        d_enc: &wgpu::Buffer,
-    ) -> GpuResult<()> {
-        self.backward_with(ctx, encoder, batch, d_out, ws, grad, d_enc, None)
-    }
-
-    /// [`encode_backward`](Self::encode_backward) after an
-    /// [`encode_forward_counted`](Self::encode_forward_counted) with the same `count`.
-    #[allow(clippy::too_many_arguments)]
-    pub fn encode_backward_counted(
-        &self,
-        ctx: &GpuContext,
-        encoder: &mut wgpu::CommandEncoder,
-        batch: &EncodedBatch,
-        d_out: wgpu::BufferSlice<'_>,
-        ws: &MlpWorkspace,
-        grad: &wgpu::Buffer,
-        d_enc: &wgpu::Buffer,
-        count: &DeviceCount,
-    ) -> GpuResult<()> {
-        self.backward_with(ctx, encoder, batch, d_out, ws, grad, d_enc, Some(count))
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    fn backward_with(
         &self,
         ctx: &GpuContext,
         encoder: &mut wgpu::CommandEncoder,

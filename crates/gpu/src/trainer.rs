@@ -1129,10 +1129,7 @@ impl<'c> GpuTrainer<'c> {
         let eb = self.encoded_batch(shape);
         let ws = keep.then_some(&self.ws);
         let mlp = self.field.mlp();
-        match count {
-            Some(c) => mlp.encode_forward_counted(ctx, encoder, &eb, dirs, &self.raw, ws, c)?,
-            None => mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws)?,
-        }
+        mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws, count)?;
         self.mark(
             encoder,
             if keep {
@@ -1162,10 +1159,7 @@ impl<'c> GpuTrainer<'c> {
         let eb = self.encoded_batch(shape);
         let mlp = self.field.mlp();
         let (ws, grad, d_enc) = (&self.ws, &self.grad, &self.d_enc);
-        match count {
-            Some(c) => mlp.encode_backward_counted(ctx, encoder, &eb, d_raw, ws, grad, d_enc, c)?,
-            None => mlp.encode_backward_slice(ctx, encoder, &eb, d_raw, ws, grad, d_enc)?,
-        }
+        mlp.encode_backward_slice(ctx, encoder, &eb, d_raw, ws, grad, d_enc, count)?;
         self.mark(encoder, "network backward (trained)");
         let backward = self.field.grid().bind_backward(
             ctx,
