@@ -105,13 +105,14 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     assert_eq!(lego["device"]["kind"], "gpu");
     assert_eq!(lego["checkpoints"].as_array().unwrap().len(), 5);
     // The step's own counters: the network's passes cover at least the trained samples;
-    // the host waits only to read a profiled step's timestamps (one step in 5), and a
-    // step is one submission, and one per occupancy update.
+    // the host waits at most once a step in this run, all warm-up (each step read at its
+    // end), and to read a profiled step's timestamps (one step in 5); a step is one
+    // submission, and one per occupancy update.
     let trained = lego["trained_per_step"].as_f64().unwrap();
     assert!(trained > 0.0);
     assert!(lego["network_per_step"].as_f64().unwrap() >= trained);
     let waits = lego["host_waits_per_step"].as_f64().unwrap();
-    assert!(waits > 0.0 && waits <= 0.25, "{waits} host waits a step");
+    assert!(waits > 0.0 && waits <= 1.25, "{waits} host waits a step");
     let submissions = lego["submissions_per_step"].as_f64().unwrap();
     assert!(
         (1.0..=2.0).contains(&submissions),
