@@ -27,7 +27,7 @@
 //!   no float atomics) on the same addresses, while the reduction reads each partial once.
 //!
 //! The module is compiled without naga's runtime checks
-//! ([`unchecked_auto_layout_pipelines`]): with them the driver's compiler saw every
+//! (`unchecked_auto_layout_pipelines`): with them the driver's compiler saw every
 //! accumulator array indexed through a clamp and every loop behind a counter, and kept
 //! them in device memory. [`MlpKernels::new`] says why each index is in bounds.
 
@@ -232,7 +232,7 @@ impl MlpKernels {
     ///   samples below 33;
     /// - private arrays: constant indices, or loops with constant bounds below their length;
     /// - weights: the offsets below and the matrices' sizes stay inside the parameter
-    ///   vector's MLP blocks, which [`Self::check_batch`] checks the buffer holds;
+    ///   vector's MLP blocks, which `check_batch` checks the buffer holds;
     /// - samples: every read and write of sample s is behind `s < n`, except the vec4 of a
     ///   lane whose first sample is below n in `acts` and `dys`, whose leading dimension
     ///   (the workspace's capacity, a multiple of 4, ≥ n) holds it whole; `enc`, `dirs`,

@@ -29,11 +29,14 @@
 //! run its backward on every marched sample: 3.8× as many on lego at 800 px). The
 //! gradient is the same: the samples past a ray's end had a zero gradient.
 //!
-//! Host round trips per scene trained: the batch's counters after marching (the network
-//! kernels take their sample count from the host), then the per-ray (loss, samples used)
-//! pairs with the compaction's counters (one wait); per step, each occupancy grid's mean
-//! after an update (it switches the pull-up). The step ends without waiting for the
-//! optimizer. `StepStats` counts them (`host_waits`, `submissions`).
+//! Nothing is read back inside a step: every pass after the draw takes its sample count
+//! from the device ([`DeviceCount`]: the marching and compaction counters turned into
+//! uniforms and indirect dispatches), the density pull-up reads the grid mean there, and a
+//! scene's measurements (counters, summed loss and used samples, grid mean) go to a ring
+//! of mappable buffers ([`StepReadback`]) that the host reads at the step's end, or
+//! [`GpuTrainer::set_read_lag`] steps later once the warm-up is over, when the device is
+//! long done with them; one submission a step without a policy (and one per occupancy
+//! update). `StepStats` counts the host waits and submissions.
 //! With a [`TrainPolicy`] installed that reads them, every update of scene 0's grid (and
 //! the installation itself) also reads back that grid and the EMA weights, calls the policy
 //! on the host and uploads the indices and bounds it returns, before the other scenes'
@@ -45,8 +48,9 @@
 //! instant-ngp; they are counted (`StepStats::dropped_rays`), and the rays-per-batch
 //! adaptation leaves them out of the count it scales, so that a budget that binds shrinks
 //! the next batch (it used to grow it until every step filled its budget). The training
-//! pass runs in chunks of the network workspace's capacity (2× the target) when a batch
-//! has more used samples, so the compaction drops nothing.
+//! pass runs in chunks of the network workspace's capacity (2× the target), each counted
+//! on the device: all of the marching budget's through the warm-up, then as many as the
+//! measured batches call for (`chunks_for`), with rays past them dropped and counted.
 //!
 //! [`Trainer`]: ngp::train::Trainer
 //! [`Schedule::Mixed`]: ngp::train::Schedule::Mixed
