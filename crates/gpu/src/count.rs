@@ -81,6 +81,20 @@ struct CountParams {
     slots: [[u32; 4]; MAX_SLOTS],
 }
 
+/// The counting kernel, compiled once for every [`DeviceCount`] made from it.
+pub struct CountKernel {
+    pipeline: wgpu::ComputePipeline,
+}
+
+impl CountKernel {
+    pub fn new(ctx: &GpuContext) -> GpuResult<CountKernel> {
+        ctx.scoped("device count kernel", || {
+            let [pipeline] = auto_layout_pipelines(ctx, "count", COUNT_WGSL, ["count_main"]);
+            CountKernel { pipeline }
+        })
+    }
+}
+
 /// A count read on the device from a counter buffer (see the module).
 pub struct DeviceCount {
     pipeline: wgpu::ComputePipeline,
@@ -93,9 +107,11 @@ pub struct DeviceCount {
 
 impl DeviceCount {
     /// The count `min(max(src[index] − base, 0), max)` of the u32 counter buffer `src`,
-    /// with dispatch arguments for `slots` (at most 4).
+    /// with dispatch arguments for `slots` (at most 4), run by `kernel`.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &GpuContext,
+        kernel: &CountKernel,
         src: &wgpu::Buffer,
         index: u32,
         base: u32,
@@ -123,7 +139,7 @@ impl DeviceCount {
         }
         ctx.scoped("device count", || {
             let d = &ctx.device;
-            let [pipeline] = auto_layout_pipelines(ctx, "count", COUNT_WGSL, ["count_main"]);
+            let pipeline = kernel.pipeline.clone();
             let uniform = d.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("device count params"),
                 contents: bytemuck::bytes_of(&p),
@@ -219,9 +235,10 @@ mod tests {
                 fixed_x: 80,
             },
         ];
+        let kernel = CountKernel::new(ctx).unwrap();
         // Chunks of 300 samples of 1000 from 0, 300, 900 and past the end.
         for (base, n) in [(0u32, 300u32), (300, 300), (900, 100), (1000, 0), (1200, 0)] {
-            let c = DeviceCount::new(ctx, &src, 1, base, 300, &slots).unwrap();
+            let c = DeviceCount::new(ctx, &kernel, &src, 1, base, 300, &slots).unwrap();
             let mut e = ctx.device.create_command_encoder(&Default::default());
             c.encode(&mut e);
             ctx.queue.submit([e.finish()]);
@@ -237,6 +254,6 @@ mod tests {
                 "base {base}"
             );
         }
-        assert!(DeviceCount::new(ctx, &src, 2, 0, 1, &slots).is_err());
+        assert!(DeviceCount::new(ctx, &kernel, &src, 2, 0, 1, &slots).is_err());
     }
 }

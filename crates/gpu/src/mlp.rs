@@ -89,9 +89,8 @@ struct MlpParams {
     ld: u32,
     store: u32,
     tiles_x: u32,
-    n_chunks: u32,
     stage: u32,
-    _pad: u32,
+    _pad: [u32; 2],
 }
 
 /// Compiled kernels for one network layout.
@@ -563,9 +562,8 @@ impl MlpKernels {
                     ld: keep.map_or(0, |ws| ws.capacity),
                     store: keep.is_some() as u32,
                     tiles_x: self.tiles_x(ctx, batch.n),
-                    n_chunks: 0,
                     stage: 0,
-                    _pad: 0,
+                    _pad: [0; 2],
                 },
             );
             let acts = keep.map_or(&self.dummy, |ws| &ws.acts);
@@ -640,9 +638,8 @@ impl MlpKernels {
                     ld: 0,
                     store: 0,
                     tiles_x: self.tiles_x(ctx, batch.n),
-                    n_chunks: 0,
                     stage: 0,
-                    _pad: 0,
+                    _pad: [0; 2],
                 },
             );
             let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -746,9 +743,8 @@ impl MlpKernels {
                         ld: ws.capacity,
                         store: 1,
                         tiles_x: self.tiles_x(ctx, n),
-                        n_chunks: 0,
                         stage,
-                        _pad: 0,
+                        _pad: [0; 2],
                     },
                 )
             };

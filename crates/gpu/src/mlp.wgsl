@@ -37,12 +37,12 @@ struct MlpParams {
     store: u32,
     // Tiles per dispatch row: dispatches past 65535 workgroups fold into y.
     tiles_x: u32,
-    // Unused: the chunks are ⌈n / CH⌉ (n_chunks()), n may be copied in on the device.
-    _chunks: u32,
     // reduce_main: 0 sums each group of RG_CHUNKS chunks into the group's first chunk,
-    // 1 sums the groups' first chunks into grad.
+    // 1 sums the groups' first chunks into grad. The chunks are ⌈n / CH⌉ (n_chunks()):
+    // n may be copied in on the device.
     stage: u32,
-    _pad: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 @group(0) @binding(0) var<storage, read> weights4: array<vec4<f32>>;

@@ -538,17 +538,11 @@ impl GpuOccupancy {
         }
     }
 
-    /// The cascade-0 mean after the last update (what decides the loss's density pull-up),
-    /// read back: 4 bytes instead of the whole grid.
-    /// The buffer whose first f32 is the cascade-0 mean after the last update (for a pass
-    /// that reads it on the device, or a copy).
+    /// The buffer whose first f32 is the cascade-0 mean after the last update (what
+    /// decides the loss's density pull-up), for a pass that reads it on the device or a copy
+    /// into a step's measurements.
     pub fn mean_buffer(&self) -> &wgpu::Buffer {
         &self.sums
-    }
-
-    pub fn read_mean(&self, ctx: &GpuContext) -> GpuResult<f32> {
-        let mean: Vec<f32> = ctx.read_buffer(&self.sums, 4)?;
-        Ok(mean[0])
     }
 
     /// The grid as the CPU holds it (density, bitfield, mean, update count), read back.

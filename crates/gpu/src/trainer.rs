@@ -57,7 +57,7 @@
 //! [`Schedule::RandomScene`]: ngp::train::Schedule::RandomScene
 
 use super::compact::{CompactInputs, Compacted};
-use super::count::DeviceCount;
+use super::count::{CountKernel, DeviceCount};
 use super::field::{DensityScratch, GpuField};
 use super::grid::GridShape;
 use super::held::{GpuHoldBack, GpuKeptMlp};
@@ -146,6 +146,7 @@ impl TrainChunk {
     /// read from `counters` (word 1: samples written).
     fn all(
         ctx: &GpuContext,
+        kernel: &CountKernel,
         field: &GpuField,
         counters: &wgpu::Buffer,
         budget: u32,
@@ -157,8 +158,8 @@ impl TrainChunk {
             let ld = capacity.min(budget - first);
             let grid = field.grid().count_slot(ctx, ld)?;
             let [tiles, wchunks, reduce] = field.mlp().count_slots(ctx, ld)?;
-            let count =
-                DeviceCount::new(ctx, counters, 1, first, ld, &[grid, tiles, wchunks, reduce])?;
+            let slots = [grid, tiles, wchunks, reduce];
+            let count = DeviceCount::new(ctx, kernel, counters, 1, first, ld, &slots)?;
             chunks.push(TrainChunk { first, ld, count });
             first += ld;
         }
@@ -198,6 +199,8 @@ pub struct GpuTrainer<'c> {
     batch: RayBatch,
     /// The samples of a batch that reach the loss, which the training pass runs on.
     compacted: Compacted,
+    /// The kernel of the device's counts.
+    counter: CountKernel,
     /// The batch's marched samples, counted on the device.
     marched: DeviceCount,
     /// The training pass's chunks of the compacted samples, each counted on the device.
@@ -349,11 +352,13 @@ impl<'c> GpuTrainer<'c> {
         )?;
         let ws = field.mlp().workspace(ctx, capacity)?;
         let compacted = Compacted::new(ctx, budget)?;
-        let chunks = TrainChunk::all(ctx, &field, &compacted.counters, budget, capacity)?;
+        let counter = CountKernel::new(ctx)?;
+        let chunks = TrainChunk::all(ctx, &counter, &field, &compacted.counters, budget, capacity)?;
         let grid_slot = field.grid().count_slot(ctx, budget)?;
         let [tiles, ..] = field.mlp().count_slots(ctx, budget)?;
         // Word 1 of the batch's counters: samples written (within the budget).
-        let marched = DeviceCount::new(ctx, &batch.counters, 1, 0, budget, &[grid_slot, tiles])?;
+        let slots = [grid_slot, tiles];
+        let marched = DeviceCount::new(ctx, &counter, &batch.counters, 1, 0, budget, &slots)?;
         let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
         let b = budget as u64;
         let (dirs, raw, d_raw, enc, d_enc, grad, ray_out) =
@@ -399,6 +404,7 @@ impl<'c> GpuTrainer<'c> {
             density_scratch: DensityScratch::default(),
             batch,
             compacted,
+            counter,
             marched,
             chunks,
             readback,
@@ -475,8 +481,8 @@ impl<'c> GpuTrainer<'c> {
         let ctx = self.ctx;
         let width = self.field.layout().grid.config.n_output_dims() as u64;
         self.ws = self.field.mlp().workspace(ctx, capacity)?;
-        self.chunks =
-            TrainChunk::all(ctx, &self.field, &self.compacted.counters, budget, capacity)?;
+        let counters = &self.compacted.counters;
+        self.chunks = TrainChunk::all(ctx, &self.counter, &self.field, counters, budget, capacity)?;
         self.d_enc = ctx.scoped("trainer encoding gradient", || {
             device_buffer(
                 ctx,
