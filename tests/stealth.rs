@@ -144,7 +144,6 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
             same += (h == trained[l].index(x, y, z)) as u32;
             total += 1;
             // Entries the cover left are shared too, within their bounds (below).
-            // (The key holder's reach is the stored fp16 grid's, the trainer's its own.)
             if !reach[l].contains(h) {
                 in_left += 1;
                 unbounded += !left.is_bounded((lv.offset + h) as usize) as u32;
@@ -165,7 +164,9 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
         "{in_left} of {total} hidden vertices in entries the cover left ({unbounded} not left in training)"
     );
     assert!(in_left as f64 > 0.01 * total as f64, "{in_left} of {total}");
-    assert!(unbounded as f64 <= 0.001 * total as f64, "{unbounded}");
+    // Exactly none: training bounds what the stored grid (fp16, which the key holder
+    // reads) leaves, not what its own f32 grid leaves (cells near the threshold differ).
+    assert_eq!(unbounded, 0);
     let table = &stealth_t.params[stealth_t.net.layout.grid_offset..];
     let n_left = (0..layout.n_entries as usize)
         .filter(|&e| left.is_bounded(e))

@@ -7,6 +7,7 @@
 
 use crate::camera::Camera;
 use crate::rng::Pcg32;
+use half::slice::HalfFloatSliceExt;
 use rayon::prelude::*;
 
 pub const GRID_SIZE: u32 = 128;
@@ -144,6 +145,27 @@ impl OccupancyGrid {
         };
         g.update_bitfield();
         Some(g)
+    }
+
+    /// This grid as a reader of a published model rebuilds it: the densities rounded to
+    /// fp16 (a snapshot's storage), then the mean, the threshold and the bits recomputed.
+    /// Rounding moves cells near the threshold (and the mean with it) across it, so a
+    /// policy that must agree with what a reader of the file finds (stealth's left
+    /// entries) reads this grid, not the trainer's.
+    pub fn as_stored(&self) -> OccupancyGrid {
+        let mut h = vec![half::f16::ZERO; self.density.len()];
+        h.convert_from_f32_slice(&self.density);
+        let mut density = vec![0.0f32; h.len()];
+        h.convert_to_f32_slice(&mut density);
+        let mut g = OccupancyGrid {
+            n_cascades: self.n_cascades,
+            density,
+            bitfield: vec![0; self.bitfield.len()],
+            mean: 0.0,
+            ema_step: self.ema_step,
+        };
+        g.update_bitfield();
+        g
     }
 
     /// A grid from all its parts (another backend's copy): `None` unless the sizes agree.
@@ -535,10 +557,13 @@ impl OccupancyGrid {
 
     /// Threshold `min(0.01, mean)`, bit per cell, then OR-pool each mip into the next.
     pub fn update_bitfield(&mut self) {
-        let sum: f64 = self.density[..N_CELLS]
-            .par_iter()
-            .map(|&v| v.max(0.0) as f64)
-            .sum();
+        // Fixed chunks summed in order: the same mean, to the bit, for any thread count, so
+        // a reader of the stored grid thresholds exactly as the writer did.
+        let partial: Vec<f64> = self.density[..N_CELLS]
+            .par_chunks(1 << 14)
+            .map(|c| c.iter().map(|&v| v.max(0.0) as f64).sum())
+            .collect();
+        let sum: f64 = partial.iter().sum();
         self.mean = (sum / N_CELLS as f64) as f32;
         let thresh = MIN_OPTICAL_THICKNESS.min(self.mean);
         let density = &self.density;
@@ -666,6 +691,31 @@ fn projects_inside(cam: &Camera, p: [f32; 3]) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_stored_grid_is_what_a_reader_of_the_file_rebuilds() {
+        // Threshold 0.01 (the mean is 0.02); 0.009999 is below it in f32, but its nearest
+        // fp16 is 0.0100021: empty to the trainer, occupied in the file.
+        let bit = |g: &OccupancyGrid, i: usize| g.bitfield()[i / 8] & (1 << (i % 8)) != 0;
+        let mut d = vec![0.02f32; N_CELLS];
+        let near = morton3d(3, 5, 7) as usize;
+        d[near] = 0.009999;
+        d[morton3d(1, 1, 1) as usize] = -1.0;
+        let trainer = OccupancyGrid::from_density(d).unwrap();
+        assert!(!bit(&trainer, near));
+
+        let bytes = crate::snapshot::write::fp16_bytes(&trainer.density);
+        let read: Vec<f32> = bytes
+            .chunks_exact(2)
+            .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
+            .collect();
+        let reader = OccupancyGrid::from_density(read).unwrap();
+        let stored = trainer.as_stored();
+        assert!(bit(&stored, near));
+        assert_eq!(stored.bitfield(), reader.bitfield());
+        assert_eq!(stored.mean.to_bits(), reader.mean.to_bits());
+        assert_eq!(stored.density, reader.density);
+    }
 
     #[test]
     fn occupied_fractions_per_cascade() {

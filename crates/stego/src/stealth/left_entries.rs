@@ -32,7 +32,10 @@ impl LeftEntries {
     /// magnitude in `table` (the largest |feature|; the published, EMA weights of the
     /// table, entries × features) as its bound, unless it already had one; an entry it
     /// reaches again loses its bound. Before the first update every entry is unbounded (a
-    /// new grid's every cell is occupied).
+    /// new grid's every cell is occupied). The reach is the stored grid's
+    /// ([`OccupancyGrid::as_stored`]), which a key holder and an analyst rebuild from the
+    /// file: from the trainer's f32 grid, cells near the threshold left 0.15 % of a hidden
+    /// scene's vertices in entries the file calls left but training had not bounded.
     pub fn update(
         &self,
         bounds: &mut TableBounds,
@@ -41,7 +44,7 @@ impl LeftEntries {
         aabb_scale: u32,
         table: &[f32],
     ) {
-        let sets = reachable_entries(layout, grid, aabb_scale, &self.reference);
+        let sets = reachable_entries(layout, &grid.as_stored(), aabb_scale, &self.reference);
         let f = bounds.n_features();
         // The levels are contiguous in table order: entry g belongs to the level whose
         // range holds it, visited in order.
