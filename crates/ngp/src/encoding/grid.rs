@@ -235,6 +235,46 @@ fn gather<const F: usize>(
     }
 }
 
+/// [`gather`] for two features a corner, the paper's: each corner's pair is one 8-byte load
+/// into the low half of a vector, and one fused multiply-add takes both features, in the
+/// same order as `gather::<2>` (so the same bits). Left to itself LLVM vectorises
+/// `gather::<2>` across samples with two hardware gathers a corner, one per feature, each
+/// fetching the same line; on the AMD EPYC that builds with AVX-512 this took 11 % off a
+/// fox-colmap view's rendering (benchmarks/engine.md, "Why an unbounded view is slow").
+fn gather_pairs(
+    table: &[f32],
+    offs: &[u32],
+    weights: &[f32],
+    n: usize,
+    enc: &mut [f32],
+    ld: usize,
+) {
+    #[cfg(all(target_arch = "x86_64", target_feature = "fma"))]
+    {
+        use core::arch::x86_64::*;
+        let tp = table.as_ptr();
+        let (e0, e1) = enc.split_at_mut(ld);
+        for s in 0..n {
+            let o = &offs[s * CORNERS..(s + 1) * CORNERS];
+            let w = &weights[s * CORNERS..(s + 1) * CORNERS];
+            // SAFETY: LevelCorners checked entry < level size, so o[c] + 2 <= table.len();
+            // the load reads exactly those 8 bytes (unaligned allowed); fma is enabled.
+            unsafe {
+                let mut acc = _mm_setzero_ps();
+                for c in 0..CORNERS {
+                    debug_assert!(o[c] as usize + 2 <= table.len());
+                    let v = _mm_castpd_ps(_mm_load_sd(tp.add(o[c] as usize) as *const f64));
+                    acc = _mm_fmadd_ps(_mm_set1_ps(w[c]), v, acc);
+                }
+                e0[s] = _mm_cvtss_f32(acc);
+                e1[s] = _mm_cvtss_f32(_mm_shuffle_ps::<1>(acc, acc));
+            }
+        }
+    }
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "fma")))]
+    gather::<2>(table, offs, weights, n, enc, ld);
+}
+
 /// `next_level` holds the next level's corner offsets: their gradient lines are prefetched
 /// one level ahead (a whole level's lines fit in L2), which overlaps the scatter's misses far
 /// better than a few samples ahead.
@@ -310,7 +350,7 @@ pub fn forward(
         let out = &mut enc[l * nf * ld..(l + 1) * nf * ld];
         match nf {
             1 => gather::<1>(table, offs, weights, n, out, ld),
-            2 => gather::<2>(table, offs, weights, n, out, ld),
+            2 => gather_pairs(table, offs, weights, n, out, ld),
             4 => gather::<4>(table, offs, weights, n, out, ld),
             8 => gather::<8>(table, offs, weights, n, out, ld),
             _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
@@ -467,6 +507,42 @@ mod tests {
                             want[j]
                         );
                     }
+                }
+            }
+        }
+    }
+
+    /// The paired loads give the generic gather's bits (the same fused multiply-adds in the
+    /// same order), so rendering and training are unchanged by them, bit for bit.
+    #[test]
+    fn paired_gather_is_the_generic_gather_to_the_bit() {
+        let g = GridLayout::new(GridConfig::default(), 1).unwrap();
+        let table = random_table(&g, 3);
+        let pos = random_pos(300, 4);
+        let (n, ld) = (pos.len(), 304);
+        let mut cache = GridCache::new(&g, n);
+        let mut enc = vec![0f32; g.config.n_output_dims() * ld];
+        forward(
+            &g,
+            &table,
+            &reference_indices(&g),
+            &pos,
+            &mut cache,
+            &mut enc,
+            ld,
+        );
+        for l in 0..g.levels.len() {
+            let offs = &cache.offs[l * n * CORNERS..(l + 1) * n * CORNERS];
+            let weights = &cache.weights[l * n * CORNERS..(l + 1) * n * CORNERS];
+            let mut generic = vec![f32::NAN; 2 * ld];
+            let mut paired = vec![f32::NAN; 2 * ld];
+            gather::<2>(&table, offs, weights, n, &mut generic, ld);
+            gather_pairs(&table, offs, weights, n, &mut paired, ld);
+            for f in 0..2 {
+                for s in 0..n {
+                    let (a, b) = (generic[f * ld + s], paired[f * ld + s]);
+                    assert_eq!(a.to_bits(), b.to_bits(), "level {l} feature {f} sample {s}");
+                    assert_eq!(b.to_bits(), enc[(2 * l + f) * ld + s].to_bits());
                 }
             }
         }
