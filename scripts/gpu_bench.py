@@ -309,13 +309,14 @@ class Run:
         opened = self.results["devices"]["opened"]
         if opened:
             self.note("adapter: " + opened["adapter"])
+            self.note(f"  fma fused: {opened.get('fma_fused')}")
             for k, v in opened["limits"].items():
                 self.note(f"  {k}: {v}")
         self.data()
         self.save()
 
         lego = self.work / "lego"
-        common = ["--device", "gpu", "--json"]
+        common = ["--device", "gpu", "--json"] + (["--half-grid"] if a.half_grid else [])
         if small:
             common += ["--batch", "4096", "--occupancy-fraction", "0.0078125"]
         # Checkpoints score 8 test views (all the carried ones).
@@ -390,6 +391,7 @@ def lego_summary(r, opened):
         "adapter": opened["adapter"] if opened else None,
         "lego_psnr_by_minute": {str(c["minutes"]): round(c["psnr"], 2) for c in lego["checkpoints"]},
         "lego_steps": lego["steps"],
+        "half_grid": lego.get("half_grid"),
         "lego_samples_per_second": round(lego["samples_per_second"]),
         "lego_steady": lego.get("steady"),
         "lego_per_step": {k: lego.get(k) for k in (
@@ -435,6 +437,8 @@ def main():
     pr.add_argument("--pair-minutes", type=float, default=None)
     pr.add_argument("--lego-only", action="store_true",
                     help="lego alone (a second, shorter run on the same machine)")
+    pr.add_argument("--half-grid", action="store_true",
+                    help="train with the grid's fp16 copy (train --half-grid), to set beside a run without")
     a = p.parse_args()
     if a.what == "prepare":
         prepare(a)

@@ -177,3 +177,30 @@ fn profile_every_is_ignored_with_a_notice_on_the_cpu() {
     assert!(summary.get("device_phases_ms").is_none());
     assert_eq!(summary["host_waits_per_step"], 0.0);
 }
+
+/// `--half-grid` is a GPU option: on the CPU it is an error naming it, before any training,
+/// and no model is written.
+#[test]
+fn half_grid_on_the_cpu_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    synth_object(&p("obj"), "24", "4", "1");
+    let out = stegongp(&[
+        "train",
+        &p("obj"),
+        "--out",
+        &p("m.ingp"),
+        "--device",
+        "cpu",
+        "--steps",
+        "2",
+        "--half-grid",
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("fp16 copy of the grid is a GPU option"),
+        "{err}"
+    );
+    assert!(!dir.path().join("m.ingp").exists());
+}

@@ -497,3 +497,112 @@ fn bad_inputs_are_errors_not_panics() {
         .collect();
     assert!(input(g.upload_index(ctx, &bad)));
 }
+
+/// The fp16 copy of the table holds each float rounded to the nearest fp16 (as the CPU's
+/// `half` and a snapshot round), and the forward over it computes what the CPU's forward
+/// computes over that rounded table (the same entries and weights; the forward tolerance).
+/// An odd feature count is refused.
+#[test]
+fn the_fp16_table_is_the_rounded_table_and_the_forward_reads_it() {
+    let Some(ctx) = test_context() else { return };
+    for (f, levels, log2) in [(2, 16, 19), (4, 8, 14), (8, 4, 12)] {
+        let layout = GridLayout::new(
+            GridConfig {
+                n_levels: levels,
+                n_features: f,
+                log2_hashmap_size: log2,
+                base_resolution: 16,
+            },
+            1,
+        )
+        .unwrap();
+        let mut table = random_f32(layout.n_params(), 60 + f as u64);
+        // Values that round in every way: ties, subnormals, past the range (clamped).
+        table[0] = 1.0 + 2f32.powi(-11);
+        table[1] = 1e-6;
+        table[2] = 1e6;
+        table[3] = -7e4;
+        let rounded: Vec<f32> = table
+            .iter()
+            .map(|&v| half::f16::from_f32(v.clamp(-65504.0, 65504.0)).to_f32())
+            .collect();
+        let buf = upload_f32(ctx, "table", &table).unwrap();
+        let g = GridEncoding::new(ctx, &layout, GradAtomics::Auto).unwrap();
+        let half = g.half_table(ctx, buf.slice(..)).unwrap();
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        half.encode_pack(&mut encoder);
+        ctx.queue.submit([encoder.finish()]);
+        let words: Vec<u32> = ctx
+            .read_buffer(half.buffer(), 2 * layout.n_params() as u64)
+            .unwrap();
+        for (w, &word) in words.iter().enumerate() {
+            for k in 0..2 {
+                let want = half::f16::from_f32(rounded[2 * w + k]).to_bits();
+                let got = (word >> (16 * k)) as u16;
+                assert_eq!(
+                    got,
+                    want,
+                    "F = {f}: float {} ({})",
+                    2 * w + k,
+                    table[2 * w + k]
+                );
+            }
+        }
+
+        let pos = positions(&layout, 1500, 70 + f as u64);
+        let n = pos.len();
+        let ld = n.next_multiple_of(128);
+        let width = layout.config.n_output_dims();
+        let indices = reference_indices(&layout);
+        let want = cpu(
+            &layout,
+            &rounded,
+            &indices,
+            &pos,
+            &vec![0.0; width * ld],
+            ld,
+        );
+        let shape = GridShape {
+            n_samples: n as u32,
+            ld: ld as u32,
+        };
+        let p = upload_positions(ctx, &pos, shape.ld).unwrap();
+        let e = upload_f32(ctx, "enc", &vec![f32::NAN; width * ld]).unwrap();
+        let index = g.upload_index(ctx, &indices).unwrap();
+        g.bind_forward_half(ctx, &index, p.slice(..), &half, e.slice(..), shape)
+            .unwrap()
+            .run(ctx)
+            .unwrap();
+        let got = download_f32(ctx, &e, width * ld).unwrap();
+        let mut max = 0f32;
+        for (i, (&a, &b)) in got.iter().zip(&want.enc).enumerate() {
+            let (j, s) = (i / ld, i % ld);
+            if s >= n {
+                assert_eq!(a.to_bits(), 0, "F = {f}: padding feature {j} sample {s}");
+                continue;
+            }
+            assert!(
+                (a - b).abs() <= 1e-6 + 1e-5 * b.abs(),
+                "F = {f}: feature {j} sample {s}: gpu {a} cpu over the rounded table {b}"
+            );
+            max = max.max((a - b).abs());
+        }
+        eprintln!("F = {f}: fp16 forward max |Δ| {max:.2e} against the CPU over the rounded table");
+    }
+    let odd = GridLayout::new(
+        GridConfig {
+            n_levels: 4,
+            n_features: 1,
+            log2_hashmap_size: 12,
+            base_resolution: 8,
+        },
+        1,
+    )
+    .unwrap();
+    let buf = upload_f32(ctx, "table", &vec![0.0; odd.n_params()]).unwrap();
+    let g = GridEncoding::new(ctx, &odd, GradAtomics::Auto).unwrap();
+    assert!(matches!(
+        g.half_table(ctx, buf.slice(..)),
+        Err(GpuError::Input(_))
+    ));
+}

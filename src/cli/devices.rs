@@ -31,6 +31,9 @@ struct Opened {
     float32_atomics: bool,
     f16: bool,
     subgroups: bool,
+    /// The adapter's fma rounds once, as the CPU's (the grid then picks cells with it
+    /// rather than an exact integer emulation); null where the probe could not run.
+    fma_fused: Option<bool>,
     limits: std::collections::BTreeMap<&'static str, u64>,
 }
 
@@ -68,6 +71,7 @@ fn report() -> Report {
                     float32_atomics: r.float32_atomics,
                     f16: r.f16,
                     subgroups: r.subgroups,
+                    fma_fused: ctx.fma_fused().ok(),
                     limits: ctx.limits_report().into_iter().collect(),
                 }),
                 error: None,
@@ -111,6 +115,16 @@ pub fn run(a: Args) -> Result<()> {
         match &r.opened {
             Some(o) => {
                 println!("--device gpu opens: {}", o.adapter);
+                if let Some(f) = o.fma_fused {
+                    println!(
+                        "  fma: {}",
+                        if f {
+                            "fused (grid cells from the hardware's fma)"
+                        } else {
+                            "rounds twice (grid cells from the exact emulation)"
+                        }
+                    );
+                }
                 for (k, v) in &o.limits {
                     println!("  {k}: {v}");
                 }

@@ -72,6 +72,12 @@ pub struct Args {
     /// and report the milliseconds per step of each (one extra read-back per profiled step).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub profile_every: u32,
+    /// GPU: the training forwards read an fp16 copy of the grid table, made from the f32
+    /// table at the start of every step (tiny-cuda-nn's forward reads fp16 parameters;
+    /// Adam keeps the f32 master): half the bytes a corner. Off by default until measured
+    /// on hardware (benchmarks/gpu.md). An error on the CPU.
+    #[arg(long)]
+    pub half_grid: bool,
     /// Save the whole training state every N steps, or every M minutes with `Mm` (e.g.
     /// `500`, `10m`), and at the end, to `--state`: `--resume` goes on from it, on the
     /// kind of device that saved it (CPU: exactly; GPU: the same run, within noise; with
@@ -182,6 +188,8 @@ struct Summary {
     /// The budget that sized the updates (evaluations per trained sample); null for the
     /// reference's schedule.
     occupancy_budget: Option<f32>,
+    /// Whether the training forwards read the grid's fp16 copy (--half-grid).
+    half_grid: bool,
     checkpoints: Vec<Checkpoint>,
     /// With --profile-every: milliseconds per profiled step in each device phase.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -301,6 +309,9 @@ pub fn run(a: Args) -> Result<()> {
                 training.totals().seconds
             );
         }
+    }
+    if a.half_grid {
+        training.trainer_mut().half_grid()?;
     }
     if a.profile_every > 0 && !training.trainer_mut().profile_device(a.profile_every) {
         eprintln!(
@@ -514,6 +525,7 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_updates: t.occupancy_updates,
         occupancy_evaluations: t.occupancy_evaluations,
         occupancy_budget,
+        half_grid: a.half_grid,
         checkpoints,
         device_phases_ms,
     };

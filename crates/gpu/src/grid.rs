@@ -129,9 +129,13 @@ pub struct GridEncoding {
     layout: GridLayout,
     levels: wgpu::Buffer,
     atomics: GradAtomics,
+    /// The adapter's fma rounds once ([`GpuContext::fma_fused`]): the cells come from it.
+    hardware_fma: bool,
     module: wgpu::ShaderModule,
     forward: PipelineCache,
+    forward_half: PipelineCache,
     backward: PipelineCache,
+    pack: PipelineCache,
     /// Workgroups per dispatch row before folding into y; the device's limit, lowered by
     /// the unit tests to exercise the fold.
     max_groups_x: u32,
@@ -140,22 +144,50 @@ pub struct GridEncoding {
 #[derive(Clone, Copy)]
 enum Pass {
     Forward,
+    ForwardHalf,
     Backward,
+    Pack,
 }
 
 impl Pass {
     fn entry(self) -> &'static str {
         match self {
             Pass::Forward => "forward_main",
+            Pass::ForwardHalf => "forward_half_main",
             Pass::Backward => "backward_main",
+            Pass::Pack => "pack_half_main",
         }
     }
 
     fn what(self) -> &'static str {
         match self {
             Pass::Forward => "grid forward",
+            Pass::ForwardHalf => "grid forward (fp16 table)",
             Pass::Backward => "grid backward",
+            Pass::Pack => "grid table to fp16",
         }
+    }
+}
+
+/// The grid table's fp16 copy on the device (tiny-cuda-nn's forward reads fp16 parameters;
+/// the f32 master stays for Adam), and the dispatch that refreshes it from the f32 table.
+/// Made by [`GridEncoding::half_table`], read by [`GridEncoding::bind_forward_half`].
+pub struct HalfTable {
+    buffer: wgpu::Buffer,
+    pack: GridDispatch,
+}
+
+impl HalfTable {
+    /// Records the copy from the f32 table (its contents when the dispatch runs): record it
+    /// after the last change to the table and before the forwards that read the copy.
+    pub fn encode_pack(&self, encoder: &mut wgpu::CommandEncoder) {
+        self.pack
+            .record(&mut encoder.begin_compute_pass(&Default::default()));
+    }
+
+    /// The copy: `n_params / 2` words, each two fp16 (`pack2x16float`, low half first).
+    pub fn buffer(&self) -> &wgpu::Buffer {
+        &self.buffer
     }
 }
 
@@ -304,11 +336,20 @@ impl GridEncoding {
             layout: layout.clone(),
             levels,
             atomics,
+            hardware_fma: ctx.fma_fused()?,
             module,
             forward: Mutex::new(Default::default()),
+            forward_half: Mutex::new(Default::default()),
             backward: Mutex::new(Default::default()),
+            pack: Mutex::new(Default::default()),
             max_groups_x: max_dim,
         })
+    }
+
+    /// Whether the cells come from the adapter's own fma (fused, [`GpuContext::fma_fused`])
+    /// rather than the exact integer emulation.
+    pub fn hardware_fma(&self) -> bool {
+        self.hardware_fma
     }
 
     /// How this encoding's backward accumulates ([`GradAtomics::Auto`] resolved).
@@ -328,24 +369,41 @@ impl GridEncoding {
         GpuIndex::upload(ctx, indices)
     }
 
+    /// The copy reads no index: one pipeline, made with the default index kinds.
+    fn pack_pipeline(&self, ctx: &GpuContext) -> GpuResult<wgpu::ComputePipeline> {
+        self.pipeline_for(ctx, 7, Pass::Pack)
+    }
+
     fn pipeline(
         &self,
         ctx: &GpuContext,
         index: &GpuIndex,
         pass: Pass,
     ) -> GpuResult<wgpu::ComputePipeline> {
+        self.pipeline_for(ctx, index.kinds(), pass)
+    }
+
+    fn pipeline_for(
+        &self,
+        ctx: &GpuContext,
+        kinds: u32,
+        pass: Pass,
+    ) -> GpuResult<wgpu::ComputePipeline> {
         let cache = match pass {
             Pass::Forward => &self.forward,
+            Pass::ForwardHalf => &self.forward_half,
             Pass::Backward => &self.backward,
+            Pass::Pack => &self.pack,
         };
         let mut cache = cache.lock().unwrap_or_else(|p| p.into_inner());
-        let slot = &mut cache[index.kinds() as usize & 7];
+        let slot = &mut cache[kinds as usize & 7];
         if let Some(p) = slot {
             return Ok(p.clone());
         }
         let constants = [
-            ("INDEX_KINDS", index.kinds() as f64),
+            ("INDEX_KINDS", kinds as f64),
             ("N_FEATURES", self.layout.config.n_features as f64),
+            ("HARDWARE_FMA", self.hardware_fma as u32 as f64),
         ];
         let p = ctx.scoped(pass.what(), || {
             ctx.device
@@ -420,6 +478,116 @@ impl GridEncoding {
             ),
         ];
         self.bind(ctx, index, shape, Pass::Forward, data)
+    }
+
+    /// An fp16 copy of `table` (exactly the grid's `n_params` f32), refreshed by
+    /// [`HalfTable::encode_pack`], for [`Self::bind_forward_half`]. Features go in pairs:
+    /// an error for an odd F.
+    pub fn half_table(
+        &self,
+        ctx: &GpuContext,
+        table: wgpu::BufferSlice<'_>,
+    ) -> GpuResult<HalfTable> {
+        let f = self.layout.config.n_features;
+        if !f.is_multiple_of(2) {
+            return input(format!(
+                "{f} feature per level: the fp16 table holds features in pairs"
+            ));
+        }
+        let n_params = self.layout.n_params() as u64;
+        let words = u32::try_from(n_params / 2)
+            .map_err(|_| GpuError::Input("grid past 2^33 parameters".into()))?;
+        let table = storage_binding(ctx, "grid table", table, 4 * n_params, true)?;
+        let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
+        let [gx, gy] = fold_groups(words, self.max_groups_x.min(max_dim), max_dim)?;
+        let params = GridParams {
+            n_samples: words,
+            ld: words,
+            row_width: gx * WORKGROUP,
+            _pad: 0,
+        };
+        let pipeline = self.pack_pipeline(ctx)?;
+        ctx.scoped(Pass::Pack.what(), || {
+            let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("grid table, fp16"),
+                size: 4 * words as u64,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            let params = ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("grid pack params"),
+                    contents: bytemuck::bytes_of(&params),
+                    usage: wgpu::BufferUsages::UNIFORM,
+                });
+            let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(Pass::Pack.what()),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: params.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 5,
+                        resource: wgpu::BindingResource::Buffer(table),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 10,
+                        resource: buffer.as_entire_binding(),
+                    },
+                ],
+            });
+            HalfTable {
+                buffer,
+                pack: GridDispatch {
+                    pipeline,
+                    bind_group,
+                    params,
+                    ld: words,
+                    groups: [gx, gy, 1],
+                    what: Pass::Pack.what(),
+                },
+            }
+        })
+    }
+
+    /// [`Self::bind_forward`] reading the fp16 copy `half` (of this grid's table) instead of
+    /// the f32 table: the same entries and weights, the features rounded to fp16.
+    pub fn bind_forward_half(
+        &self,
+        ctx: &GpuContext,
+        index: &GpuIndex,
+        positions: wgpu::BufferSlice<'_>,
+        half: &HalfTable,
+        enc: wgpu::BufferSlice<'_>,
+        shape: GridShape,
+    ) -> GpuResult<GridDispatch> {
+        self.check_shape(index, shape)?;
+        let ld = shape.ld as u64;
+        let n_params = self.layout.n_params() as u64;
+        let data = [
+            (
+                4,
+                storage_binding(ctx, "positions", positions, 12 * ld, false)?,
+            ),
+            (
+                9,
+                storage_binding(
+                    ctx,
+                    "grid table, fp16",
+                    half.buffer.slice(..),
+                    2 * n_params,
+                    true,
+                )?,
+            ),
+            (
+                6,
+                storage_binding(ctx, "encoding", enc, 4 * self.width() * ld, false)?,
+            ),
+        ];
+        self.bind(ctx, index, shape, Pass::ForwardHalf, data)
     }
 
     /// The backward: adds `w·d_enc` into `grad` (exactly the grid's `n_params` f32) at the
@@ -727,6 +895,7 @@ fn probe_main(@builtin(global_invocation_id) gid: vec3<u32>) {{
 }}"
         );
         let n = pairs.len();
+        let fused = ctx.fma_fused().unwrap();
         let buf = upload_f32(ctx, "probe", pairs.as_flattened()).unwrap();
         ctx.scoped("probe", || {
             let d = &ctx.device;
@@ -739,7 +908,11 @@ fn probe_main(@builtin(global_invocation_id) gid: vec3<u32>) {{
                 layout: None,
                 module: &module,
                 entry_point: Some("probe_main"),
-                compilation_options: Default::default(),
+                // The path the grid compiles on this adapter (the builtin where it is fused).
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &[("HARDWARE_FMA", fused as u32 as f64)],
+                    ..Default::default()
+                },
                 cache: None,
             });
             let bind_group = d.create_bind_group(&wgpu::BindGroupDescriptor {

@@ -52,6 +52,10 @@ const MAX_FEATURES: u32 = 8u;
 @group(0) @binding(6) var<storage, read_write> enc: array<f32>;
 // Backward only (and grad at binding 8).
 @group(0) @binding(7) var<storage, read> d_enc: array<f32>;
+// The table's fp16 copy (forward_half_main reads it, pack_half_main writes it): word w holds
+// floats 2w and 2w + 1 of `table` (features f, f + 1 of an entry, F even), low half first.
+@group(0) @binding(9) var<storage, read> table_half: array<u32>;
+@group(0) @binding(10) var<storage, read_write> table_half_out: array<u32>;
 
 struct Corners {
     entry: array<u32, 8>,
@@ -63,8 +67,8 @@ struct Corners {
 // WGSL's fma() need only be as accurate as a multiply and an add, and llvmpipe rounds
 // twice; at a cell edge that puts a sample in the neighbouring cell (other entries read,
 // and a fine level's output off by ~1e-4). So the one fma that chooses cells is computed
-// exactly, in integers, on every adapter: one code path, the one CI tests. The cost, some
-// fifty integer operations per coordinate, hides behind the table reads on a GPU.
+// exactly, in integers, unless the adapter's fma is fused (HARDWARE_FMA): llvmpipe's is not,
+// so CI tests this path. The cost is some fifty integer operations per coordinate.
 
 // 64-bit v >> r for 0 < r < 64, and whether any bit shifted out was set.
 fn shr64_sticky(v: vec2<u32>, r: u32) -> vec3<u32> {
@@ -97,7 +101,14 @@ fn any_below64(v: vec2<u32>, i: u32) -> bool {
 // placed as a fixed-point number with 40 fractional bits (what falls below goes to a sticky
 // bit), 0.5 added, and the sum rounded to 24 significant bits, ties to even. Zero,
 // subnormal, negative and out-of-range inputs (no grid position) take the builtin fma.
+// True where the adapter's fma() rounds once (crates/gpu/src/fma.rs probes it on grid-like
+// inputs against the CPU's mul_add): then the builtin is the exact value.
+override HARDWARE_FMA: bool = false;
+
 fn fma_half(s: f32, x: f32) -> f32 {
+    if (HARDWARE_FMA) {
+        return fma(s, x, 0.5);
+    }
     let sb = bitcast<u32>(s);
     let xb = bitcast<u32>(x);
     let se = sb >> 23u;
@@ -201,6 +212,52 @@ fn forward_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     for (var f = 0u; f < N_FEATURES; f++) {
         enc[out + f * ld] = acc[f];
     }
+}
+
+// forward_main reading the fp16 copy, as tiny-cuda-nn's forward reads its fp16 parameters
+// while Adam keeps the f32 master: half the bytes a corner, and the two features of a pair
+// in one load. The same entries and weights; the features are the table's rounded to fp16.
+@compute @workgroup_size(128)
+fn forward_half_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let s = sample_of(gid);
+    let ld = params.ld;
+    if (s >= ld) {
+        return;
+    }
+    let l = gid.z;
+    let out = l * N_FEATURES * ld + s;
+    var acc: array<f32, MAX_FEATURES>;
+    if (s < params.n_samples) {
+        let k = grid_corners(l, s);
+        let gl = grid_levels[l];
+        for (var c = 0u; c < 8u; c++) {
+            let e = k.entry[c];
+            if (e < gl.size) {
+                let base = (gl.offset + e) * (N_FEATURES / 2u);
+                for (var f = 0u; f < N_FEATURES; f += 2u) {
+                    let v = unpack2x16float(table_half[base + f / 2u]);
+                    acc[f] = fma(k.weight[c], v.x, acc[f]);
+                    acc[f + 1u] = fma(k.weight[c], v.y, acc[f + 1u]);
+                }
+            }
+        }
+    }
+    for (var f = 0u; f < N_FEATURES; f++) {
+        enc[out + f * ld] = acc[f];
+    }
+}
+
+// The fp16 copy of the table, one word (two floats) per invocation, params.n_samples words.
+// Values past fp16's range (none a trained table holds) are clamped to it rather than left
+// to pack2x16float, whose result there WGSL leaves undefined.
+@compute @workgroup_size(128)
+fn pack_half_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let w = sample_of(gid);
+    if (w >= params.n_samples) {
+        return;
+    }
+    let v = vec2<f32>(table[2u * w], table[2u * w + 1u]);
+    table_half_out[w] = pack2x16float(clamp(v, vec2<f32>(-65504.0), vec2<f32>(65504.0)));
 }
 
 @compute @workgroup_size(128)

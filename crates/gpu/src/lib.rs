@@ -9,6 +9,7 @@
 pub mod compact;
 pub mod count;
 pub mod field;
+pub mod fma;
 pub mod grid;
 pub mod held;
 pub mod index;
@@ -180,6 +181,8 @@ pub struct GpuContext {
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
     report: AdapterReport,
+    /// The [`fma::fma_is_fused`] probe's answer, once asked.
+    fma_fused: OnceLock<bool>,
 }
 
 /// Software rasterisers report `DeviceType::Cpu`; the names catch a driver that reports
@@ -277,6 +280,7 @@ impl GpuContext {
             device,
             queue,
             report,
+            fma_fused: OnceLock::new(),
         })
     }
 
@@ -288,6 +292,16 @@ impl GpuContext {
 
     pub fn report(&self) -> &AdapterReport {
         &self.report
+    }
+
+    /// Whether this adapter's `fma` rounds once, as the CPU's `mul_add` does
+    /// ([`fma::fma_is_fused`], probed once a context).
+    pub fn fma_fused(&self) -> GpuResult<bool> {
+        if let Some(&f) = self.fma_fused.get() {
+            return Ok(f);
+        }
+        let f = fma::fma_is_fused(self)?;
+        Ok(*self.fma_fused.get_or_init(|| f))
     }
 
     /// The device's limits that bound what the kernels can do: batch sizes (storage
@@ -665,6 +679,9 @@ impl ngp::train::TrainBackend for GpuTrainer<'_> {
     }
     fn profile_device(&mut self, every: u32) -> bool {
         GpuTrainer::profile_device(self, every)
+    }
+    fn half_grid(&mut self) -> ngp::Result<()> {
+        Ok(GpuTrainer::set_half_grid(self, true)?)
     }
     fn device_profile(&self) -> Vec<(String, f64)> {
         GpuTrainer::device_profile(self)

@@ -59,7 +59,7 @@
 use super::compact::{CompactInputs, Compacted};
 use super::count::{CountKernel, DeviceCount};
 use super::field::{DensityScratch, GpuField};
-use super::grid::GridShape;
+use super::grid::{GridShape, HalfTable};
 use super::held::{GpuHoldBack, GpuKeptMlp};
 use super::loss::{LossBuffers, LossConfig, LossKernel};
 use super::mlp::{ACT_ROWS, EncodedBatch, MlpWorkspace};
@@ -239,6 +239,9 @@ pub struct GpuTrainer<'c> {
     occupancy_submissions: u32,
     /// Device timestamps between the step's phases, when asked for.
     profiler: RefCell<Option<StepProfiler>>,
+    /// The grid table's fp16 copy the training forwards read, when asked for
+    /// ([`Self::set_half_grid`]).
+    half: Option<HalfTable>,
     /// Steps taken, updating the weights or not: the schedule's and the rays' clock.
     pub step: u32,
     /// Steps that updated the weights (the CPU trainer's `weight_steps`): the optimizer's
@@ -428,6 +431,7 @@ impl<'c> GpuTrainer<'c> {
             dirs_uniform,
             occupancy_submissions: 0,
             profiler: RefCell::new(None),
+            half: None,
             step: 0,
             weight_steps: 0,
         })
@@ -445,6 +449,28 @@ impl<'c> GpuTrainer<'c> {
         let on = p.is_some();
         *self.profiler.get_mut() = p;
         on
+    }
+
+    /// With `on`, the training forwards (over the marched and the trained samples) read an
+    /// fp16 copy of the grid table, made from the f32 table at the start of every step, as
+    /// tiny-cuda-nn's forward reads fp16 parameters while Adam keeps the f32 master: half
+    /// the bytes a corner. Occupancy updates and rendering keep reading the f32 table.
+    /// Refused (an input error) for an odd number of features per level.
+    pub fn set_half_grid(&mut self, on: bool) -> GpuResult<()> {
+        self.half = if on {
+            let layout = self.field.layout();
+            let table = 4 * layout.grid_offset as u64..4 * layout.n_params as u64;
+            let grid = self.field.grid();
+            Some(grid.half_table(self.ctx, self.field.params.slice(table))?)
+        } else {
+            None
+        };
+        Ok(())
+    }
+
+    /// Whether the training forwards read the fp16 copy ([`Self::set_half_grid`]).
+    pub fn half_grid(&self) -> bool {
+        self.half.is_some()
     }
 
     /// Milliseconds per profiled step by phase (see [`StepProfiler::report`]).
@@ -777,6 +803,12 @@ impl<'c> GpuTrainer<'c> {
         let ctx = self.ctx;
         let mut trained = Vec::with_capacity(ids.len());
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        if let Some(h) = &self.half {
+            // After the last step's optimizer and any write of the weights since; before
+            // the step's forwards.
+            h.encode_pack(&mut encoder);
+            self.mark(&mut encoder, "grid table to fp16");
+        }
         for (i, &si) in ids.iter().enumerate() {
             self.mark_submission(&mut encoder);
             trained.push((si, self.encode_scene(si, &mut encoder)?));
@@ -1132,14 +1164,16 @@ impl<'c> GpuTrainer<'c> {
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
-        let forward = self.field.grid().bind_forward(
-            ctx,
-            &self.scenes[si].index,
-            pos.slice(..pos_bytes),
-            self.field.params.slice(grid_bytes),
-            self.enc.slice(..enc_bytes),
-            shape,
-        )?;
+        let grid = self.field.grid();
+        let index = &self.scenes[si].index;
+        let (pos, enc) = (pos.slice(..pos_bytes), self.enc.slice(..enc_bytes));
+        let forward = match &self.half {
+            Some(h) => grid.bind_forward_half(ctx, index, pos, h, enc, shape)?,
+            None => {
+                let table = self.field.params.slice(grid_bytes);
+                grid.bind_forward(ctx, index, pos, table, enc, shape)?
+            }
+        };
         match count {
             Some(c) => forward.record_counted(encoder, c)?,
             None => forward.record(&mut encoder.begin_compute_pass(&Default::default())),

@@ -61,6 +61,13 @@ pub trait TrainBackend {
     fn profile_device(&mut self, _every: u32) -> bool {
         false
     }
+    /// Has the training forwards read an fp16 copy of the grid table (a GPU's option,
+    /// tiny-cuda-nn's way); an error where this backend or model cannot.
+    fn half_grid(&mut self) -> Result<()> {
+        Err(crate::error::Error::Config(
+            "an fp16 copy of the grid is a GPU option (the CPU reads the f32 table)".into(),
+        ))
+    }
     /// Milliseconds per profiled step by phase, in the order they ran (empty unless
     /// profiling).
     fn device_profile(&self) -> Vec<(String, f64)> {
