@@ -8,7 +8,9 @@
 //! Buffers stay on the device: [`GridEncoding::bind_forward`] and
 //! [`GridEncoding::bind_backward`] take slices of buffers a trainer owns (the grid block of
 //! its parameter vector, its gradient vector, the MLP's input and input-gradient matrices)
-//! and give a [`GridDispatch`] to record into the trainer's own compute pass. Layouts:
+//! and give a [`GridDispatch`] to record into the trainer's own compute pass;
+//! [`GridEncoding::bind_forward_half`] reads an fp16 copy of the table instead
+//! ([`GridEncoding::half_table`], as tiny-cuda-nn's forward reads fp16). Layouts:
 //!
 //! - positions: 3 f32 per sample, in [0, 1]^3;
 //! - table and gradient: level l's entry e, feature f at `(offset_l + e)·F + f`, f32;

@@ -92,8 +92,8 @@ pub(crate) struct RayParams {
 
 /// One batch's buffers on the device: per ray a [`GenRay`] (`drawn`) and a [`GpuRay`]
 /// (`rays`), per sample of the budget the warped position (3 f32), `dt` and `dist`; and
-/// `counters`: [0] samples asked for (past the budget too), [1] samples written (the
-/// batch's compacted length), [2] rays with samples.
+/// `counters`: `[0]` samples asked for (past the budget too), `[1]` samples written (the
+/// batch's compacted length), `[2]` rays with samples.
 pub struct RayBatch {
     pub drawn: wgpu::Buffer,
     pub rays: wgpu::Buffer,

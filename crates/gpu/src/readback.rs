@@ -5,7 +5,7 @@
 //! by which time the device has long finished it: the host records the next steps while
 //! the device runs this one, as instant-ngp's own bookkeeping reads its counters late.
 //!
-//! [`SUMS_WGSL`] reduces a batch's per-ray (loss, samples used) pairs on the device in one
+//! `SUMS_WGSL` reduces a batch's per-ray (loss, samples used) pairs on the device in one
 //! workgroup, in a fixed order: the same sums on every run.
 
 use super::{GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry as entry};
