@@ -462,24 +462,19 @@ impl GridEncoding {
         enc: wgpu::BufferSlice<'_>,
         shape: GridShape,
     ) -> GpuResult<GridDispatch> {
-        self.check_shape(index, shape)?;
         let ld = shape.ld as u64;
         let n_params = self.layout.n_params() as u64;
-        let data = [
-            (
-                4,
-                storage_binding(ctx, "positions", positions, 12 * ld, false)?,
-            ),
-            (
-                5,
-                storage_binding(ctx, "grid table", table, 4 * n_params, true)?,
-            ),
-            (
-                6,
-                storage_binding(ctx, "encoding", enc, 4 * self.width() * ld, false)?,
-            ),
-        ];
-        self.bind(ctx, index, shape, Pass::Forward, data)
+        self.bind(
+            ctx,
+            index,
+            shape,
+            Pass::Forward,
+            [
+                (4, "positions", positions, 12 * ld, false),
+                (5, "grid table", table, 4 * n_params, true),
+                (6, "encoding", enc, 4 * self.width() * ld, false),
+            ],
+        )
     }
 
     /// An fp16 copy of `table` (exactly the grid's `n_params` f32), refreshed by
@@ -566,30 +561,25 @@ impl GridEncoding {
         enc: wgpu::BufferSlice<'_>,
         shape: GridShape,
     ) -> GpuResult<GridDispatch> {
-        self.check_shape(index, shape)?;
         let ld = shape.ld as u64;
         let n_params = self.layout.n_params() as u64;
-        let data = [
-            (
-                4,
-                storage_binding(ctx, "positions", positions, 12 * ld, false)?,
-            ),
-            (
-                9,
-                storage_binding(
-                    ctx,
+        self.bind(
+            ctx,
+            index,
+            shape,
+            Pass::ForwardHalf,
+            [
+                (4, "positions", positions, 12 * ld, false),
+                (
+                    9,
                     "grid table, fp16",
                     half.buffer.slice(..),
                     2 * n_params,
                     true,
-                )?,
-            ),
-            (
-                6,
-                storage_binding(ctx, "encoding", enc, 4 * self.width() * ld, false)?,
-            ),
-        ];
-        self.bind(ctx, index, shape, Pass::ForwardHalf, data)
+                ),
+                (6, "encoding", enc, 4 * self.width() * ld, false),
+            ],
+        )
     }
 
     /// The backward: adds `w·d_enc` into `grad` (exactly the grid's `n_params` f32) at the
@@ -604,30 +594,19 @@ impl GridEncoding {
         grad: wgpu::BufferSlice<'_>,
         shape: GridShape,
     ) -> GpuResult<GridDispatch> {
-        self.check_shape(index, shape)?;
         let ld = shape.ld as u64;
         let n_params = self.layout.n_params() as u64;
-        let data = [
-            (
-                4,
-                storage_binding(ctx, "positions", positions, 12 * ld, false)?,
-            ),
-            (
-                7,
-                storage_binding(
-                    ctx,
-                    "encoding gradient",
-                    d_enc,
-                    4 * self.width() * ld,
-                    false,
-                )?,
-            ),
-            (
-                8,
-                storage_binding(ctx, "grid gradient", grad, 4 * n_params, true)?,
-            ),
-        ];
-        self.bind(ctx, index, shape, Pass::Backward, data)
+        self.bind(
+            ctx,
+            index,
+            shape,
+            Pass::Backward,
+            [
+                (4, "positions", positions, 12 * ld, false),
+                (7, "encoding gradient", d_enc, 4 * self.width() * ld, false),
+                (8, "grid gradient", grad, 4 * n_params, true),
+            ],
+        )
     }
 
     /// The dispatch shape of a pass bound with a leading dimension of `ld`, for a
@@ -650,8 +629,13 @@ impl GridEncoding {
         index: &GpuIndex,
         shape: GridShape,
         pass: Pass,
-        data: [(u32, wgpu::BufferBinding<'_>); 3],
+        buffers: [(u32, &str, wgpu::BufferSlice<'_>, u64, bool); 3],
     ) -> GpuResult<GridDispatch> {
+        self.check_shape(index, shape)?;
+        let mut data = Vec::with_capacity(buffers.len());
+        for (binding, what, slice, need, exact) in buffers {
+            data.push((binding, storage_binding(ctx, what, slice, need, exact)?));
+        }
         let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
         let [gx, gy] = fold_groups(shape.ld, self.max_groups_x.min(max_dim), max_dim)?;
         let params = GridParams {
