@@ -803,14 +803,16 @@ impl<'c> GpuTrainer<'c> {
         let ctx = self.ctx;
         let mut trained = Vec::with_capacity(ids.len());
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        if let Some(h) = &self.half {
-            // After the last step's optimizer and any write of the weights since; before
-            // the step's forwards.
-            h.encode_pack(&mut encoder);
-            self.mark(&mut encoder, "grid table to fp16");
-        }
         for (i, &si) in ids.iter().enumerate() {
             self.mark_submission(&mut encoder);
+            if i == 0
+                && let Some(h) = &self.half
+            {
+                // After the last step's optimizer and any write of the weights since; before
+                // the step's forwards.
+                h.encode_pack(&mut encoder);
+                self.mark(&mut encoder, "grid table to fp16");
+            }
             trained.push((si, self.encode_scene(si, &mut encoder)?));
             // Each scene's uniforms are written at its submission: the next scene's are
             // written after it. A policy's hooks follow their scene's submission.
