@@ -144,28 +144,26 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     assert!(Path::new(&p("out/log.txt")).is_file());
 }
 
+/// `train` on the CPU engine over a small generated object, 2 steps, with `extra` options;
+/// the folder (for the model's path) and the process's output.
+fn train_on_cpu(extra: &[&str]) -> (tempfile::TempDir, std::process::Output) {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    synth_object(&p("obj"), "24", "4", "1");
+    let (obj, model) = (p("obj"), p("m.ingp"));
+    let mut args = vec![
+        "train", &obj, "--out", &model, "--device", "cpu", "--steps", "2",
+    ];
+    args.extend_from_slice(extra);
+    let out = stegongp(&args);
+    (dir, out)
+}
+
 /// `--profile-every` on the CPU engine: said to be ignored, the training unchanged, no
 /// device phases in the JSON.
 #[test]
 fn profile_every_is_ignored_with_a_notice_on_the_cpu() {
-    let dir = tempfile::tempdir().unwrap();
-    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    synth_object(&p("obj"), "24", "4", "1");
-    let out = stegongp(&[
-        "train",
-        &p("obj"),
-        "--out",
-        &p("m.ingp"),
-        "--device",
-        "cpu",
-        "--steps",
-        "2",
-        "--batch",
-        "4096",
-        "--profile-every",
-        "1",
-        "--json",
-    ]);
+    let (_dir, out) = train_on_cpu(&["--batch", "4096", "--profile-every", "1", "--json"]);
     let stdout = stdout_ok(&out);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -182,20 +180,7 @@ fn profile_every_is_ignored_with_a_notice_on_the_cpu() {
 /// and no model is written.
 #[test]
 fn half_grid_on_the_cpu_is_an_error() {
-    let dir = tempfile::tempdir().unwrap();
-    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
-    synth_object(&p("obj"), "24", "4", "1");
-    let out = stegongp(&[
-        "train",
-        &p("obj"),
-        "--out",
-        &p("m.ingp"),
-        "--device",
-        "cpu",
-        "--steps",
-        "2",
-        "--half-grid",
-    ]);
+    let (dir, out) = train_on_cpu(&["--half-grid"]);
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(

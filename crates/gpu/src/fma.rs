@@ -9,7 +9,7 @@
 //! and on random ones, and compares every result's bits with the CPU's `mul_add`. An
 //! adapter that rounded the product first would miss every one of the first kind.
 
-use super::{GpuContext, GpuResult};
+use super::{GpuContext, GpuResult, auto_layout_pipelines, buffer_entry};
 use ngp::rng::Pcg32;
 use wgpu::util::DeviceExt;
 
@@ -62,22 +62,7 @@ pub fn fma_is_fused(ctx: &GpuContext) -> GpuResult<bool> {
         .flat_map(|&(s, x)| [s.to_bits(), x.to_bits(), 0])
         .collect();
     let buffer = ctx.scoped("fma probe", || {
-        let module = ctx
-            .device
-            .create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("fma probe"),
-                source: wgpu::ShaderSource::Wgsl(PROBE_WGSL.into()),
-            });
-        let pipeline = ctx
-            .device
-            .create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("fma probe"),
-                layout: None,
-                module: &module,
-                entry_point: Some("main"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
+        let [pipeline] = auto_layout_pipelines(ctx, "fma probe", PROBE_WGSL, ["main"]);
         let buffer = ctx
             .device
             .create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -88,10 +73,7 @@ pub fn fma_is_fused(ctx: &GpuContext) -> GpuResult<bool> {
         let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("fma probe"),
             layout: &pipeline.get_bind_group_layout(0),
-            entries: &[wgpu::BindGroupEntry {
-                binding: 0,
-                resource: buffer.as_entire_binding(),
-            }],
+            entries: &[buffer_entry(0, &buffer)],
         });
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         {

@@ -26,7 +26,7 @@
 //! benchmarks only.
 
 use super::count::{DeviceCount, Slot};
-use super::{GpuContext, GpuError, GpuIndex, GpuResult, INDEX_WGSL};
+use super::{GpuContext, GpuError, GpuIndex, GpuResult, INDEX_WGSL, buffer_entry};
 use ngp::encoding::{GridLayout, LevelIndex, check_indices};
 use std::num::NonZeroU64;
 use std::sync::Mutex;
@@ -522,18 +522,12 @@ impl GridEncoding {
                 label: Some(Pass::Pack.what()),
                 layout: &pipeline.get_bind_group_layout(0),
                 entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 3,
-                        resource: params.as_entire_binding(),
-                    },
+                    buffer_entry(3, &params),
                     wgpu::BindGroupEntry {
                         binding: 5,
                         resource: wgpu::BindingResource::Buffer(table),
                     },
-                    wgpu::BindGroupEntry {
-                        binding: 10,
-                        resource: buffer.as_entire_binding(),
-                    },
+                    buffer_entry(10, &buffer),
                 ],
             });
             HalfTable {
@@ -654,17 +648,11 @@ impl GridEncoding {
                     contents: bytemuck::bytes_of(&params),
                     usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
                 });
-            fn whole(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-                wgpu::BindGroupEntry {
-                    binding,
-                    resource: buffer.as_entire_binding(),
-                }
-            }
             let mut entries = vec![
-                whole(0, &index.levels),
-                whole(1, &index.tables),
-                whole(2, &self.levels),
-                whole(3, &params),
+                buffer_entry(0, &index.levels),
+                buffer_entry(1, &index.tables),
+                buffer_entry(2, &self.levels),
+                buffer_entry(3, &params),
             ];
             entries.extend(data.into_iter().map(|(binding, b)| wgpu::BindGroupEntry {
                 binding,
