@@ -169,7 +169,7 @@ mod bench {
                 let Some((tmin, _)) = m.intersect(ray.o, ray.d) else {
                     continue;
                 };
-                let t = advance_n_steps(tmin, m.cone_angle, rng.next_f32());
+                let t = advance_n_steps(tmin, m.cone_angle(), rng.next_f32());
                 pos.clear();
                 dt.clear();
                 ts.clear();

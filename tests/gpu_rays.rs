@@ -108,7 +108,7 @@ fn cpu_draw(fr: &[Frame], m: &Marcher, seed: u64, i: usize, n_rays: usize) -> Ge
     let bg = [rng.next_f32(), rng.next_f32(), rng.next_f32()];
     let ray = f.camera.ray(x as f32 + 0.5, y as f32 + 0.5);
     let (hit, t) = match m.intersect(ray.o, ray.d) {
-        Some((tmin, _)) => (1, advance_n_steps(tmin, m.cone_angle, rng.next_f32())),
+        Some((tmin, _)) => (1, advance_n_steps(tmin, m.cone_angle(), rng.next_f32())),
         None => (0, 0.0),
     };
     GenRay {
@@ -217,7 +217,7 @@ fn march_rays(m: &Marcher, n: usize, seed: u64, inside: bool) -> Vec<GenRay> {
         let Some((tmin, _)) = m.intersect(o, d) else {
             continue;
         };
-        let t = advance_n_steps(tmin, m.cone_angle, r.next_f32());
+        let t = advance_n_steps(tmin, m.cone_angle(), r.next_f32());
         out.push(GenRay {
             o,
             t,

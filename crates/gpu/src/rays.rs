@@ -277,7 +277,7 @@ pub(crate) fn ray_params(
     budget: u32,
 ) -> RayParams {
     let m = marcher;
-    let l = (1.0f32 + m.cone_angle).ln();
+    let l = (1.0f32 + m.cone_angle()).ln();
     let a = (MIN_CONE_STEPSIZE.ln() - l.ln()) / l;
     let b = (MAX_CONE_STEPSIZE.ln() - l.ln()) / l;
     RayParams {
@@ -285,7 +285,7 @@ pub(crate) fn ray_params(
         n_rays,
         n_images,
         aabb_min: m.aabb_min,
-        cone_angle: m.cone_angle,
+        cone_angle: m.cone_angle(),
         aabb_max: m.aabb_max,
         inv_extent,
         row_width,

@@ -3,7 +3,7 @@
 //! drops below a threshold, over a background colour.
 
 use super::composite::composite;
-use super::march::{Marcher, advance_n_steps};
+use super::march::Marcher;
 use crate::camera::Camera;
 use crate::encoding::LevelIndices;
 use crate::network::nerf::{CHUNK, NerfNetwork};
@@ -170,7 +170,7 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                         // Start half a step inside the box: the entry point itself may
                         // round to just outside it and end the ray at once (the reference
                         // also starts at a fractional step).
-                        let t = advance_n_steps(t0, view.marcher.cone_angle, 0.5);
+                        let t = view.marcher.advance(t0, 0.5);
                         b.live.push(LiveRay {
                             pixel: k,
                             o: ray.o,

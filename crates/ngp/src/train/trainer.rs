@@ -26,7 +26,7 @@ use crate::network::ModelConfig;
 use crate::network::nerf::{CHUNK, NerfNetwork, Workspace};
 use crate::occupancy::{MIN_OPTICAL_THICKNESS, OccupancyGrid};
 use crate::render::composite::TRAIN_MIN_TRANSMITTANCE;
-use crate::render::march::{MAX_SAMPLES_PER_RAY, Marcher, advance_n_steps};
+use crate::render::march::{MAX_SAMPLES_PER_RAY, Marcher};
 use crate::rng::Pcg32;
 use rayon::prelude::*;
 use std::sync::Arc;
@@ -995,7 +995,7 @@ fn train_rays(
             let Some((tmin, _)) = scene.marcher.intersect(ray.o, ray.d) else {
                 continue;
             };
-            let t = advance_n_steps(tmin, scene.marcher.cone_angle, rng.next_f32());
+            let t = scene.marcher.advance(tmin, rng.next_f32());
             let start = w.pos.len();
             scene.marcher.march(
                 &scene.grid,
