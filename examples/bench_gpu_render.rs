@@ -176,7 +176,7 @@ fn main() {
     let t0 = Instant::now();
     let want = rebuild_occupancy(
         &model.net,
-        &model.params,
+        model.params(),
         &indices,
         model.config.aabb_scale,
         1,

@@ -65,7 +65,7 @@ fn main() {
     let eval = |pos: &[[f32; 3]]| {
         let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
         let t = Instant::now();
-        let d = model.net.density_batch(&model.params, &indices, &warped);
+        let d = model.net.density_batch(model.params(), &indices, &warped);
         (d, t.elapsed().as_secs_f64())
     };
     let drawn: Vec<[f32; 3]> = live.iter().map(|&i| pos[i]).collect();

@@ -56,7 +56,7 @@ fn main() {
         let t0 = std::time::Instant::now();
         let g = rebuild_occupancy(
             &model.net,
-            &model.params,
+            model.params(),
             &indices,
             model.config.aabb_scale,
             spc,

@@ -288,6 +288,7 @@ fn marching_and_rendering_never_panic_at_any_aabb_scale() {
             let view = SceneView {
                 net: &net,
                 params: &params,
+                grid_f16: None,
                 indices: &idx,
                 grid,
                 marcher: Marcher::new(aabb_scale),
@@ -351,7 +352,7 @@ fn key_holder_rebuild_and_training_steps_at_aabb_scale_16() {
     }
     let model = Model::from_trainer(&t, 0.0);
     let idx = reference_indices(&model.net.layout.grid);
-    let rebuilt = rebuild_occupancy(&model.net, &model.params, &idx, 16, 1, 0);
+    let rebuilt = rebuild_occupancy(&model.net, model.params(), &idx, 16, 1, 0);
     assert_eq!(rebuilt.n_cascades, 5);
     let view = model.view(&idx, &rebuilt);
     for cam in cameras_everywhere(16) {

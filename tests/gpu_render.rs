@@ -79,7 +79,7 @@ fn fixture() -> Option<&'static Fixture> {
         let t0 = Instant::now();
         let cpu_grid = rebuild_occupancy(
             &model.net,
-            &model.params,
+            model.params(),
             &key,
             1,
             REBUILD_SAMPLES,

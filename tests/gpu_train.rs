@@ -340,7 +340,7 @@ fn the_fp16_grid_copy_trains_as_the_f32_table_does() {
             loss = s.loss;
         }
         let model = t.model(loss).unwrap();
-        runs.push((psnr_of(&model, &test), model.params));
+        runs.push((psnr_of(&model, &test), model.params().to_vec()));
     }
     eprintln!(
         "PSNR after {N} steps: f32 table {:.2} dB, fp16 copy {:.2} dB",

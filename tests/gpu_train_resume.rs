@@ -167,10 +167,10 @@ fn a_resumed_gpu_run_goes_on_as_the_uninterrupted_one() {
     let models = [&whole, &first, &resumed].map(|t| t.model(0.0).unwrap());
     let [p_whole, p_first, p_resumed] = [0, 1, 2].map(|i| psnr_of(&models[i], &test));
     let noise_db = (p_whole - p_first).abs();
-    let noise_w = rel_distance(&models[0].params, &models[1].params);
+    let noise_w = rel_distance(models[0].params(), models[1].params());
     let off_db = (p_resumed - p_whole).abs().max((p_resumed - p_first).abs());
-    let off_w = rel_distance(&models[0].params, &models[2].params)
-        .max(rel_distance(&models[1].params, &models[2].params));
+    let off_w = rel_distance(models[0].params(), models[2].params())
+        .max(rel_distance(models[1].params(), models[2].params()));
     eprintln!(
         "PSNR: uninterrupted {p_whole:.3} and {p_first:.3} dB, resumed {p_resumed:.3} dB; \
          noise {noise_db:.3} dB / {:.2} % of the weights, resumed off by {off_db:.3} dB / \

@@ -105,7 +105,7 @@ fn init_fraction(model: &Model, l: usize) -> f64 {
     let f = layout.config.grid.n_features as usize;
     let lv = layout.grid.levels[l];
     let start = layout.grid_offset + lv.offset as usize * f;
-    let table = &model.params[start..start + lv.size as usize * f];
+    let table = &model.params()[start..start + lv.size as usize * f];
     let at_init = table
         .chunks(f)
         .filter(|e| e.iter().all(|v| v.abs() <= 1.001e-4))
@@ -130,9 +130,9 @@ fn stealth_keeps_the_hidden_scene_inside_the_covers_entries() {
     Model::from_trainer(&stealth_t, 0.0).save(&path).unwrap();
     let stealth = Model::load(&path).unwrap();
     let layout = stealth.net.layout.grid.clone();
-    let holder = hidden_indices(&key, &stealth.net.layout, &stealth.params, true);
+    let holder = hidden_indices(&key, &stealth.net.layout, stealth.params(), true);
     let reach = reachable_entries(&layout, &stealth.grid, 1, &reference_indices(&layout));
-    let moved = cover_entries(&stealth.net.layout, &stealth.params);
+    let moved = cover_entries(&stealth.net.layout, stealth.params());
     let trained = stealth_t.indices(1);
     let left = stealth_t.table_bounds().unwrap();
     let (mut same, mut total, mut in_left, mut unbounded) = (0u32, 0u32, 0u32, 0u32);

@@ -225,7 +225,7 @@ impl Device {
         match self {
             Device::Cpu { .. } => Ok(rebuild_occupancy_in_box(
                 &model.net,
-                &model.params,
+                model.params(),
                 indices,
                 model.config.aabb_scale,
                 scene_box,

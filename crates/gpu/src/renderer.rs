@@ -160,7 +160,7 @@ impl<'c> GpuRenderer<'c> {
         let marcher = model.marcher();
         let inv_extent = 1.0 / box_extent(&marcher)?;
         check_grid(grid, &marcher)?;
-        let field = GpuField::new(ctx, &model.net.layout, &model.params, indices)?;
+        let field = GpuField::new(ctx, &model.net.layout, model.params(), indices)?;
         let composite = CompositeKernel::new(ctx)?;
         let bitfield = upload_bitfield(ctx, grid)?;
         let params = ray_params(&marcher, inv_extent, 0, [0, 0], 0, 0);
@@ -641,7 +641,7 @@ pub fn rebuild_occupancy_gpu(
     samples_per_cell: usize,
     seed: u64,
 ) -> GpuResult<OccupancyGrid> {
-    let field = GpuField::new(ctx, &model.net.layout, &model.params, indices)?;
+    let field = GpuField::new(ctx, &model.net.layout, model.params(), indices)?;
     rebuild_on_device(
         ctx,
         &field,

@@ -3,6 +3,7 @@
 
 use crate::data::Dataset;
 use crate::encoding::LevelIndices;
+use crate::encoding::grid;
 use crate::error::{Error, Result};
 use crate::network::ModelConfig;
 use crate::network::nerf::NerfNetwork;
@@ -15,7 +16,11 @@ use std::path::Path;
 pub struct Model {
     pub config: ModelConfig,
     pub net: NerfNetwork,
-    pub params: Vec<f32>,
+    /// Private so that [`Model::grid_f16`] cannot go stale: read with [`Model::params`].
+    params: Vec<f32>,
+    /// The grid block as fp16 bits, where every value is one (a model read from its file):
+    /// views read it, the same encoding from half the memory.
+    grid_f16: Option<Vec<u16>>,
     /// The cover's occupancy grid (the only one a file holds).
     pub grid: OccupancyGrid,
     pub training_step: u32,
@@ -49,6 +54,7 @@ impl Model {
         }
         Ok(Model {
             config,
+            grid_f16: grid::exact_half_table(&params[net.layout.grid_offset..]),
             net,
             params,
             grid,
@@ -81,6 +87,7 @@ impl Model {
         };
         Ok(Model {
             config: snap.config,
+            grid_f16: grid::exact_half_table(&snap.params[net.layout.grid_offset..]),
             net,
             params: snap.params,
             grid,
@@ -112,6 +119,16 @@ impl Model {
         snapshot::save(path, &self.to_snapshot())
     }
 
+    /// The inference weights (the layout's blocks: density MLP, colour MLP, grid).
+    pub fn params(&self) -> &[f32] {
+        &self.params
+    }
+
+    /// Whether views read the grid from its fp16 copy (every grid value is an fp16).
+    pub fn reads_grid_as_f16(&self) -> bool {
+        self.grid_f16.is_some()
+    }
+
     pub fn marcher(&self) -> Marcher {
         Marcher::new(self.config.aabb_scale)
     }
@@ -121,6 +138,7 @@ impl Model {
         SceneView {
             net: &self.net,
             params: &self.params,
+            grid_f16: self.grid_f16.as_deref(),
             indices,
             grid,
             marcher: self.marcher(),
@@ -154,4 +172,80 @@ pub fn snapshot_dataset(data: &Dataset) -> SnapshotDataset {
     ds.scale = data.scale;
     ds.offset = data.offset;
     ds
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Camera;
+    use crate::encoding::layout::GridConfig;
+    use crate::encoding::reference_indices;
+    use crate::network::NerfLayout;
+    use crate::occupancy::n_cascades;
+    use crate::render::image::{RenderOptions, render_image};
+    use crate::rng::Pcg32;
+    use crate::snapshot::DENSITY_GRID_CELLS;
+
+    #[test]
+    fn a_model_read_from_its_file_renders_from_the_fp16_grid_to_the_same_bits() {
+        let config = ModelConfig {
+            grid: GridConfig {
+                n_levels: 6,
+                n_features: 2,
+                log2_hashmap_size: 12,
+                base_resolution: 8,
+            },
+            aabb_scale: 4,
+        };
+        let n = NerfLayout::new(config).unwrap().n_params;
+        let mut r = Pcg32::new(7, 1);
+        let params: Vec<f32> = (0..n).map(|_| r.next_f32() * 2.0 - 1.0).collect();
+        let cells = DENSITY_GRID_CELLS * n_cascades(config.aabb_scale);
+        let density = (0..cells).map(|_| r.next_f32() * 0.1).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.ingp");
+        snapshot::save(&path, &Snapshot::new(config, params, density)).unwrap();
+        let model = Model::load(&path).unwrap();
+        assert!(model.reads_grid_as_f16(), "the file stores fp16");
+        let idx = reference_indices(&model.net.layout.grid);
+        let fp16 = model.view(&idx, &model.grid);
+        assert!(fp16.grid_f16.is_some());
+        let f32_view = SceneView {
+            grid_f16: None,
+            ..model.view(&idx, &model.grid)
+        };
+        let cam = Camera {
+            c2w: [
+                [1.0, 0.0, 0.0, 0.5],
+                [0.0, -1.0, 0.0, 0.5],
+                [0.0, 0.0, -1.0, 2.5],
+            ],
+            fx: 20.0,
+            fy: 20.0,
+            cx: 12.0,
+            cy: 8.0,
+            width: 24,
+            height: 16,
+            distortion: None,
+        };
+        let opts = RenderOptions::default();
+        let (a, b) = (
+            render_image(&fp16, &cam, &opts),
+            render_image(&f32_view, &cam, &opts),
+        );
+        assert!(
+            a.n_samples > 1000,
+            "{} samples: the view must see the field",
+            a.n_samples
+        );
+        assert_eq!(a.n_samples, b.n_samples);
+        for (x, y) in a
+            .rgb
+            .iter()
+            .chain(&a.depth)
+            .zip(b.rgb.iter().chain(&b.depth))
+        {
+            assert_eq!(x.to_bits(), y.to_bits());
+        }
+    }
 }

@@ -47,7 +47,7 @@ pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) ->
     let rebuild = |indices: &LevelIndices, scene_box: Option<u32>| {
         Ok::<_, Infallible>(rebuild_occupancy_in_box(
             &model.net,
-            &model.params,
+            model.params(),
             indices,
             model.config.aabb_scale,
             scene_box,
@@ -82,7 +82,7 @@ fn open_with<E>(
     let layout = &model.net.layout.grid;
     Ok(match key {
         Some(k) if !k.is_reference() => {
-            let indices = hidden_indices(k, &model.net.layout, &model.params, stealth);
+            let indices = hidden_indices(k, &model.net.layout, model.params(), stealth);
             // Cut to the box the scene was trained in: outside it, its index meets only
             // the cover's entries, whose density would render as haze.
             let rebuilt = rebuild(&indices, k.scene_box())?;

@@ -39,6 +39,10 @@ fn prefetch<T>(p: *const T) {
 /// Corner offsets and trilinear weights of one chunk, per (level, sample, corner).
 pub struct GridCache {
     capacity: usize,
+    /// Levels whose corners are kept: all of them for a backward pass, or one for inference,
+    /// whose levels reuse one slot (32 KB against 512 KB a chunk, which left the table's
+    /// lines more of L2).
+    kept_levels: usize,
     n: usize,
     /// Offset in floats (entry·F) into the grid table of each corner.
     offs: Vec<u32>,
@@ -47,13 +51,34 @@ pub struct GridCache {
 
 impl GridCache {
     pub fn new(layout: &GridLayout, capacity: usize) -> Self {
-        let len = layout.levels.len() * capacity * CORNERS;
+        Self::keeping(layout.levels.len(), capacity)
+    }
+
+    /// A cache for [`forward`] alone: it keeps the last level's corners only, so neither
+    /// [`backward`] nor [`corner_offsets`](Self::corner_offsets) of another level can use it.
+    pub fn for_inference(capacity: usize) -> Self {
+        Self::keeping(1, capacity)
+    }
+
+    fn keeping(kept_levels: usize, capacity: usize) -> Self {
+        let len = kept_levels * capacity * CORNERS;
         GridCache {
             capacity,
+            kept_levels,
             n: 0,
             offs: vec![0; len],
             weights: vec![0.0; len],
         }
+    }
+
+    /// The slot of `level`'s corners.
+    fn slot(&self, level: usize) -> usize {
+        if self.kept_levels == 1 { 0 } else { level }
+    }
+
+    /// Whether a [`backward`] can use the corners of the last [`forward`].
+    pub fn keeps_every_level(&self) -> bool {
+        self.kept_levels > 1
     }
 
     /// Samples of the last forward pass.
@@ -67,6 +92,10 @@ impl GridCache {
 
     /// Float offsets into the grid table read for sample `s` at `level` by the last forward.
     pub fn corner_offsets(&self, level: usize, s: usize) -> &[u32] {
+        assert!(
+            self.kept_levels > 1,
+            "an inference cache keeps no level's corners for later"
+        );
         let b = (level * self.capacity + s) * CORNERS;
         &self.offs[b..b + CORNERS]
     }
@@ -87,9 +116,10 @@ pub fn cell_of(level: &LevelInfo, x: [f32; 3]) -> ([u32; 3], [f32; 3]) {
     (cell, frac)
 }
 
-/// Fills corner offsets and weights of one level for all samples.
-struct LevelCorners<'a> {
-    table: *const f32,
+/// Fills corner offsets and weights of one level for all samples. `T` is the table's
+/// element (f32, or the fp16 bits of [`GridTable::F16`]); only its lines are prefetched.
+struct LevelCorners<'a, T> {
+    table: *const T,
     level: &'a LevelInfo,
     n_features: u32,
     pos: &'a [[f32; 3]],
@@ -97,7 +127,7 @@ struct LevelCorners<'a> {
     weights: &'a mut [f32],
 }
 
-impl LevelCorners<'_> {
+impl<T> LevelCorners<'_, T> {
     fn fill<K: Kernel, const MAPPED: bool>(self, index: K, map: &[u32]) {
         let LevelCorners {
             table,
@@ -107,11 +137,11 @@ impl LevelCorners<'_> {
             offs,
             weights,
         } = self;
-        level_corners::<K, MAPPED>(index, map, table, level, n_features, pos, offs, weights);
+        level_corners::<K, MAPPED, T>(index, map, table, level, n_features, pos, offs, weights);
     }
 }
 
-impl WithKernel for LevelCorners<'_> {
+impl<T> WithKernel for LevelCorners<'_, T> {
     type Output = ();
 
     fn run<K: Kernel>(self, index: K) {
@@ -143,10 +173,10 @@ fn corners_apart<K: Kernel>(index: &K, cell: [u32; 3], out: &mut [u32; CORNERS])
 /// With `MAPPED`, `index` is a level's base arithmetic and `map` the table after it: the
 /// first pass keeps the base entries (and prefetches their map lines), a second maps them.
 #[allow(clippy::too_many_arguments)]
-fn level_corners<K: Kernel, const MAPPED: bool>(
+fn level_corners<K: Kernel, const MAPPED: bool, T>(
     index: K,
     map: &[u32],
-    table: *const f32,
+    table: *const T,
     level: &LevelInfo,
     n_features: u32,
     pos: &[[f32; 3]],
@@ -275,6 +305,80 @@ fn gather_pairs(
     gather::<2>(table, offs, weights, n, enc, ld);
 }
 
+/// [`gather`] over fp16 bits: each feature widened to f32 (exactly) and taken in the same
+/// order, so over a table of fp16 values it gives `gather`'s bits.
+fn gather_half<const F: usize>(
+    table: &[u16],
+    offs: &[u32],
+    weights: &[f32],
+    n: usize,
+    enc: &mut [f32],
+    ld: usize,
+) {
+    for s in 0..n {
+        let o = &offs[s * CORNERS..(s + 1) * CORNERS];
+        let w = &weights[s * CORNERS..(s + 1) * CORNERS];
+        let mut acc = [0f32; F];
+        for c in 0..CORNERS {
+            let base = o[c] as usize;
+            let v = &table[base..base + F];
+            for f in 0..F {
+                acc[f] = w[c].mul_add(half::f16::from_bits(v[f]).to_f32(), acc[f]);
+            }
+        }
+        for f in 0..F {
+            enc[f * ld + s] = acc[f];
+        }
+    }
+}
+
+/// [`gather_pairs`] over fp16 bits: a corner's pair is one 4-byte load, widened by the
+/// hardware's converter (exact), then the same fused multiply-add: the same bits as
+/// `gather_pairs` over the widened table, from half the bytes.
+fn gather_pairs_half(
+    table: &[u16],
+    offs: &[u32],
+    weights: &[f32],
+    n: usize,
+    enc: &mut [f32],
+    ld: usize,
+) {
+    #[cfg(all(
+        target_arch = "x86_64",
+        target_feature = "fma",
+        target_feature = "f16c"
+    ))]
+    {
+        use core::arch::x86_64::*;
+        let tp = table.as_ptr();
+        let (e0, e1) = enc.split_at_mut(ld);
+        for s in 0..n {
+            let o = &offs[s * CORNERS..(s + 1) * CORNERS];
+            let w = &weights[s * CORNERS..(s + 1) * CORNERS];
+            // SAFETY: LevelCorners checked entry < level size, so o[c] + 2 <= table.len()
+            // (checked in `forward`); the load reads exactly those 4 bytes, unaligned;
+            // fma and f16c are enabled.
+            unsafe {
+                let mut acc = _mm_setzero_ps();
+                for c in 0..CORNERS {
+                    debug_assert!(o[c] as usize + 2 <= table.len());
+                    let bits = (tp.add(o[c] as usize) as *const u32).read_unaligned();
+                    let v = _mm_cvtph_ps(_mm_cvtsi32_si128(bits as i32));
+                    acc = _mm_fmadd_ps(_mm_set1_ps(w[c]), v, acc);
+                }
+                e0[s] = _mm_cvtss_f32(acc);
+                e1[s] = _mm_cvtss_f32(_mm_shuffle_ps::<1>(acc, acc));
+            }
+        }
+    }
+    #[cfg(not(all(
+        target_arch = "x86_64",
+        target_feature = "fma",
+        target_feature = "f16c"
+    )))]
+    gather_half::<2>(table, offs, weights, n, enc, ld);
+}
+
 /// `next_level` holds the next level's corner offsets: their gradient lines are prefetched
 /// one level ahead (a whole level's lines fit in L2), which overlaps the scatter's misses far
 /// better than a few samples ahead.
@@ -317,44 +421,115 @@ fn scatter<const F: usize>(
     }
 }
 
+/// The grid block of the parameters as [`forward`] reads it.
+#[derive(Clone, Copy, Debug)]
+pub enum GridTable<'a> {
+    /// The trainer's f32 table.
+    F32(&'a [f32]),
+    /// fp16 bits of a table whose every value is an fp16 (a model read from its file, which
+    /// stores fp16): the same encoding from half the memory, and a view's gathers are bound
+    /// by memory (benchmarks/engine.md, "The grid read as the file stores it").
+    F16(&'a [u16]),
+}
+
+impl GridTable<'_> {
+    fn len(&self) -> usize {
+        match self {
+            GridTable::F32(t) => t.len(),
+            GridTable::F16(t) => t.len(),
+        }
+    }
+}
+
+/// The fp16 bits of `table` if every value is an fp16 (so [`GridTable::F16`] encodes to the
+/// same bits as the f32 table), else `None`.
+pub fn exact_half_table(table: &[f32]) -> Option<Vec<u16>> {
+    table
+        .iter()
+        .map(|&v| {
+            let h = half::f16::from_f32(v);
+            (h.to_f32().to_bits() == v.to_bits()).then_some(h.to_bits())
+        })
+        .collect()
+}
+
 /// Encodes `pos` (in [0,1]^3) into `enc` (feature-major, leading dimension `ld`) and keeps
 /// the corners in `cache` for [`backward`]. `table` is the grid block of the parameters.
-pub fn forward(
+pub fn forward<'t>(
     layout: &GridLayout,
-    table: &[f32],
+    table: impl Into<GridTable<'t>>,
     indices: &LevelIndices,
     pos: &[[f32; 3]],
     cache: &mut GridCache,
     enc: &mut [f32],
     ld: usize,
 ) {
+    let table = table.into();
     let n = pos.len();
     let nl = layout.levels.len();
     let nf = layout.config.n_features as usize;
     assert_eq!(table.len(), layout.n_params(), "grid table length");
     assert_eq!(indices.len(), nl, "one LevelIndex per level");
     assert!(n <= cache.capacity && n <= ld && enc.len() >= nl * nf * ld);
+    assert!(
+        cache.kept_levels == 1 || cache.kept_levels == nl,
+        "cache of another layout"
+    );
     cache.n = n;
     let cap = cache.capacity;
     for (l, level) in layout.levels.iter().enumerate() {
-        let offs = &mut cache.offs[l * cap * CORNERS..(l * cap + n) * CORNERS];
-        let weights = &mut cache.weights[l * cap * CORNERS..(l * cap + n) * CORNERS];
-        indices[l].with_kernel(LevelCorners {
-            table: table.as_ptr(),
-            level,
-            n_features: nf as u32,
-            pos,
-            offs,
-            weights,
-        });
+        let k = cache.slot(l);
+        let offs = &mut cache.offs[k * cap * CORNERS..(k * cap + n) * CORNERS];
+        let weights = &mut cache.weights[k * cap * CORNERS..(k * cap + n) * CORNERS];
         let out = &mut enc[l * nf * ld..(l + 1) * nf * ld];
-        match nf {
-            1 => gather::<1>(table, offs, weights, n, out, ld),
-            2 => gather_pairs(table, offs, weights, n, out, ld),
-            4 => gather::<4>(table, offs, weights, n, out, ld),
-            8 => gather::<8>(table, offs, weights, n, out, ld),
-            _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
+        match table {
+            GridTable::F32(table) => {
+                indices[l].with_kernel(LevelCorners {
+                    table: table.as_ptr(),
+                    level,
+                    n_features: nf as u32,
+                    pos,
+                    offs,
+                    weights,
+                });
+                match nf {
+                    1 => gather::<1>(table, offs, weights, n, out, ld),
+                    2 => gather_pairs(table, offs, weights, n, out, ld),
+                    4 => gather::<4>(table, offs, weights, n, out, ld),
+                    8 => gather::<8>(table, offs, weights, n, out, ld),
+                    _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
+                }
+            }
+            GridTable::F16(table) => {
+                indices[l].with_kernel(LevelCorners {
+                    table: table.as_ptr(),
+                    level,
+                    n_features: nf as u32,
+                    pos,
+                    offs,
+                    weights,
+                });
+                match nf {
+                    1 => gather_half::<1>(table, offs, weights, n, out, ld),
+                    2 => gather_pairs_half(table, offs, weights, n, out, ld),
+                    4 => gather_half::<4>(table, offs, weights, n, out, ld),
+                    8 => gather_half::<8>(table, offs, weights, n, out, ld),
+                    _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
+                }
+            }
         }
+    }
+}
+
+impl<'a> From<&'a [f32]> for GridTable<'a> {
+    fn from(t: &'a [f32]) -> Self {
+        GridTable::F32(t)
+    }
+}
+
+impl<'a> From<&'a Vec<f32>> for GridTable<'a> {
+    fn from(t: &'a Vec<f32>) -> Self {
+        GridTable::F32(t)
     }
 }
 
@@ -372,6 +547,10 @@ pub fn backward(
     let nf = layout.config.n_features as usize;
     assert_eq!(grad_table.len(), layout.n_params(), "grid gradient length");
     assert!(n <= ld && d_enc.len() >= nl * nf * ld);
+    assert!(
+        cache.kept_levels == nl,
+        "backward needs a cache that keeps every level's corners"
+    );
     let cap = cache.capacity;
     for l in 0..nl {
         let offs = &cache.offs[l * cap * CORNERS..(l * cap + n) * CORNERS];
@@ -546,6 +725,116 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A random table whose every value is an fp16, ties, subnormals and zeros of both signs
+    /// included (what a model read from its file holds).
+    fn fp16_table(layout: &GridLayout, seed: u64) -> Vec<f32> {
+        let mut r = Pcg32::new(seed, 11);
+        (0..layout.n_params())
+            .map(|i| match i % 7 {
+                0 => half::f16::from_bits(r.next_u32() as u16 & 0x83ff).to_f32(), // subnormal
+                1 => [0.0, -0.0][i % 2],
+                _ => half::f16::from_f32(r.next_f32() * 4.0 - 2.0).to_f32(),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_fp16_table_encodes_to_the_f32_tables_bits() {
+        for n_features in [1, 2, 4, 8] {
+            let g = GridLayout::new(
+                GridConfig {
+                    n_features,
+                    ..GridConfig::default()
+                },
+                1,
+            )
+            .unwrap();
+            let table = fp16_table(&g, n_features as u64);
+            let bits = exact_half_table(&table).expect("every value is an fp16");
+            let pos = random_pos(300, 4);
+            let (n, ld) = (pos.len(), 304);
+            let idx = reference_indices(&g);
+            let mut enc32 = vec![f32::NAN; g.config.n_output_dims() * ld];
+            let mut enc16 = enc32.clone();
+            forward(
+                &g,
+                &table,
+                &idx,
+                &pos,
+                &mut GridCache::new(&g, n),
+                &mut enc32,
+                ld,
+            );
+            let mut cache = GridCache::new(&g, n);
+            forward(
+                &g,
+                GridTable::F16(&bits),
+                &idx,
+                &pos,
+                &mut cache,
+                &mut enc16,
+                ld,
+            );
+            for (k, (a, b)) in enc32.iter().zip(&enc16).enumerate() {
+                if k % ld < n {
+                    assert_eq!(a.to_bits(), b.to_bits(), "F = {n_features}, element {k}");
+                }
+            }
+            // The fp16 forward keeps the same corners, so a backward can follow it.
+            assert!(cache.keeps_every_level() && cache.len() == n);
+        }
+    }
+
+    #[test]
+    fn a_table_that_is_not_all_fp16_has_no_fp16_copy() {
+        let g = small();
+        let mut table = fp16_table(&g, 1);
+        assert!(exact_half_table(&table).is_some());
+        // One value one f32 ulp off an fp16: the copy would not encode to the same bits.
+        let last = table.len() - 1;
+        table[last] = f32::from_bits(half::f16::from_f32(0.75).to_f32().to_bits() + 1);
+        assert!(exact_half_table(&table).is_none());
+        // Infinities are fp16s too.
+        table[last] = f32::INFINITY;
+        assert!(exact_half_table(&table).is_some());
+    }
+
+    #[test]
+    fn an_inference_cache_encodes_the_same_and_refuses_a_backward() {
+        let g = GridLayout::new(GridConfig::default(), 1).unwrap();
+        let table = random_table(&g, 5);
+        let pos = random_pos(200, 6);
+        let (n, ld) = (pos.len(), 200);
+        let idx = mapped_indices(&g, IndexFn::Reference, 8);
+        let mut full = vec![f32::NAN; g.config.n_output_dims() * ld];
+        let mut once = full.clone();
+        forward(
+            &g,
+            &table,
+            &idx,
+            &pos,
+            &mut GridCache::new(&g, n),
+            &mut full,
+            ld,
+        );
+        let mut cache = GridCache::for_inference(n);
+        forward(&g, &table, &idx, &pos, &mut cache, &mut once, ld);
+        assert!(
+            full.iter()
+                .zip(&once)
+                .all(|(a, b)| a.to_bits() == b.to_bits())
+        );
+        assert!(!cache.keeps_every_level());
+        let refused = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            let mut grad = vec![0f32; g.n_params()];
+            backward(&g, &cache, &full, ld, &mut grad);
+        }));
+        assert!(
+            refused.is_err(),
+            "a backward read corners the cache never kept"
+        );
     }
 
     /// `base` on every level, followed by a random map into the level (not a permutation:

@@ -7,7 +7,7 @@
 //! [`Workspace`]. The density MLP writes its 16 outputs straight into rows 0..16 of the
 //! colour MLP's input and the SH encoder into rows 16..32, so nothing is copied.
 
-use crate::encoding::grid::{self, GridCache};
+use crate::encoding::grid::{self, GridCache, GridTable};
 use crate::encoding::index::LevelIndices;
 use crate::encoding::sh::{self, SH4_DIMS};
 use crate::error::Result;
@@ -83,6 +83,28 @@ impl NerfNetwork {
         p
     }
 
+    /// A workspace for forwards only (rendering, density): it keeps no corners for a
+    /// backward pass and has no backward scratch. The same outputs as [`workspace`]'s.
+    ///
+    /// [`workspace`]: Self::workspace
+    pub fn inference_workspace(&self) -> Workspace {
+        let l = &self.layout;
+        let (dm, cm) = (l.density_mlp, l.color_mlp);
+        Workspace {
+            n: 0,
+            grid: GridCache::for_inference(CHUNK),
+            enc: vec![0.0; dm.n_in * CHUNK],
+            dens_hidden: vec![0.0; mlp::hidden_len(&dm, CHUNK)],
+            color_in: vec![0.0; cm.n_in * CHUNK],
+            color_hidden: vec![0.0; mlp::hidden_len(&cm, CHUNK)],
+            rgb: vec![0.0; RGB * CHUNK],
+            d_rgb: Vec::new(),
+            d_hidden: Vec::new(),
+            d_dens_out: Vec::new(),
+            d_enc: Vec::new(),
+        }
+    }
+
     pub fn workspace(&self) -> Workspace {
         let l = &self.layout;
         let (dm, cm) = (l.density_mlp, l.color_mlp);
@@ -116,6 +138,7 @@ impl NerfNetwork {
     fn density_stage(
         &self,
         params: &[f32],
+        table: GridTable,
         indices: &LevelIndices,
         pos: &[[f32; 3]],
         ws: &mut Workspace,
@@ -123,7 +146,7 @@ impl NerfNetwork {
         let n = pos.len();
         assert!(n <= CHUNK, "at most CHUNK samples per call");
         let l = &self.layout;
-        let (wd, _, table) = self.blocks(params);
+        let (wd, _, _) = self.blocks(params);
         grid::forward(
             &l.grid,
             table,
@@ -157,9 +180,26 @@ impl NerfNetwork {
         ws: &mut Workspace,
         out: &mut [[f32; 4]],
     ) {
+        let (_, _, table) = self.blocks(params);
+        self.forward_with(params, table.into(), indices, pos, dir, ws, out);
+    }
+
+    /// [`forward`](Self::forward) reading the grid from `table`: the grid block of `params`
+    /// itself or its fp16 copy ([`grid::exact_half_table`]), which gives the same bits.
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_with(
+        &self,
+        params: &[f32],
+        table: GridTable,
+        indices: &LevelIndices,
+        pos: &[[f32; 3]],
+        dir: &[[f32; 3]],
+        ws: &mut Workspace,
+        out: &mut [[f32; 4]],
+    ) {
         let n = pos.len();
         assert!(dir.len() == n && out.len() >= n, "pos/dir/out lengths");
-        self.density_stage(params, indices, pos, ws);
+        self.density_stage(params, table, indices, pos, ws);
         let (_, wc, _) = self.blocks(params);
         sh::encode(dir, &mut ws.color_in[DENSITY_OUT * CHUNK..], CHUNK);
         let cm = &self.layout.color_mlp;
@@ -192,6 +232,10 @@ impl NerfNetwork {
         grad: &mut [f32],
     ) {
         let _ = indices; // the corners were cached by forward
+        assert!(
+            ws.grid.keeps_every_level(),
+            "backward needs a workspace(), not an inference_workspace()"
+        );
         let n = ws.n;
         assert!(
             d_out.len() >= n,
@@ -307,7 +351,7 @@ impl NerfNetwork {
         out.par_chunks_mut(CHUNK * 8)
             .zip(pos.par_chunks(CHUNK * 8))
             .for_each_init(
-                || self.workspace(),
+                || self.inference_workspace(),
                 |ws, (o, p)| {
                     for (oc, pc) in o.chunks_mut(CHUNK).zip(p.chunks(CHUNK)) {
                         self.density(params, indices, pc, ws, oc);

@@ -6,6 +6,7 @@ use super::composite::composite;
 use super::march::Marcher;
 use crate::camera::Camera;
 use crate::encoding::LevelIndices;
+use crate::encoding::grid::GridTable;
 use crate::network::nerf::{CHUNK, NerfNetwork};
 use crate::occupancy::OccupancyGrid;
 use rayon::prelude::*;
@@ -127,6 +128,9 @@ impl RenderProfile {
 pub struct SceneView<'a> {
     pub net: &'a NerfNetwork,
     pub params: &'a [f32],
+    /// The grid block of `params` as fp16 bits, where every value is one: read instead of
+    /// the f32 block, the same bits from half the memory.
+    pub grid_f16: Option<&'a [u16]>,
     pub indices: &'a LevelIndices,
     pub grid: &'a OccupancyGrid,
     pub marcher: Marcher,
@@ -151,13 +155,14 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
     let mut depth = vec![0.0f32; n];
     let mut opacity = vec![0.0f32; n];
     let rows = ROWS_PER_TASK as usize * w as usize;
+    let grid_offset = view.net.layout.grid_offset;
     let profiles: Vec<(u64, RenderProfile)> = rgb
         .par_chunks_mut(rows * 3)
         .zip(depth.par_chunks_mut(rows))
         .zip(opacity.par_chunks_mut(rows))
         .enumerate()
         .map_init(
-            || (view.net.workspace(), WaveBuffers::default()),
+            || (view.net.inference_workspace(), WaveBuffers::default()),
             |(ws, b), (task, ((rgb, depth), opacity))| {
                 let mut prof = RenderProfile::default();
                 let first = task * rows;
@@ -223,8 +228,13 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                     raw.resize(pos.len(), [0.0f32; 4]);
                     for (k, (p, d)) in pos.chunks(CHUNK).zip(dir.chunks(CHUNK)).enumerate() {
                         let s = k * CHUNK;
-                        view.net.forward(
+                        let table = match view.grid_f16 {
+                            Some(t) => GridTable::F16(t),
+                            None => GridTable::F32(&view.params[grid_offset..]),
+                        };
+                        view.net.forward_with(
                             view.params,
+                            table,
                             view.indices,
                             p,
                             d,
