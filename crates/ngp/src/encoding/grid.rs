@@ -118,8 +118,9 @@ pub fn cell_of(level: &LevelInfo, x: [f32; 3]) -> ([u32; 3], [f32; 3]) {
 
 /// Fills corner offsets and weights of one level for all samples. `T` is the table's
 /// element (f32, or the fp16 bits of [`GridTable::F16`]); only its lines are prefetched.
-struct LevelCorners<'a, T> {
-    table: *const T,
+struct LevelCorners<'a, P> {
+    /// `*const T` of the table's first element (`()` until [`LevelCorners::over`] gives it).
+    table: P,
     level: &'a LevelInfo,
     n_features: u32,
     pos: &'a [[f32; 3]],
@@ -127,7 +128,21 @@ struct LevelCorners<'a, T> {
     weights: &'a mut [f32],
 }
 
-impl<T> LevelCorners<'_, T> {
+impl<'a> LevelCorners<'a, ()> {
+    /// The same level's corners, prefetching the lines of `table`.
+    fn over<T>(self, table: &[T]) -> LevelCorners<'a, *const T> {
+        LevelCorners {
+            table: table.as_ptr(),
+            level: self.level,
+            n_features: self.n_features,
+            pos: self.pos,
+            offs: self.offs,
+            weights: self.weights,
+        }
+    }
+}
+
+impl<T> LevelCorners<'_, *const T> {
     fn fill<K: Kernel, const MAPPED: bool>(self, index: K, map: &[u32]) {
         let LevelCorners {
             table,
@@ -141,7 +156,7 @@ impl<T> LevelCorners<'_, T> {
     }
 }
 
-impl<T> WithKernel for LevelCorners<'_, T> {
+impl<T> WithKernel for LevelCorners<'_, *const T> {
     type Output = ();
 
     fn run<K: Kernel>(self, index: K) {
@@ -482,41 +497,28 @@ pub fn forward<'t>(
         let offs = &mut cache.offs[k * cap * CORNERS..(k * cap + n) * CORNERS];
         let weights = &mut cache.weights[k * cap * CORNERS..(k * cap + n) * CORNERS];
         let out = &mut enc[l * nf * ld..(l + 1) * nf * ld];
+        let corners = LevelCorners {
+            table: (),
+            level,
+            n_features: nf as u32,
+            pos,
+            offs: &mut *offs,
+            weights: &mut *weights,
+        };
         match table {
-            GridTable::F32(table) => {
-                indices[l].with_kernel(LevelCorners {
-                    table: table.as_ptr(),
-                    level,
-                    n_features: nf as u32,
-                    pos,
-                    offs,
-                    weights,
-                });
-                match nf {
-                    1 => gather::<1>(table, offs, weights, n, out, ld),
-                    2 => gather_pairs(table, offs, weights, n, out, ld),
-                    4 => gather::<4>(table, offs, weights, n, out, ld),
-                    8 => gather::<8>(table, offs, weights, n, out, ld),
-                    _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
-                }
-            }
-            GridTable::F16(table) => {
-                indices[l].with_kernel(LevelCorners {
-                    table: table.as_ptr(),
-                    level,
-                    n_features: nf as u32,
-                    pos,
-                    offs,
-                    weights,
-                });
-                match nf {
-                    1 => gather_half::<1>(table, offs, weights, n, out, ld),
-                    2 => gather_pairs_half(table, offs, weights, n, out, ld),
-                    4 => gather_half::<4>(table, offs, weights, n, out, ld),
-                    8 => gather_half::<8>(table, offs, weights, n, out, ld),
-                    _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
-                }
-            }
+            GridTable::F32(t) => indices[l].with_kernel(corners.over(t)),
+            GridTable::F16(t) => indices[l].with_kernel(corners.over(t)),
+        }
+        match (table, nf) {
+            (GridTable::F32(t), 1) => gather::<1>(t, offs, weights, n, out, ld),
+            (GridTable::F32(t), 2) => gather_pairs(t, offs, weights, n, out, ld),
+            (GridTable::F32(t), 4) => gather::<4>(t, offs, weights, n, out, ld),
+            (GridTable::F32(t), 8) => gather::<8>(t, offs, weights, n, out, ld),
+            (GridTable::F16(t), 1) => gather_half::<1>(t, offs, weights, n, out, ld),
+            (GridTable::F16(t), 2) => gather_pairs_half(t, offs, weights, n, out, ld),
+            (GridTable::F16(t), 4) => gather_half::<4>(t, offs, weights, n, out, ld),
+            (GridTable::F16(t), 8) => gather_half::<8>(t, offs, weights, n, out, ld),
+            _ => unreachable!("GridConfig::validate allows F in {{1, 2, 4, 8}}"),
         }
     }
 }
