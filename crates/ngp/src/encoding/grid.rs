@@ -39,10 +39,12 @@ fn prefetch<T>(p: *const T) {
 /// Corner offsets and trilinear weights of one chunk, per (level, sample, corner).
 pub struct GridCache {
     capacity: usize,
-    /// Levels whose corners are kept: all of them for a backward pass, or one for inference,
-    /// whose levels reuse one slot (32 KB against 512 KB a chunk, which left the table's
-    /// lines more of L2).
-    kept_levels: usize,
+    /// Whether every level's corners are kept, for a backward pass; an inference cache's
+    /// levels reuse one slot (32 KB against 512 KB a chunk, which left the table's lines
+    /// more of L2). A flag, not the slot count: a one-level layout keeps every level in one.
+    keeps_every_level: bool,
+    /// Levels the slots hold (the layout's, or 1 for inference).
+    slots: usize,
     n: usize,
     /// Offset in floats (entry·F) into the grid table of each corner.
     offs: Vec<u32>,
@@ -51,20 +53,21 @@ pub struct GridCache {
 
 impl GridCache {
     pub fn new(layout: &GridLayout, capacity: usize) -> Self {
-        Self::keeping(layout.levels.len(), capacity)
+        Self::keeping(true, layout.levels.len(), capacity)
     }
 
     /// A cache for [`forward`] alone: it keeps the last level's corners only, so neither
-    /// [`backward`] nor [`corner_offsets`](Self::corner_offsets) of another level can use it.
+    /// [`backward`] nor [`corner_offsets`](Self::corner_offsets) can use it.
     pub fn for_inference(capacity: usize) -> Self {
-        Self::keeping(1, capacity)
+        Self::keeping(false, 1, capacity)
     }
 
-    fn keeping(kept_levels: usize, capacity: usize) -> Self {
-        let len = kept_levels * capacity * CORNERS;
+    fn keeping(keeps_every_level: bool, slots: usize, capacity: usize) -> Self {
+        let len = slots * capacity * CORNERS;
         GridCache {
             capacity,
-            kept_levels,
+            keeps_every_level,
+            slots,
             n: 0,
             offs: vec![0; len],
             weights: vec![0.0; len],
@@ -73,12 +76,12 @@ impl GridCache {
 
     /// The slot of `level`'s corners.
     fn slot(&self, level: usize) -> usize {
-        if self.kept_levels == 1 { 0 } else { level }
+        if self.keeps_every_level { level } else { 0 }
     }
 
     /// Whether a [`backward`] can use the corners of the last [`forward`].
     pub fn keeps_every_level(&self) -> bool {
-        self.kept_levels > 1
+        self.keeps_every_level
     }
 
     /// Samples of the last forward pass.
@@ -93,7 +96,7 @@ impl GridCache {
     /// Float offsets into the grid table read for sample `s` at `level` by the last forward.
     pub fn corner_offsets(&self, level: usize, s: usize) -> &[u32] {
         assert!(
-            self.kept_levels > 1,
+            self.keeps_every_level,
             "an inference cache keeps no level's corners for later"
         );
         let b = (level * self.capacity + s) * CORNERS;
@@ -487,7 +490,7 @@ pub fn forward<'t>(
     assert_eq!(indices.len(), nl, "one LevelIndex per level");
     assert!(n <= cache.capacity && n <= ld && enc.len() >= nl * nf * ld);
     assert!(
-        cache.kept_levels == 1 || cache.kept_levels == nl,
+        !cache.keeps_every_level || cache.slots == nl,
         "cache of another layout"
     );
     cache.n = n;
@@ -550,7 +553,7 @@ pub fn backward(
     assert_eq!(grad_table.len(), layout.n_params(), "grid gradient length");
     assert!(n <= ld && d_enc.len() >= nl * nf * ld);
     assert!(
-        cache.kept_levels == nl,
+        cache.keeps_every_level && cache.slots == nl,
         "backward needs a cache that keeps every level's corners"
     );
     let cap = cache.capacity;
@@ -837,6 +840,37 @@ mod tests {
             refused.is_err(),
             "a backward read corners the cache never kept"
         );
+    }
+
+    #[test]
+    fn a_one_level_layouts_cache_keeps_its_level_for_a_backward() {
+        let g = GridLayout::new(
+            GridConfig {
+                n_levels: 1,
+                ..GridConfig::default()
+            },
+            1,
+        )
+        .unwrap();
+        let table = random_table(&g, 9);
+        let pos = random_pos(50, 10);
+        let ld = pos.len();
+        let mut enc = vec![0f32; g.config.n_output_dims() * ld];
+        let mut cache = GridCache::new(&g, ld);
+        forward(
+            &g,
+            &table,
+            &reference_indices(&g),
+            &pos,
+            &mut cache,
+            &mut enc,
+            ld,
+        );
+        assert!(cache.keeps_every_level());
+        assert_eq!(cache.corner_offsets(0, 0).len(), CORNERS);
+        let mut grad = vec![0f32; g.n_params()];
+        backward(&g, &cache, &enc, ld, &mut grad);
+        assert!(grad.iter().any(|&v| v != 0.0));
     }
 
     /// `base` on every level, followed by a random map into the level (not a permutation:
