@@ -88,39 +88,34 @@ impl NerfNetwork {
     ///
     /// [`workspace`]: Self::workspace
     pub fn inference_workspace(&self) -> Workspace {
-        let l = &self.layout;
-        let (dm, cm) = (l.density_mlp, l.color_mlp);
-        Workspace {
-            n: 0,
-            grid: GridCache::for_inference(CHUNK),
-            enc: vec![0.0; dm.n_in * CHUNK],
-            dens_hidden: vec![0.0; mlp::hidden_len(&dm, CHUNK)],
-            color_in: vec![0.0; cm.n_in * CHUNK],
-            color_hidden: vec![0.0; mlp::hidden_len(&cm, CHUNK)],
-            rgb: vec![0.0; RGB * CHUNK],
-            d_rgb: Vec::new(),
-            d_hidden: Vec::new(),
-            d_dens_out: Vec::new(),
-            d_enc: Vec::new(),
-        }
+        self.workspace_for(false)
     }
 
     pub fn workspace(&self) -> Workspace {
+        self.workspace_for(true)
+    }
+
+    fn workspace_for(&self, backward: bool) -> Workspace {
         let l = &self.layout;
         let (dm, cm) = (l.density_mlp, l.color_mlp);
         let width = dm.width.max(cm.width);
+        let scratch = |len: usize| if backward { vec![0.0; len] } else { Vec::new() };
         Workspace {
             n: 0,
-            grid: GridCache::new(&l.grid, CHUNK),
+            grid: if backward {
+                GridCache::new(&l.grid, CHUNK)
+            } else {
+                GridCache::for_inference(CHUNK)
+            },
             enc: vec![0.0; dm.n_in * CHUNK],
             dens_hidden: vec![0.0; mlp::hidden_len(&dm, CHUNK)],
             color_in: vec![0.0; cm.n_in * CHUNK],
             color_hidden: vec![0.0; mlp::hidden_len(&cm, CHUNK)],
             rgb: vec![0.0; RGB * CHUNK],
-            d_rgb: vec![0.0; RGB * CHUNK],
-            d_hidden: vec![0.0; 2 * width * CHUNK],
-            d_dens_out: vec![0.0; DENSITY_OUT * CHUNK],
-            d_enc: vec![0.0; dm.n_in * CHUNK],
+            d_rgb: scratch(RGB * CHUNK),
+            d_hidden: scratch(2 * width * CHUNK),
+            d_dens_out: scratch(DENSITY_OUT * CHUNK),
+            d_enc: scratch(dm.n_in * CHUNK),
         }
     }
 

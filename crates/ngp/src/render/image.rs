@@ -136,6 +136,16 @@ pub struct SceneView<'a> {
     pub marcher: Marcher,
 }
 
+impl SceneView<'_> {
+    /// The table the view's forwards read: the fp16 copy where there is one.
+    pub fn grid_table(&self) -> GridTable<'_> {
+        match self.grid_f16 {
+            Some(t) => GridTable::F16(t),
+            None => GridTable::F32(&self.params[self.net.layout.grid_offset..]),
+        }
+    }
+}
+
 struct LiveRay {
     pixel: usize,
     o: [f32; 3],
@@ -155,7 +165,7 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
     let mut depth = vec![0.0f32; n];
     let mut opacity = vec![0.0f32; n];
     let rows = ROWS_PER_TASK as usize * w as usize;
-    let grid_offset = view.net.layout.grid_offset;
+    let table = view.grid_table();
     let profiles: Vec<(u64, RenderProfile)> = rgb
         .par_chunks_mut(rows * 3)
         .zip(depth.par_chunks_mut(rows))
@@ -228,10 +238,6 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
                     raw.resize(pos.len(), [0.0f32; 4]);
                     for (k, (p, d)) in pos.chunks(CHUNK).zip(dir.chunks(CHUNK)).enumerate() {
                         let s = k * CHUNK;
-                        let table = match view.grid_f16 {
-                            Some(t) => GridTable::F16(t),
-                            None => GridTable::F32(&view.params[grid_offset..]),
-                        };
                         view.net.forward_with(
                             view.params,
                             table,
