@@ -28,7 +28,7 @@ use super::{GpuContext, GpuError, GpuResult, auto_layout_pipelines, buffer_entry
 use ngp::camera::Camera;
 use ngp::data::Frame;
 use ngp::data::color::SRGB8_TO_LINEAR;
-use ngp::occupancy::{MIN_CONE_STEPSIZE, N_CELLS, OccupancyGrid};
+use ngp::occupancy::{N_CELLS, OccupancyGrid};
 use ngp::render::march::{MAX_CONE_STEPSIZE, MAX_SAMPLES_PER_RAY, Marcher};
 use wgpu::util::DeviceExt;
 
@@ -277,9 +277,7 @@ pub(crate) fn ray_params(
     budget: u32,
 ) -> RayParams {
     let m = marcher;
-    let l = (1.0f32 + m.cone_angle()).ln();
-    let a = (MIN_CONE_STEPSIZE.ln() - l.ln()) / l;
-    let b = (MAX_CONE_STEPSIZE.ln() - l.ln()) / l;
+    let [l, a, b, at, bt] = m.stepping_constants();
     RayParams {
         seed: [seed as u32, (seed >> 32) as u32],
         n_rays,
@@ -292,7 +290,7 @@ pub(crate) fn ray_params(
         sample_budget: budget,
         max_per_ray: MAX_SAMPLES_PER_RAY as u32,
         max_cascade: m.max_cascade,
-        step: [l, a, b, (a * l).exp(), (b * l).exp(), MAX_CONE_STEPSIZE],
+        step: [l, a, b, at, bt, MAX_CONE_STEPSIZE],
         _pad: [0; 2],
     }
 }

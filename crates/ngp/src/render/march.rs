@@ -35,6 +35,15 @@ impl Marcher {
         self.stepping.cone_angle
     }
 
+    /// The stepping space's constants `[ln(1 + cone angle), a, b, at, bt]`, for a device
+    /// that steps as this marcher does (the GPU's ray kernels).
+    pub fn stepping_constants(&self) -> [f32; 5] {
+        let Stepping {
+            l, a, b, at, bt, ..
+        } = self.stepping;
+        [l, a, b, at, bt]
+    }
+
     /// `t` advanced by `n` (possibly fractional) steps: [`advance_n_steps`] with this
     /// marcher's constants.
     #[inline]
