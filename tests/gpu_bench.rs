@@ -21,20 +21,28 @@ fn synth_object(out: &str, res: &str, train: &str, test: &str) {
     ]));
 }
 
-fn python_with_pillow() -> bool {
-    Command::new("python3")
-        .args(["-c", "import PIL.Image, lzma"])
-        .output()
-        .is_ok_and(|o| o.status.success())
+/// The first Python 3 that has Pillow: the one on PATH, then the system's. A version
+/// manager's shim (pyenv) can come first on PATH without Pillow while Debian's
+/// `python3-pil`, which `.ci/run` installs, sits under /usr/bin.
+fn python_with_pillow() -> Option<&'static str> {
+    ["python3", "/usr/bin/python3", "/usr/local/bin/python3"]
+        .into_iter()
+        .find(|python| {
+            Command::new(python)
+                .args(["-c", "import PIL.Image, lzma"])
+                .output()
+                .is_ok_and(|o| o.status.success())
+        })
 }
 
 fn script(args: &[&str]) -> Output {
+    let python = python_with_pillow().expect("checked before the first call");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gpu_bench.py");
-    Command::new("python3")
+    Command::new(python)
         .arg(script)
         .args(args)
         .output()
-        .expect("python3 runs")
+        .unwrap_or_else(|e| panic!("{python} runs: {e}"))
 }
 
 fn ok_script(args: &[&str]) -> String {
@@ -50,11 +58,11 @@ fn ok_script(args: &[&str]) -> String {
 
 #[test]
 fn gpu_bench_script_runs_end_to_end_in_small_mode() {
-    if !python_with_pillow() {
+    if python_with_pillow().is_none() {
         let ci = std::env::var("CI").is_ok_and(|v| v == "true");
         assert!(
             !ci,
-            "CI=true: the GPU benchmark's test needs python3 with Pillow"
+            "CI=true: the GPU benchmark's test needs python3 with Pillow (on PATH or /usr/bin)"
         );
         eprintln!("skipping: python3 with Pillow not found");
         return;
