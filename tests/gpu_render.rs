@@ -334,6 +334,41 @@ fn unusual_cameras_and_tiles_match_the_cpu() {
     check_views("tiles of 78 rays", &view, &mut gpu, &[base], &opts);
 }
 
+/// The waves of a tile are recorded a batch at a time and the host waits once a batch, not
+/// once a wave: one sample a ray per wave makes a tile take as many waves as its longest
+/// ray has samples, and the view still matches the CPU's. Two tiles of 800 rays.
+#[test]
+fn waves_are_read_back_a_batch_at_a_time() {
+    let Some(f) = fixture() else { return };
+    let ctx = test_context().unwrap();
+    let m = &f.model;
+    let mut gpu = GpuRenderer::new(ctx, m, &f.reference, &m.grid).unwrap();
+    gpu.set_max_wave_samples(1024);
+    let opts = RenderOptions {
+        samples_per_wave: 1,
+        ..Default::default()
+    };
+    let cam = f.cover_test.frames[0].camera.clone();
+    check_views(
+        "one sample a wave",
+        &m.view(&f.reference, &m.grid),
+        &mut gpu,
+        std::slice::from_ref(&cam),
+        &opts,
+    );
+    let w = gpu.last_waits();
+    eprintln!("one sample a wave: {w:?}");
+    let pixels = cam.width * cam.height;
+    assert_eq!(w.tiles, pixels.div_ceil(1024), "{w:?}");
+    assert!(
+        w.waves >= 40 * w.tiles,
+        "too few waves to test batching: {w:?}"
+    );
+    // A wait a wave would be w.waves + w.tiles; batches of 4, 8, 16, then 32 waves, and the
+    // pixels, wait far less.
+    assert!(w.waits <= w.tiles * 5 + w.waves / 32, "{w:?}");
+}
+
 /// An 800×800 view (the paper's test resolution) renders in tiles within the device's
 /// storage-binding limits (llvmpipe: 128 MiB, which the default wave's grid encoding fills
 /// exactly). The grid keeps only the cells of a small ball at the centre, so that the

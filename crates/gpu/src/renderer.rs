@@ -7,10 +7,12 @@
 //! camera and marching functions), marched in waves of `samples_per_wave` samples per live
 //! ray through the scene's occupancy bitfield, every wave's samples through the grid and the
 //! full network ([`GpuField`]), composited ([`CompositeKernel`]) and retired below the
-//! transmittance threshold or outside the box, as the CPU does. The rays' state stays on the
-//! device; one read of four counters (live rays, samples of the next wave) per wave comes
-//! back, since the network kernels take their sample count from the host, and the pixels
-//! once per tile. Pixels go in tiles of as many rays as a wave's samples fit the device's
+//! transmittance threshold or outside the box, as the CPU does. The rays' state and every
+//! count stay on the device (the network takes its sample count from a [`DeviceCount`]), so
+//! a submission records a batch of waves (4, then twice as many each time up to 32) and the
+//! host reads the counters once after it, to see whether a ray is still live: a few waits a
+//! tile where there was one a wave ([`GpuRenderer::last_waits`]), the next batch recorded
+//! while the device runs the last; and the pixels once per tile. Pixels go in tiles of as many rays as a wave's samples fit the device's
 //! storage bindings (the grid encoding, 4 bytes per feature a sample, is the largest buffer;
 //! [`GpuRenderer::set_max_wave_samples`] bounds it further).
 //!
@@ -22,6 +24,7 @@
 //!
 //! [`render_image`]: ngp::render::image::render_image
 
+use super::count::{CountKernel, DeviceCount};
 use super::field::{DensityScratch, GpuField};
 use super::grid::GridShape;
 use super::index::{PCG_WGSL, U64_WGSL};
@@ -54,6 +57,11 @@ const REBUILD_CHUNK: u32 = 1 << 18;
 /// Waves of one tile at most: far past any real scene (every wave moves every live ray on by
 /// at least one sample or one cell), so that a device fault cannot loop for ever.
 const MAX_WAVES: u32 = 1 << 20;
+/// Waves the first submission of a tile records; each later one records twice as many, up
+/// to [`MAX_BATCH_WAVES`]. A wave recorded after the last ray retired costs its ray passes
+/// over the tile and dispatches nothing else.
+const FIRST_BATCH_WAVES: u32 = 4;
+const MAX_BATCH_WAVES: u32 = 32;
 
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
@@ -63,9 +71,8 @@ struct RenderParams {
     width: u32,
     row_width: u32,
     samples_per_wave: u32,
-    n_live: u32,
     min_transmittance: f32,
-    _pad: u32,
+    _pad: [u32; 2],
 }
 
 /// The buffers of one tile's waves.
@@ -75,9 +82,13 @@ struct Waves {
     /// Samples a wave may hold (`rays_per_tile · samples_per_wave`, rounded up).
     capacity: u32,
     rays: wgpu::Buffer,
-    live: wgpu::Buffer,
-    live_next: wgpu::Buffer,
+    /// The live-ray lists: a wave marches one and its retire pass writes the other.
+    live: [wgpu::Buffer; 2],
+    /// `renderer.wgsl`'s `rcount`: the wave's samples, live rays, samples since the last
+    /// read, rays appended to the next list.
     counters: wgpu::Buffer,
+    /// The wave's sample count (`counters[0]`) for the network's passes.
+    samples: DeviceCount,
     wave: wgpu::Buffer,
     pos: wgpu::Buffer,
     dir: wgpu::Buffer,
@@ -99,12 +110,27 @@ pub struct GpuRenderer<'c> {
     generate: wgpu::ComputePipeline,
     march: wgpu::ComputePipeline,
     retire: wgpu::ComputePipeline,
+    next: wgpu::ComputePipeline,
+    counter: CountKernel,
     /// The marching uniform (`RayParams`: box and stepping space).
     marching: wgpu::Buffer,
     /// The scene's occupancy bitfield (the CPU's bytes).
     bitfield: wgpu::Buffer,
     max_wave_samples: u32,
     waves: Option<Waves>,
+    last: std::cell::Cell<RenderWaits>,
+}
+
+/// How the last [`GpuRenderer::render`] went between host and device.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct RenderWaits {
+    /// Tiles of the image.
+    pub tiles: u32,
+    /// Waves recorded (those after a tile's last ray retired included).
+    pub waves: u32,
+    /// Times the host waited for the device: a read of the counters after each batch of
+    /// waves, and the pixels once a tile.
+    pub waits: u32,
 }
 
 fn input<T>(msg: String) -> GpuResult<T> {
@@ -164,18 +190,25 @@ impl<'c> GpuRenderer<'c> {
         let composite = CompositeKernel::new(ctx)?;
         let bitfield = upload_bitfield(ctx, grid)?;
         let params = ray_params(&marcher, inv_extent, 0, [0, 0], 0, 0);
-        let (generate, march, retire, marching) = ctx.scoped("render kernels", || {
+        let counter = CountKernel::new(ctx)?;
+        let (generate, march, retire, next, marching) = ctx.scoped("render kernels", || {
             let source = format!("{U64_WGSL}\n{PCG_WGSL}\n{RAYS_WGSL}\n{RENDERER_WGSL}");
-            let [generate, march, retire] = auto_layout_pipelines(
+            let [generate, march, retire, next] = auto_layout_pipelines(
                 ctx,
                 "renderer.wgsl",
                 &source,
-                ["render_gen_main", "render_march_main", "render_retire_main"],
+                [
+                    "render_gen_main",
+                    "render_march_main",
+                    "render_retire_main",
+                    "render_next_main",
+                ],
             );
             (
                 generate,
                 march,
                 retire,
+                next,
                 ctx.device
                     .create_buffer_init(&wgpu::util::BufferInitDescriptor {
                         label: Some("render marching params"),
@@ -193,10 +226,13 @@ impl<'c> GpuRenderer<'c> {
             generate,
             march,
             retire,
+            next,
+            counter,
             marching,
             bitfield,
             max_wave_samples: DEFAULT_WAVE_SAMPLES,
             waves: None,
+            last: Default::default(),
         })
     }
 
@@ -275,14 +311,29 @@ impl<'c> GpuRenderer<'c> {
         check_binding(ctx, "render: network outputs", 16 * s)?;
         check_binding(ctx, "render: rays", 32 * r)?;
         let state = self.composite.state(ctx, rays)?;
+        let counters = device_buffer(ctx, "render counters", 16);
+        let grid_slot = self.field.grid().count_slot(ctx, capacity)?;
+        let [tiles, ..] = self.field.mlp().count_slots(ctx, capacity)?;
+        let samples = DeviceCount::new(
+            ctx,
+            &self.counter,
+            &counters,
+            0,
+            0,
+            capacity,
+            &[grid_slot, tiles],
+        )?;
         let waves = ctx.scoped("render buffers", || Waves {
             rays_per_tile: rays,
             samples_per_wave: spw,
             capacity,
             rays: device_buffer(ctx, "render rays", 32 * r),
-            live: device_buffer(ctx, "render live rays", 4 * r),
-            live_next: device_buffer(ctx, "render next live rays", 4 * r),
-            counters: device_buffer(ctx, "render counters", 16),
+            live: [
+                device_buffer(ctx, "render live rays", 4 * r),
+                device_buffer(ctx, "render next live rays", 4 * r),
+            ],
+            counters,
+            samples,
             wave: device_buffer(ctx, "render wave", 8 * r),
             pos: device_buffer(ctx, "render positions", 12 * s),
             dir: device_buffer(ctx, "render directions", 12 * s),
@@ -294,6 +345,11 @@ impl<'c> GpuRenderer<'c> {
         })?;
         self.waves = Some(waves);
         Ok(())
+    }
+
+    /// Tiles, waves and host waits of the last [`Self::render`].
+    pub fn last_waits(&self) -> RenderWaits {
+        self.last.get()
     }
 
     /// Renders `cam`'s view of the scene: what [`render_image`] gives, on the device.
@@ -325,6 +381,7 @@ impl<'c> GpuRenderer<'c> {
             n_samples: 0,
             profile: Default::default(),
         };
+        self.last.set(RenderWaits::default());
         if n_pixels == 0 {
             return Ok(out);
         }
@@ -358,17 +415,18 @@ impl<'c> GpuRenderer<'c> {
         Ok(out)
     }
 
-    fn params(&self, tile: &Tile, spw: u32, n_live: u32, n: u32) -> ([u32; 2], wgpu::Buffer) {
-        let g = groups(self.ctx, n);
+    /// A tile's uniform and its passes' workgroups: one invocation per ray of the tile (the
+    /// passes over live rays read the list's length on the device).
+    fn params(&self, tile: &Tile, spw: u32) -> ([u32; 2], wgpu::Buffer) {
+        let g = groups(self.ctx, tile.n_tile);
         let params = RenderParams {
             n_tile: tile.n_tile,
             first_pixel: tile.first,
             width: tile.width,
             row_width: g[0] * WORKGROUP,
             samples_per_wave: spw,
-            n_live,
             min_transmittance: tile.opts.min_transmittance,
-            _pad: 0,
+            _pad: [0; 2],
         };
         let buffer = self
             .ctx
@@ -402,12 +460,15 @@ impl<'c> GpuRenderer<'c> {
         pass.dispatch_workgroups(gx, gy, 1);
     }
 
-    /// Records one wave's marching of the live rays (at most `bound` of them; the list's
-    /// length is on the device).
-    fn encode_march(&self, encoder: &mut wgpu::CommandEncoder, w: &Waves, tile: &Tile, bound: u32) {
+    /// Records one wave's marching of the rays in list `live` (its length is on the device).
+    fn encode_march(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        w: &Waves,
+        live: &wgpu::Buffer,
+        (g, params): &([u32; 2], wgpu::Buffer),
+    ) {
         let e = buffer_entry;
-        encoder.clear_buffer(&w.counters, 0, Some(4));
-        let (g, params) = self.params(tile, w.samples_per_wave, 0, bound);
         self.dispatch(
             encoder,
             &self.march,
@@ -415,79 +476,119 @@ impl<'c> GpuRenderer<'c> {
                 e(5, &self.bitfield),
                 e(11, &self.marching),
                 e(12, &w.rays),
-                e(13, &w.live),
+                e(13, live),
                 e(15, &w.counters),
                 e(16, &w.wave),
                 e(17, &w.pos),
                 e(18, &w.dir),
                 e(19, &w.dt),
                 e(20, &w.dist),
-                e(22, &params),
+                e(22, params),
             ],
-            g,
+            *g,
         );
     }
 
-    /// (samples of the wave marched last, live rays), read back.
-    fn counters(&self, w: &Waves) -> GpuResult<(u32, u32)> {
-        let c: Vec<u32> = self.ctx.read_buffer(&w.counters, 16)?;
-        Ok((c[0], c[1]))
-    }
-
-    /// Records the network over the `n` samples of the wave marched last into `w.raw`.
-    fn encode_network(
-        &self,
-        encoder: &mut wgpu::CommandEncoder,
-        w: &Waves,
-        n: u32,
-    ) -> GpuResult<()> {
-        if n > w.capacity {
-            return Err(GpuError::Device {
-                what: "render",
-                msg: format!("{n} samples in a wave of {}", w.capacity),
-            });
-        }
-        let ctx = self.ctx;
+    /// The grid's forward over a wave's samples, bound once for a tile (the scene's index
+    /// can change between renders) and dispatched with the wave's count.
+    fn bind_grid(&self, w: &Waves) -> GpuResult<super::grid::GridDispatch> {
         let layout = self.field.layout();
         let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
-        let ld = n
-            .div_ceil(LD_GRANULE)
-            .saturating_mul(LD_GRANULE)
-            .min(w.capacity);
-        let forward = self.field.grid().bind_forward(
-            ctx,
+        self.field.grid().bind_forward(
+            self.ctx,
             self.field.index(),
             w.pos.slice(..),
             self.field.params.slice(g0..g1),
             w.enc.slice(..),
-            GridShape { n_samples: n, ld },
-        )?;
-        {
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            forward.record(&mut pass);
-        }
+            GridShape {
+                n_samples: w.capacity,
+                ld: w.capacity,
+            },
+        )
+    }
+
+    /// Records one wave: the network over the samples marched last (as many as the device
+    /// counted), compositing, retiring the rays of list `live` into the other list, and
+    /// marching that one.
+    fn encode_wave(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        w: &Waves,
+        grid: &super::grid::GridDispatch,
+        tile: &Tile,
+        live: usize,
+        params: &([u32; 2], wgpu::Buffer),
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
+        let e = buffer_entry;
+        w.samples.encode(encoder);
+        grid.record_counted(encoder, &w.samples)?;
         let batch = EncodedBatch {
             params: &self.field.params,
             enc: &w.enc,
-            ld,
-            n,
+            ld: w.capacity,
+            n: w.capacity,
         };
-        self.field
-            .mlp()
-            .encode_forward(ctx, encoder, &batch, &w.dir, &w.raw, None)
+        self.field.mlp().encode_forward_slice(
+            ctx,
+            encoder,
+            &batch,
+            w.dir.slice(..),
+            &w.raw,
+            None,
+            Some(&w.samples),
+        )?;
+        let samples = WaveSamples {
+            wave: &w.wave,
+            raw: &w.raw,
+            dt: &w.dt,
+            dist: &w.dist,
+        };
+        self.composite.encode_wave(
+            ctx,
+            encoder,
+            &w.state,
+            &samples,
+            tile.opts.min_transmittance,
+        )?;
+        let (current, next) = (&w.live[live], &w.live[1 - live]);
+        ctx.scoped("render wave", || {
+            self.dispatch(
+                encoder,
+                &self.retire,
+                &[
+                    e(12, &w.rays),
+                    e(13, current),
+                    e(14, next),
+                    e(15, &w.counters),
+                    e(16, &w.wave),
+                    e(21, &w.state.trans),
+                    e(22, &params.1),
+                ],
+                params.0,
+            );
+            self.dispatch(encoder, &self.next, &[e(15, &w.counters)], [1, 1]);
+            self.encode_march(encoder, w, next, params);
+        })
+    }
+
+    fn count(&self, f: impl FnOnce(&mut RenderWaits)) {
+        let mut l = self.last.get();
+        f(&mut l);
+        self.last.set(l);
     }
 
     /// Renders one tile into `out`; returns its samples.
     fn render_tile(&self, w: &Waves, tile: &Tile, out: &mut RenderedImage) -> GpuResult<u64> {
         let ctx = self.ctx;
         let e = buffer_entry;
-        let spw = w.samples_per_wave;
+        let params = self.params(tile, w.samples_per_wave);
+        let grid = self.bind_grid(w)?;
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         ctx.scoped("render rays", || {
             encoder.clear_buffer(&w.counters, 0, None);
             encoder.clear_buffer(&w.wave, 0, None);
             encoder.clear_buffer(&w.state.acc, 0, None);
-            let (g, params) = self.params(tile, spw, 0, tile.n_tile);
             self.dispatch(
                 &mut encoder,
                 &self.generate,
@@ -495,75 +596,76 @@ impl<'c> GpuRenderer<'c> {
                     e(0, tile.cams),
                     e(11, &self.marching),
                     e(12, &w.rays),
-                    e(13, &w.live),
+                    e(13, &w.live[0]),
                     e(15, &w.counters),
                     e(21, &w.state.trans),
-                    e(22, &params),
+                    e(22, &params.1),
                 ],
-                g,
+                params.0,
             );
-            self.encode_march(&mut encoder, w, tile, tile.n_tile);
-            ctx.queue.submit([encoder.finish()]);
+            self.encode_march(&mut encoder, w, &w.live[0], &params);
         })?;
-        let (mut n_samples, mut n_live) = self.counters(w)?;
         let mut total = 0u64;
         let mut waves = 0u32;
-        while n_live > 0 {
-            waves += 1;
-            if waves > MAX_WAVES {
+        let mut live = 0;
+        let mut batch = FIRST_BATCH_WAVES;
+        for _ in 0..batch {
+            self.encode_wave(&mut encoder, w, &grid, tile, live, &params)?;
+            live = 1 - live;
+        }
+        loop {
+            ctx.scoped("render waves", || ctx.queue.submit([encoder.finish()]))?;
+            waves += batch;
+            // The next batch is recorded while the device runs this one, and submitted only
+            // if a ray is still live.
+            let next_batch = (2 * batch).min(MAX_BATCH_WAVES);
+            let mut next = ctx.device.create_command_encoder(&Default::default());
+            next.clear_buffer(&w.counters, 8, Some(4));
+            for _ in 0..next_batch {
+                self.encode_wave(&mut next, w, &grid, tile, live, &params)?;
+                live = 1 - live;
+            }
+            // [samples of the wave marched last, live rays, samples since the last read, _]
+            let c: Vec<u32> = ctx.read_buffer(&w.counters, 16)?;
+            self.count(|l| {
+                l.waves += batch;
+                l.waits += 1;
+            });
+            total += u64::from(c[2]);
+            if c[1] == 0 {
+                break;
+            }
+            if waves >= MAX_WAVES {
                 return Err(GpuError::Device {
                     what: "render",
-                    msg: format!("{n_live} rays still live after {MAX_WAVES} waves"),
+                    msg: format!("{} rays still live after {waves} waves", c[1]),
                 });
             }
-            total += n_samples as u64;
-            let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            if n_samples > 0 {
-                self.encode_network(&mut encoder, w, n_samples)?;
-            }
-            let samples = WaveSamples {
-                wave: &w.wave,
-                raw: &w.raw,
-                dt: &w.dt,
-                dist: &w.dist,
-            };
-            self.composite.encode_wave(
-                ctx,
-                &mut encoder,
-                &w.state,
-                &samples,
-                tile.opts.min_transmittance,
-            )?;
-            ctx.scoped("render wave", || {
-                encoder.clear_buffer(&w.counters, 4, Some(4));
-                let (g, params) = self.params(tile, spw, n_live, n_live);
-                self.dispatch(
-                    &mut encoder,
-                    &self.retire,
-                    &[
-                        e(12, &w.rays),
-                        e(13, &w.live),
-                        e(14, &w.live_next),
-                        e(15, &w.counters),
-                        e(16, &w.wave),
-                        e(21, &w.state.trans),
-                        e(22, &params),
-                    ],
-                    g,
-                );
-                encoder.copy_buffer_to_buffer(&w.live_next, 0, &w.live, 0, 4 * n_live as u64);
-                self.encode_march(&mut encoder, w, tile, n_live);
-                ctx.queue.submit([encoder.finish()]);
-            })?;
-            (n_samples, n_live) = self.counters(w)?;
+            (encoder, batch) = (next, next_batch);
         }
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
         self.composite
             .encode_finish(ctx, &mut encoder, &w.state, tile.opts.background)?;
         ctx.scoped("render finish", || ctx.queue.submit([encoder.finish()]))?;
         let n = tile.n_tile as u64;
-        let rgba: Vec<[f32; 4]> = ctx.read_buffer(&w.state.pixel_rgba, 16 * n)?;
-        let depth: Vec<f32> = ctx.read_buffer(&w.state.pixel_depth, 4 * n)?;
+        let mut pixels =
+            ctx.read_buffers(&[(&w.state.pixel_rgba, 16 * n), (&w.state.pixel_depth, 4 * n)])?;
+        self.count(|l| {
+            l.tiles += 1;
+            l.waits += 1;
+        });
+        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&pixels.pop().unwrap_or_default());
+        let rgba: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&pixels.pop().unwrap_or_default());
+        if rgba.len() != n as usize || depth.len() != n as usize {
+            return Err(GpuError::Device {
+                what: "render",
+                msg: format!(
+                    "read {} pixels and {} depths of {n}",
+                    rgba.len(),
+                    depth.len()
+                ),
+            });
+        }
         let first = tile.first as usize;
         for (k, (px, d)) in rgba.iter().zip(&depth).enumerate() {
             let i = first + k;

@@ -9,9 +9,12 @@
 // One tile of pixels at a time. The live rays are a list of tile-local ray indices; a wave
 // marches each listed ray, reserves its samples with one atomicAdd on the wave's counter
 // (marching twice: count, then write, as rays.wgsl does), and after compositing the retire
-// pass appends the rays still alive to the next list. The order of the lists and of the
-// samples depends on the order the device runs the invocations; what each ray computes
-// does not (the network evaluates every sample on its own).
+// pass appends the rays still alive to the other list, which `render_next_main` makes the
+// current one. Every length stays on the device (the passes over rays are dispatched over
+// the whole tile and read the list's length; the network's, from a device count), so the
+// host records many waves a submission and reads the counters once after them. The order
+// of the lists and of the samples depends on the order the device runs the invocations;
+// what each ray computes does not (the network evaluates every sample on its own).
 
 struct RenderParams {
     // Rays (pixels) of this tile and the tile's first pixel; the image's width.
@@ -21,10 +24,9 @@ struct RenderParams {
     // Invocations per dispatch row (dispatches wider than 65535 workgroups fold into y).
     row_width: u32,
     samples_per_wave: u32,
-    // Rays in `live` (the retire pass's exact count; marching reads the device's counter).
-    n_live: u32,
     min_transmittance: f32,
-    _pad: u32,
+    _pad0: u32,
+    _pad1: u32,
 }
 
 struct RenderRay {
@@ -39,7 +41,8 @@ struct RenderRay {
 @group(0) @binding(12) var<storage, read_write> rrays: array<RenderRay>;
 @group(0) @binding(13) var<storage, read_write> live: array<u32>;
 @group(0) @binding(14) var<storage, read_write> live_next: array<u32>;
-// [0]: samples of the wave marched last, [1]: rays in `live`.
+// [0]: samples of the wave marched last, [1]: rays in `live`, [2]: samples marched since the
+// host last cleared it, [3]: rays the retire pass appended to `live_next`.
 @group(0) @binding(15) var<storage, read_write> rcount: array<atomic<u32>, 4>;
 // Per tile ray: this wave's samples (start, count), for composite.wgsl.
 @group(0) @binding(16) var<storage, read_write> wave: array<vec2<u32>>;
@@ -143,6 +146,7 @@ fn render_march_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     var start = 0u;
     if (end.n > 0u) {
         start = atomicAdd(&rcount[0], end.n);
+        atomicAdd(&rcount[2], end.n);
         // At most the samples reserved, whatever the second pass finds.
         march_wave(r.o, r.d, r.t, end.n, true, start);
     }
@@ -158,13 +162,23 @@ fn render_march_main(@builtin(global_invocation_id) gid: vec3<u32>) {
 @compute @workgroup_size(64)
 fn render_retire_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let i = gid.x + gid.y * rp.row_width;
-    if (i >= rp.n_live) {
+    if (i >= atomicLoad(&rcount[1])) {
         return;
     }
     let k = live[i];
     if (rrays[k].done == 0u && !(trans[k] < rp.min_transmittance)) {
-        live_next[atomicAdd(&rcount[1], 1u)] = k;
+        live_next[atomicAdd(&rcount[3], 1u)] = k;
     } else {
         wave[k] = vec2<u32>(0u, 0u);
     }
+}
+
+// Between the retire pass and the next wave's marching (one invocation): the list the
+// retire pass wrote becomes the current one (the host swaps the two buffers' roles), and
+// the wave's sample counter starts again.
+@compute @workgroup_size(1)
+fn render_next_main() {
+    atomicStore(&rcount[1], atomicLoad(&rcount[3]));
+    atomicStore(&rcount[3], 0u);
+    atomicStore(&rcount[0], 0u);
 }
