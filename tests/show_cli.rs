@@ -534,6 +534,9 @@ fn viewer_in_a_real_browser() {
         "96",
         "--height",
         "72",
+        // An aim no frame meets: interactive frames shrink to the floor while dragging.
+        "--frame-seconds",
+        "0.0001",
     ]);
     let mut b = Browser::launch(&chromium, 900, 700);
     b.navigate(&s.url);
@@ -609,6 +612,25 @@ fn viewer_in_a_real_browser() {
         moved.psnr(&first) < 30.0,
         "the drag did not change the view"
     );
+    // Dynamic resolution: the interactive frames shrank toward the aim, no lower than 1/16
+    // of the full size; the rule grows them at most twofold a frame, up to the largest.
+    let scale = b.eval("viewer.fastScale").as_f64().unwrap();
+    assert!(
+        (1.0 / 16.0..0.25).contains(&scale),
+        "interactive scale {scale} after frames slower than the aim"
+    );
+    let adapt = |b: &mut Browser, from: f64, times_aim: f64| -> f64 {
+        b.eval(&format!(
+            "(() => {{ viewer.fastScale = {from}; viewer.adapt(viewer.info.frame_seconds * {times_aim}); return viewer.fastScale; }})()"
+        ))
+        .as_f64()
+        .unwrap()
+    };
+    assert!((adapt(&mut b, 0.1, 0.25) - 0.2).abs() < 1e-9);
+    assert!((adapt(&mut b, 0.1, 0.01) - 0.2).abs() < 1e-9);
+    assert!((adapt(&mut b, 0.2, 0.01) - 0.25).abs() < 1e-9);
+    assert!((adapt(&mut b, 0.07, 100.0) - 1.0 / 16.0).abs() < 1e-9);
+    assert!((adapt(&mut b, 0.1, 1.0) - 0.1).abs() < 1e-9);
     b.screenshot(&shots.join("2-dragged.png"));
     record(&mut b, 2);
 
@@ -749,4 +771,24 @@ fn demo_writes_its_side_by_side_video_and_large_figure() {
     assert_eq!((large.width, large.height), (128, 40), "{log}");
     let v = decode_mp4(&out.join("demo.mp4")).unwrap();
     assert_eq!((v.width, v.height, v.frames.len()), (68, 20, 3));
+}
+
+#[test]
+fn view_refuses_bad_frame_options_before_listening() {
+    let f = fixture();
+    let m = f.p("m.ingp");
+    for (flag, value) in [
+        ("--interactive-scale", "0"),
+        ("--interactive-scale", "1.5"),
+        ("--frame-seconds", "-1"),
+        ("--frame-seconds", "NaN"),
+        ("--frame-seconds", "inf"),
+    ] {
+        let out = stegongp(&["view", &m, &format!("{flag}={value}"), "--port", "0"]);
+        fails_naming(&out, &[flag]);
+        assert!(
+            !String::from_utf8_lossy(&out.stdout).contains("open "),
+            "{flag} {value}: the viewer started"
+        );
+    }
 }

@@ -35,9 +35,15 @@ pub struct Args {
     pub width: Option<u32>,
     #[arg(long)]
     pub height: Option<u32>,
-    /// Interactive frames (while the camera moves) are this fraction of the full size.
+    /// Interactive frames (while the camera moves) are at most this fraction of the full
+    /// size on a side.
     #[arg(long, default_value_t = 0.25)]
     pub interactive_scale: f32,
+    /// The render time interactive frames aim at, in seconds: their size adapts after each
+    /// one (down to 1/16 of the full size on a side, up to --interactive-scale), so the view
+    /// follows the mouse on a slow device. 0: always --interactive-scale.
+    #[arg(long, default_value_t = 0.25)]
+    pub frame_seconds: f32,
     #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
     /// Transmittance a full frame's rays stop at: 0.01, as instant-ngp's own viewer (1e-4,
@@ -59,6 +65,9 @@ pub struct Args {
 pub fn run(a: Args) -> Result<()> {
     if !(a.interactive_scale > 0.0 && a.interactive_scale <= 1.0) {
         bail!("--interactive-scale {}: not in (0, 1]", a.interactive_scale);
+    }
+    if !(a.frame_seconds.is_finite() && (0.0..=60.0).contains(&a.frame_seconds)) {
+        bail!("--frame-seconds {}: not in [0, 60]", a.frame_seconds);
     }
     check_parent_dir(&a.record)?;
     let model = Model::load(&a.model)?;
@@ -104,6 +113,7 @@ pub fn run(a: Args) -> Result<()> {
         width,
         height,
         interactive_scale: a.interactive_scale,
+        frame_seconds: a.frame_seconds,
         background: a.background.rgb(),
         min_transmittance: a.min_transmittance,
         record: a.record.clone(),

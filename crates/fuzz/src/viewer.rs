@@ -51,6 +51,7 @@ fn start() -> Result<Live, String> {
             width: SIZE.0,
             height: SIZE.1,
             interactive_scale: 0.5,
+            frame_seconds: 0.25,
             background: [1.0; 3],
             min_transmittance: 0.01,
             record,

@@ -29,8 +29,13 @@ pub struct ViewerOptions {
     /// Full-resolution frame size.
     pub width: u32,
     pub height: u32,
-    /// Interactive frames are this fraction of the full size on each side.
+    /// Interactive frames are at most this fraction of the full size on each side.
     pub interactive_scale: f32,
+    /// The render time interactive frames aim at: the page shrinks or grows them (from
+    /// 1/16 of the full size on a side up to `interactive_scale`) after each one, as
+    /// instant-ngp's dynamic resolution holds a frame rate. 0 keeps them at
+    /// `interactive_scale`.
+    pub frame_seconds: f32,
     pub background: [f32; 3],
     /// Transmittance a full frame's rays stop at; interactive frames stop at 0.01.
     pub min_transmittance: f32,
@@ -374,6 +379,7 @@ fn info(ctx: &Ctx) -> Value {
         "width": ctx.opts.width,
         "height": ctx.opts.height,
         "interactive_scale": ctx.opts.interactive_scale,
+        "frame_seconds": ctx.opts.frame_seconds,
         "scene": ctx.scene_label,
         "rig": {
             "centre": r.centre, "up": r.up, "distance": r.distance,
