@@ -47,6 +47,16 @@ def fail(msg):
     sys.exit(1)
 
 
+def need_pillow():
+    """Both ends convert images with Pillow: say so before minutes of building or setup,
+    naming this interpreter (a version manager's python3 may lack what the system's has)."""
+    try:
+        import PIL.Image  # noqa: F401
+    except ImportError:
+        fail(f"{sys.executable} has no Pillow: run this script with a Python 3 that has it "
+             "(Debian: apt-get install python3-pil, then /usr/bin/python3 scripts/gpu_bench.py ...)")
+
+
 def tree_bytes(path):
     return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
 
@@ -154,6 +164,7 @@ def download_loader(dst):
 
 
 def prepare(a):
+    need_pillow()
     t0 = time.time()
     d = Path(a.dir)
     if d.exists() and any(d.iterdir()):
@@ -303,6 +314,7 @@ class Run:
     def run(self):
         a = self.a
         small = a.small
+        need_pillow()
         self.setup()
         devices = ["devices", "--json"] + ([] if a.allow_software else ["--require-hardware"])
         self.results["devices"] = self.cmd(*devices, json_out=True)

@@ -197,3 +197,36 @@ fn half_grid_on_the_cpu_is_an_error() {
     );
     assert!(!dir.path().join("m.ingp").exists());
 }
+
+/// Without Pillow (`python3 -S` leaves out the site packages it lives in) the script stops
+/// at once, naming the interpreter and the missing module, before building anything.
+#[test]
+fn without_pillow_the_script_stops_before_building() {
+    let Ok(probe) = Command::new("python3").arg("--version").output() else {
+        eprintln!("skipping: no python3");
+        return;
+    };
+    assert!(probe.status.success());
+    let dir = tempfile::tempdir().unwrap();
+    let carry = dir.path().join("carry");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gpu_bench.py");
+    for args in [
+        vec!["prepare", carry.to_str().unwrap()],
+        vec![
+            "run",
+            carry.to_str().unwrap(),
+            dir.path().join("out").to_str().unwrap(),
+        ],
+    ] {
+        let out = Command::new("python3")
+            .arg("-S")
+            .arg(&script)
+            .args(&args)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(err.contains("has no Pillow"), "{args:?}: {err}");
+        assert!(!carry.exists(), "{args:?} made the carry folder");
+    }
+}
