@@ -103,6 +103,11 @@ impl GpuField {
         &self.layout
     }
 
+    /// Bytes of the grid's table in the parameters (and in a gradient of their layout).
+    pub fn grid_bytes(&self) -> std::ops::Range<u64> {
+        4 * self.layout.grid_offset as u64..4 * self.layout.n_params as u64
+    }
+
     /// The grid kernels (a trainer records its forward and backward with them).
     pub fn grid(&self) -> &GridEncoding {
         &self.grid
@@ -171,15 +176,13 @@ impl GpuField {
         let (Some(enc), Some(out)) = (&scratch.enc, &scratch.out) else {
             unreachable!("allocated above")
         };
-        let g0 = 4 * self.layout.grid_offset as u64;
-        let g1 = 4 * self.layout.n_params as u64;
         for c0 in (0..n).step_by(chunk as usize) {
             let m = chunk.min(n - c0);
             let dispatch = self.grid.bind_forward(
                 ctx,
                 index,
                 positions.slice(12 * c0 as u64..12 * (c0 + m) as u64),
-                self.params.slice(g0..g1),
+                self.params.slice(self.grid_bytes()),
                 enc.slice(..4 * width * m as u64),
                 GridShape::new(m),
             )?;

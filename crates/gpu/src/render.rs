@@ -203,13 +203,31 @@ impl CompositeKernel {
         )
     }
 
-    /// (rgb + opacity, depth) per ray, read back.
+    /// (rgb + opacity, depth) of the first `n_rays` rays, read back with one wait.
     #[allow(clippy::type_complexity)]
-    pub fn read(&self, ctx: &GpuContext, state: &RayState) -> GpuResult<(Vec<[f32; 4]>, Vec<f32>)> {
-        let n = state.n_rays as u64;
+    pub fn read(
+        &self,
+        ctx: &GpuContext,
+        state: &RayState,
+        n_rays: u32,
+    ) -> GpuResult<(Vec<[f32; 4]>, Vec<f32>)> {
+        if n_rays > state.n_rays {
+            return Err(GpuError::Input(format!(
+                "composite: {n_rays} rays read of {}",
+                state.n_rays
+            )));
+        }
+        let n = n_rays as u64;
+        let [rgba, depth]: [Vec<u8>; 2] = ctx
+            .read_buffers(&[(&state.pixel_rgba, 16 * n), (&state.pixel_depth, 4 * n)])?
+            .try_into()
+            .map_err(|_| GpuError::Device {
+                what: "composite",
+                msg: "a read of two buffers gave another count".into(),
+            })?;
         Ok((
-            ctx.read_buffer(&state.pixel_rgba, 16 * n)?,
-            ctx.read_buffer(&state.pixel_depth, 4 * n)?,
+            bytemuck::pod_collect_to_vec(&rgba),
+            bytemuck::pod_collect_to_vec(&depth),
         ))
     }
 }
@@ -300,7 +318,7 @@ mod tests {
         }
         k.encode_finish(ctx, &mut encoder, &state, bg).unwrap();
         ctx.queue.submit([encoder.finish()]);
-        let (rgba, depth) = k.read(ctx, &state).unwrap();
+        let (rgba, depth) = k.read(ctx, &state, state.n_rays).unwrap();
         let mut stopped = 0;
         for (i, &(rgb, d, tr)) in cpu.iter().enumerate() {
             let a = 1.0 - tr;

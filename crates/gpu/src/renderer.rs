@@ -12,9 +12,10 @@
 //! a submission records a batch of waves (4, then twice as many each time up to 32) and the
 //! host reads the counters once after it, to see whether a ray is still live: a few waits a
 //! tile where there was one a wave ([`GpuRenderer::last_waits`]), the next batch recorded
-//! while the device runs the last; and the pixels once per tile. Pixels go in tiles of as many rays as a wave's samples fit the device's
-//! storage bindings (the grid encoding, 4 bytes per feature a sample, is the largest buffer;
-//! [`GpuRenderer::set_max_wave_samples`] bounds it further).
+//! while the device runs the last; and the pixels once per tile. Pixels go in tiles of as
+//! many rays as a wave's samples fit the device's storage bindings (the grid encoding, 4
+//! bytes per feature a sample, is the largest buffer; [`GpuRenderer::set_max_wave_samples`]
+//! bounds it further).
 //!
 //! [`rebuild_occupancy_gpu`] and [`GpuRenderer::rebuild_occupancy`] are
 //! [`OccupancyGrid::rebuild`] on the device: the same cells in the same rounds, octants and
@@ -492,13 +493,11 @@ impl<'c> GpuRenderer<'c> {
     /// The grid's forward over a wave's samples, bound once for a tile (the scene's index
     /// can change between renders) and dispatched with the wave's count.
     fn bind_grid(&self, w: &Waves) -> GpuResult<super::grid::GridDispatch> {
-        let layout = self.field.layout();
-        let (g0, g1) = (4 * layout.grid_offset as u64, 4 * layout.n_params as u64);
         self.field.grid().bind_forward(
             self.ctx,
             self.field.index(),
             w.pos.slice(..),
-            self.field.params.slice(g0..g1),
+            self.field.params.slice(self.field.grid_bytes()),
             w.enc.slice(..),
             GridShape {
                 n_samples: w.capacity,
@@ -607,12 +606,17 @@ impl<'c> GpuRenderer<'c> {
         })?;
         let mut total = 0u64;
         let mut waves = 0u32;
+        // The list the next wave marches (the lists swap roles every wave).
         let mut live = 0;
+        let mut record = |encoder: &mut wgpu::CommandEncoder, n: u32| -> GpuResult<()> {
+            for _ in 0..n {
+                self.encode_wave(encoder, w, &grid, tile, live, &params)?;
+                live = 1 - live;
+            }
+            Ok(())
+        };
         let mut batch = FIRST_BATCH_WAVES;
-        for _ in 0..batch {
-            self.encode_wave(&mut encoder, w, &grid, tile, live, &params)?;
-            live = 1 - live;
-        }
+        record(&mut encoder, batch)?;
         loop {
             ctx.scoped("render waves", || ctx.queue.submit([encoder.finish()]))?;
             waves += batch;
@@ -621,10 +625,7 @@ impl<'c> GpuRenderer<'c> {
             let next_batch = (2 * batch).min(MAX_BATCH_WAVES);
             let mut next = ctx.device.create_command_encoder(&Default::default());
             next.clear_buffer(&w.counters, 8, Some(4));
-            for _ in 0..next_batch {
-                self.encode_wave(&mut next, w, &grid, tile, live, &params)?;
-                live = 1 - live;
-            }
+            record(&mut next, next_batch)?;
             // [samples of the wave marched last, live rays, samples since the last read, _]
             let c: Vec<u32> = ctx.read_buffer(&w.counters, 16)?;
             self.count(|l| {
@@ -647,25 +648,11 @@ impl<'c> GpuRenderer<'c> {
         self.composite
             .encode_finish(ctx, &mut encoder, &w.state, tile.opts.background)?;
         ctx.scoped("render finish", || ctx.queue.submit([encoder.finish()]))?;
-        let n = tile.n_tile as u64;
-        let mut pixels =
-            ctx.read_buffers(&[(&w.state.pixel_rgba, 16 * n), (&w.state.pixel_depth, 4 * n)])?;
+        let (rgba, depth) = self.composite.read(ctx, &w.state, tile.n_tile)?;
         self.count(|l| {
             l.tiles += 1;
             l.waits += 1;
         });
-        let depth: Vec<f32> = bytemuck::pod_collect_to_vec(&pixels.pop().unwrap_or_default());
-        let rgba: Vec<[f32; 4]> = bytemuck::pod_collect_to_vec(&pixels.pop().unwrap_or_default());
-        if rgba.len() != n as usize || depth.len() != n as usize {
-            return Err(GpuError::Device {
-                what: "render",
-                msg: format!(
-                    "read {} pixels and {} depths of {n}",
-                    rgba.len(),
-                    depth.len()
-                ),
-            });
-        }
         let first = tile.first as usize;
         for (k, (px, d)) in rgba.iter().zip(&depth).enumerate() {
             let i = first + k;

@@ -458,10 +458,8 @@ impl<'c> GpuTrainer<'c> {
     /// Refused (an input error) for an odd number of features per level.
     pub fn set_half_grid(&mut self, on: bool) -> GpuResult<()> {
         self.half = if on {
-            let layout = self.field.layout();
-            let table = 4 * layout.grid_offset as u64..4 * layout.n_params as u64;
-            let grid = self.field.grid();
-            Some(grid.half_table(self.ctx, self.field.params.slice(table))?)
+            let table = self.field.params.slice(self.field.grid_bytes());
+            Some(self.field.grid().half_table(self.ctx, table)?)
         } else {
             None
         };
@@ -1133,7 +1131,7 @@ impl<'c> GpuTrainer<'c> {
         let layout = self.field.layout();
         let width = layout.grid.config.n_output_dims() as u64;
         (
-            4 * layout.grid_offset as u64..4 * layout.n_params as u64,
+            self.field.grid_bytes(),
             12 * shape.ld as u64,
             4 * width * shape.ld as u64,
         )
