@@ -24,15 +24,19 @@ fn synth_object(out: &str, res: &str, train: &str, test: &str) {
 /// The first Python 3 that has Pillow: the one on PATH, then the system's. A version
 /// manager's shim (pyenv) can come first on PATH without Pillow while Debian's
 /// `python3-pil`, which `.ci/run` installs, sits under /usr/bin.
+/// Probed once: every run of the script asks.
 fn python_with_pillow() -> Option<&'static str> {
-    ["python3", "/usr/bin/python3", "/usr/local/bin/python3"]
-        .into_iter()
-        .find(|python| {
-            Command::new(python)
-                .args(["-c", "import PIL.Image, lzma"])
-                .output()
-                .is_ok_and(|o| o.status.success())
-        })
+    static FOUND: std::sync::OnceLock<Option<&'static str>> = std::sync::OnceLock::new();
+    *FOUND.get_or_init(|| {
+        ["python3", "/usr/bin/python3", "/usr/local/bin/python3"]
+            .into_iter()
+            .find(|python| {
+                Command::new(python)
+                    .args(["-c", "import PIL.Image, lzma"])
+                    .output()
+                    .is_ok_and(|o| o.status.success())
+            })
+    })
 }
 
 fn script(args: &[&str]) -> Output {
