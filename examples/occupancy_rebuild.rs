@@ -1,8 +1,9 @@
 //! What a key holder's rebuilt occupancy grid costs in quality: a model rendered with the
 //! grid stored in its file (trained over many steps) against grids rebuilt from the
-//! network alone with 1 and 4 density samples per cell, as `eval --key` does.
+//! network alone with 1 and 4 density samples per cell (`SPC=4,8`: others), each followed by
+//! `REFINE=28` more points in the cells near occupied ones, as `eval --key` rebuilds.
 //!
-//! cargo run --release --example occupancy_rebuild -- MODEL DATA_DIR [DOWNSCALE] [KEYFILE] [VIEWS]
+//! SPC=4 REFINE=28 cargo run --release --example occupancy_rebuild -- MODEL DATA_DIR [DOWNSCALE] [KEYFILE] [VIEWS]
 
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::encoding::reference_indices;
@@ -52,6 +53,12 @@ fn main() {
         .ok()
         .map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect())
         .unwrap_or(vec![1, 4]);
+    // REFINE=28,60: that many more points in the cells near occupied ones, after each.
+    let refines: Vec<usize> = std::env::var("REFINE")
+        .ok()
+        .map(|s| s.split(',').filter_map(|x| x.parse().ok()).collect())
+        .unwrap_or_default();
+    let marcher = model.marcher();
     for spc in spcs {
         let t0 = std::time::Instant::now();
         let g = rebuild_occupancy(
@@ -65,5 +72,20 @@ fn main() {
         let secs = t0.elapsed().as_secs_f64();
         let (p, s) = score(&g);
         println!("rebuilt, {spc} sample(s)/cell ({secs:.1} s): PSNR {p:.2} dB SSIM {s:.4}");
+        for &more in &refines {
+            let t0 = std::time::Instant::now();
+            let mut r = g.clone();
+            let rep = r.refine_near_occupied(more, spc, 0, |pos| {
+                let w: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
+                model.net.density_batch(model.params(), &indices, &w)
+            });
+            let secs = secs + t0.elapsed().as_secs_f64();
+            let (p, s) = score(&r);
+            println!(
+                "  + {more} more near occupied cells ({} cells in {} passes; {secs:.1} s in all): \
+                 PSNR {p:.2} dB SSIM {s:.4}",
+                rep.cells, rep.passes
+            );
+        }
     }
 }

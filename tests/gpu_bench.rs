@@ -147,6 +147,7 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
         "pair_hidden_psnr_key",
         "pair_hidden_psnr_wrong_key",
         "plain_text_psnr_same_steps",
+        "plain_text_psnr_rebuilt_grid",
     ] {
         let v = s[k].as_f64().unwrap_or(f64::NAN);
         assert!(v.is_finite() && v > 5.0, "{k}: {v}");

@@ -6,7 +6,7 @@
 
 use std::sync::{Arc, OnceLock};
 use std::time::Instant;
-use stegongp::gpu::{GpuRenderer, rebuild_occupancy_gpu, test_context};
+use stegongp::gpu::{GpuRenderer, rebuild_occupancy_gpu, refine_occupancy_gpu, test_context};
 use stegongp::ngp::camera::{Camera, Distortion};
 use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::{LevelIndices, reference_indices};
@@ -15,7 +15,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::occupancy::{GRID_SIZE, N_CELLS, OccupancyGrid, morton3d_invert};
 use stegongp::ngp::render::image::{
-    RenderOptions, RenderedImage, SceneView, rebuild_occupancy, render_image,
+    RenderOptions, RenderedImage, SceneView, rebuild_occupancy, refine_occupancy, render_image,
 };
 use stegongp::stego::SchemeKind;
 use stegongp::stego::recipe::StepOptions;
@@ -428,4 +428,52 @@ fn bad_inputs_are_errors() {
     assert!(img.rgb.is_empty() && img.n_samples == 0);
     // Still renders after the refusals.
     gpu.render(&cam, &RenderOptions::default()).unwrap();
+}
+
+/// The key holder's second stage, more points near the occupied cells, with the densities
+/// on the device: the cells the host picks from the device's rebuilt grid are the CPU's, and
+/// they get the CPU's densities (to the device's rounding).
+#[test]
+fn refined_grid_matches_the_cpu() {
+    let Some(f) = fixture() else { return };
+    let Some(ctx) = test_context() else { return };
+    const MORE: usize = 4;
+    let (mut cpu, mut gpu) = (f.cpu_grid.clone(), f.gpu_grid.clone());
+    let aabb = f.model.config.aabb_scale;
+    let want = refine_occupancy(
+        &f.model.net,
+        f.model.params(),
+        &f.key,
+        &mut cpu,
+        aabb,
+        MORE,
+        REBUILD_SAMPLES,
+        REBUILD_SEED,
+    );
+    let got = refine_occupancy_gpu(
+        ctx,
+        &f.model,
+        &f.key,
+        &mut gpu,
+        MORE,
+        REBUILD_SAMPLES,
+        REBUILD_SEED,
+    )
+    .unwrap();
+    assert_eq!(got, want, "the same cells sampled again");
+    assert!(want.cells > 0, "{want:?}");
+    let mut raised = 0;
+    for (i, ((&g, &c), &before)) in gpu
+        .density
+        .iter()
+        .zip(&cpu.density)
+        .zip(&f.cpu_grid.density)
+        .enumerate()
+    {
+        let rel = (g - c).abs() / c.abs().max(1e-12);
+        assert!(rel <= 1e-3, "cell {i}: {g} vs {c}");
+        raised += usize::from(c > before);
+    }
+    eprintln!("refine: {want:?}, {raised} cells raised");
+    assert!(raised > 0, "the refinement raised no cell");
 }

@@ -301,3 +301,124 @@ fn density_cap_is_stealths_and_checked_before_anything_is_written() {
     let log = ok(&train(&["--stealth", "--density-cap", "0"]));
     assert!(log.contains("the cover's density uncapped"), "{log}");
 }
+
+/// `eval --rebuild-grid` scores the cover through the grid a key holder would rebuild from
+/// the network (the grid the library rebuilds, not the stored one), and changes nothing
+/// where a key already makes eval rebuild it.
+#[test]
+fn rebuild_grid_scores_a_plain_scene_as_a_hidden_one_is_scored() {
+    use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+    use stegongp::ngp::encoding::reference_indices;
+    use stegongp::ngp::eval::evaluate_with;
+    use stegongp::ngp::model::Model;
+    use stegongp::ngp::render::image::{
+        KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy,
+        refine_occupancy,
+    };
+    let d = tempfile::tempdir().unwrap();
+    let (cover, text, key, model) = cover_text_key(d.path(), "24");
+    ok(&stegongp(&[
+        "train",
+        &cover,
+        "--hidden",
+        &text,
+        "--key",
+        &key,
+        "--steps",
+        "40",
+        "--batch",
+        "4096",
+        "--log2-t",
+        "14",
+        "--occupancy-fraction",
+        "0.0078125",
+        "--device",
+        "cpu",
+        "--out",
+        &model,
+    ]));
+    let psnr = |extra: &[&str]| -> f64 {
+        let mut args = vec![
+            "eval",
+            "--model",
+            &model,
+            "--no-lpips",
+            "--device",
+            "cpu",
+            "--json",
+        ];
+        args.extend_from_slice(extra);
+        let out = stegongp(&args);
+        ok(&out);
+        let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        v["psnr"].as_f64().unwrap()
+    };
+    let stored = psnr(&["--data", &cover]);
+    let rebuilt = psnr(&["--data", &cover, "--rebuild-grid"]);
+
+    let m = Model::load(model.as_ref()).unwrap();
+    let indices = reference_indices(&m.net.layout.grid);
+    let mut grid = rebuild_occupancy(
+        &m.net,
+        m.params(),
+        &indices,
+        m.config.aabb_scale,
+        KEY_HOLDER_SAMPLES_PER_CELL,
+        0,
+    );
+    refine_occupancy(
+        &m.net,
+        m.params(),
+        &indices,
+        &mut grid,
+        m.config.aabb_scale,
+        KEY_HOLDER_REFINE_SAMPLES,
+        KEY_HOLDER_SAMPLES_PER_CELL,
+        0,
+    );
+    assert_ne!(
+        grid.density, m.grid.density,
+        "the fixture's stored grid must differ from a rebuilt one for the test to tell them apart"
+    );
+    let data = Dataset::load(cover.as_ref(), Split::Test, &LoadOptions::default()).unwrap();
+    let want = evaluate_with(
+        &m.view(&indices, &grid),
+        &data,
+        &RenderOptions::default(),
+        None,
+        None,
+        |_, _, _| {},
+    )
+    .psnr;
+    let alone = evaluate_with(
+        &m.view(&indices, &m.grid),
+        &data,
+        &RenderOptions::default(),
+        None,
+        None,
+        |_, _, _| {},
+    )
+    .psnr;
+    // The CLI's scores sum in another order than evaluate's: the same to 1e-9 dB.
+    let same = |a: f64, b: f64| (a - b).abs() < 1e-9;
+    assert!(
+        same(rebuilt, want),
+        "--rebuild-grid renders through the rebuilt grid: {rebuilt} vs {want}"
+    );
+    assert!(
+        same(stored, alone),
+        "without it, through the stored grid: {stored} vs {alone}"
+    );
+    assert!(
+        (want - alone).abs() > 1e-3,
+        "the two grids render apart on this fixture: {want} vs {alone}"
+    );
+    let (with, without) = (
+        psnr(&["--data", &text, "--key", &key, "--rebuild-grid"]),
+        psnr(&["--data", &text, "--key", &key]),
+    );
+    assert!(
+        same(with, without),
+        "a key's scene is rebuilt either way: {with} vs {without}"
+    );
+}

@@ -51,6 +51,12 @@ pub struct ViewArgs {
     pub min_transmittance: f32,
     #[command(flatten)]
     pub key: super::KeyArgs,
+    /// Render through an occupancy grid rebuilt from the network, as a key holder's is,
+    /// instead of the grid stored in the model: scores a plain model on the terms its hidden
+    /// scenes are scored on (a hidden scene's grid is never stored). With --key the grid is
+    /// rebuilt anyway.
+    #[arg(long)]
+    pub rebuild_grid: bool,
     #[command(flatten)]
     pub device: DeviceArg,
 }
@@ -98,7 +104,10 @@ impl ViewArgs {
             },
         )?;
         let device = self.device.open()?;
-        let scene = self.key.scene(&device, &model)?;
+        let mut scene = self.key.scene(&device, &model)?;
+        if self.rebuild_grid {
+            scene = scene.with_rebuilt_grid(&device, &model, 0)?;
+        }
         let which = spread_views(data.frames.len(), self.views);
         Ok(Viewing {
             device,

@@ -12,9 +12,9 @@ use ngp::encoding::LevelIndices;
 use ngp::error::{Error, Result};
 use ngp::model::Model;
 use ngp::network::ModelConfig;
-use ngp::occupancy::OccupancyGrid;
+use ngp::occupancy::{OccupancyGrid, RefineReport};
 pub use ngp::render::RenderBackend;
-use ngp::render::image::rebuild_occupancy_in_box;
+use ngp::render::image::{rebuild_occupancy_in_box, refine_occupancy};
 pub use ngp::train::TrainBackend;
 use ngp::train::{SceneSpec, TrainConfig, Trainer};
 use serde::Serialize;
@@ -211,6 +211,36 @@ impl Device {
 }
 
 impl Device {
+    /// [`OccupancyGrid::refine_near_occupied`] of a rebuilt `grid` of `model` under
+    /// `indices`, the densities evaluated on this device.
+    pub fn refine_occupancy(
+        &self,
+        model: &Model,
+        indices: &LevelIndices,
+        grid: &mut OccupancyGrid,
+        rounds: usize,
+        first_round: usize,
+        seed: u64,
+    ) -> Result<RefineReport> {
+        match self {
+            Device::Cpu { .. } => Ok(refine_occupancy(
+                &model.net,
+                model.params(),
+                indices,
+                grid,
+                model.config.aabb_scale,
+                rounds,
+                first_round,
+                seed,
+            )),
+            #[cfg(feature = "gpu")]
+            Device::Gpu(ctx) => {
+                gpu::refine_occupancy_gpu(ctx, model, indices, grid, rounds, first_round, seed)
+                    .map_err(gpu_error)
+            }
+        }
+    }
+
     /// A key holder's occupancy grid of `model` under `indices`, rebuilt from the network
     /// on this device ([`OccupancyGrid::rebuild_in_box`]'s samples), confined to
     /// `scene_box` when the key gives one.

@@ -40,7 +40,7 @@ use super::{
 use ngp::camera::Camera;
 use ngp::encoding::LevelIndices;
 use ngp::model::Model;
-use ngp::occupancy::{N_CELLS, OccupancyGrid, REBUILD_OCTANTS};
+use ngp::occupancy::{N_CELLS, OccupancyGrid, REBUILD_OCTANTS, RefineReport};
 use ngp::render::image::{RenderOptions, RenderedImage};
 use ngp::render::march::Marcher;
 use wgpu::util::DeviceExt;
@@ -740,4 +740,66 @@ pub fn rebuild_occupancy_gpu(
         seed,
     )?
     .download(ctx)
+}
+
+/// [`OccupancyGrid::refine_near_occupied`] of a key holder's rebuilt `grid` with the
+/// densities of `model`'s field under `indices` evaluated on the device: the host picks the
+/// cells near occupied ones and draws their points as the CPU does, the device evaluates
+/// them (a few per cent of the cells, so the points travel to the device).
+pub fn refine_occupancy_gpu(
+    ctx: &GpuContext,
+    model: &Model,
+    indices: &LevelIndices,
+    grid: &mut OccupancyGrid,
+    rounds: usize,
+    first_round: usize,
+    seed: u64,
+) -> GpuResult<RefineReport> {
+    let field = GpuField::new(ctx, &model.net.layout, model.params(), indices)?;
+    let marcher = model.marcher();
+    let mut scratch = DensityScratch::default();
+    let mut failed = None;
+    let report = grid.refine_near_occupied(rounds, first_round, seed, |pos| {
+        if failed.is_none() {
+            match densities_on_device(ctx, &field, &marcher, pos, &mut scratch) {
+                Ok(d) => return d,
+                Err(e) => failed = Some(e),
+            }
+        }
+        vec![f32::NEG_INFINITY; pos.len()]
+    });
+    match failed {
+        Some(e) => Err(e),
+        None => Ok(report),
+    }
+}
+
+/// Log-densities of `field` at ngp-space `positions`, in chunks of [`REBUILD_CHUNK`].
+fn densities_on_device(
+    ctx: &GpuContext,
+    field: &GpuField,
+    marcher: &Marcher,
+    positions: &[[f32; 3]],
+    scratch: &mut DensityScratch,
+) -> GpuResult<Vec<f32>> {
+    let mut out = Vec::with_capacity(positions.len());
+    let mut warped = Vec::new();
+    let buf = ctx.scoped("refine positions", || {
+        device_buffer(ctx, "refine positions", 12 * u64::from(REBUILD_CHUNK))
+    })?;
+    for part in positions.chunks(REBUILD_CHUNK as usize) {
+        warped.clear();
+        warped.extend(part.iter().flat_map(|&p| marcher.warp(p)));
+        ctx.queue
+            .write_buffer(&buf, 0, bytemuck::cast_slice(&warped));
+        let n = part.len() as u32;
+        let mut encoder = ctx.device.create_command_encoder(&Default::default());
+        field.encode_density(ctx, &mut encoder, &buf, n, scratch)?;
+        ctx.scoped("refine densities", || ctx.queue.submit([encoder.finish()]))?;
+        let Some(log_density) = &scratch.out else {
+            return input("refine: no density output".into());
+        };
+        out.extend(ctx.read_buffer::<f32>(log_density, 4 * u64::from(n))?);
+    }
+    Ok(out)
 }

@@ -1,7 +1,8 @@
 //! Opening a published model for viewing: with no key, the cover (reference index, stored
 //! grid); with a key, the hidden scene it unlocks (the key's index functions, confined to the
 //! cover's reachable entries for a stealth model, and an occupancy grid rebuilt from the
-//! network, since a hidden scene's grid is never stored, cut to the key's box). One recipe for the CLI, the demo,
+//! network, since a hidden scene's grid is never stored, cut to the key's box, with more
+//! points near its occupied cells). One recipe for the CLI, the demo,
 //! the experiments and the tests.
 
 use super::keys::Key;
@@ -11,7 +12,10 @@ use ngp::encoding::{LevelIndices, reference_indices};
 use ngp::error::Result;
 use ngp::model::Model;
 use ngp::occupancy::OccupancyGrid;
-use ngp::render::image::{KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy_in_box};
+use ngp::render::image::{
+    KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy_in_box,
+    refine_occupancy,
+};
 use std::convert::Infallible;
 
 /// What renders: index functions and, for a key, the rebuilt grid.
@@ -31,6 +35,20 @@ impl OpenedScene {
         self.rebuilt.as_ref().unwrap_or(&model.grid)
     }
 
+    /// This scene through a grid rebuilt from the network, as a key holder's is, where it
+    /// still had the model's stored grid (the cover): a plain model scored on the terms its
+    /// hidden scenes are, since the grid a hidden scene trained with is never stored.
+    pub fn with_rebuilt_grid(self, device: &Device, model: &Model, seed: u64) -> Result<Self> {
+        if self.rebuilt.is_some() {
+            return Ok(self);
+        }
+        let rebuilt = key_holder_grid_on(device, model, &self.indices, None, seed)?;
+        Ok(OpenedScene {
+            rebuilt: Some(rebuilt),
+            ..self
+        })
+    }
+
     /// A renderer of this scene on `device`.
     pub fn renderer<'a>(
         &'a self,
@@ -45,7 +63,7 @@ impl OpenedScene {
 /// says the model was trained with `train --stealth`; `seed` draws the rebuild's samples.
 pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) -> OpenedScene {
     let rebuild = |indices: &LevelIndices, scene_box: Option<u32>| {
-        Ok::<_, Infallible>(rebuild_occupancy_in_box(
+        let mut grid = rebuild_occupancy_in_box(
             &model.net,
             model.params(),
             indices,
@@ -53,10 +71,43 @@ pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) ->
             scene_box,
             KEY_HOLDER_SAMPLES_PER_CELL,
             seed,
-        ))
+        );
+        refine_occupancy(
+            &model.net,
+            model.params(),
+            indices,
+            &mut grid,
+            model.config.aabb_scale,
+            KEY_HOLDER_REFINE_SAMPLES,
+            KEY_HOLDER_SAMPLES_PER_CELL,
+            seed,
+        );
+        Ok::<_, Infallible>(grid)
     };
     let Ok(opened) = open_with(model, key, stealth, rebuild);
     opened
+}
+
+/// A key holder's grid of `model` under `indices`, on `device`: the rebuild's points in every
+/// cell (cut to `scene_box`), then more near the occupied cells.
+fn key_holder_grid_on(
+    device: &Device,
+    model: &Model,
+    indices: &LevelIndices,
+    scene_box: Option<u32>,
+    seed: u64,
+) -> Result<OccupancyGrid> {
+    let mut grid =
+        device.rebuild_occupancy(model, indices, scene_box, KEY_HOLDER_SAMPLES_PER_CELL, seed)?;
+    device.refine_occupancy(
+        model,
+        indices,
+        &mut grid,
+        KEY_HOLDER_REFINE_SAMPLES,
+        KEY_HOLDER_SAMPLES_PER_CELL,
+        seed,
+    )?;
+    Ok(grid)
 }
 
 /// [`open_scene`] with a key holder's grid rebuilt on `device` (the same grid as the CPU's
@@ -69,7 +120,7 @@ pub fn open_scene_on(
     seed: u64,
 ) -> Result<OpenedScene> {
     open_with(model, key, stealth, |indices, scene_box| {
-        device.rebuild_occupancy(model, indices, scene_box, KEY_HOLDER_SAMPLES_PER_CELL, seed)
+        key_holder_grid_on(device, model, indices, scene_box, seed)
     })
 }
 
