@@ -381,24 +381,19 @@ fn rebuild_grid_scores_a_plain_scene_as_a_hidden_one_is_scored() {
         "the fixture's stored grid must differ from a rebuilt one for the test to tell them apart"
     );
     let data = Dataset::load(cover.as_ref(), Split::Test, &LoadOptions::default()).unwrap();
-    let want = evaluate_with(
-        &m.view(&indices, &grid),
-        &data,
-        &RenderOptions::default(),
-        None,
-        None,
-        |_, _, _| {},
-    )
-    .psnr;
-    let alone = evaluate_with(
-        &m.view(&indices, &m.grid),
-        &data,
-        &RenderOptions::default(),
-        None,
-        None,
-        |_, _, _| {},
-    )
-    .psnr;
+    let score = |g| {
+        let view = m.view(&indices, g);
+        evaluate_with(
+            &view,
+            &data,
+            &RenderOptions::default(),
+            None,
+            None,
+            |_, _, _| {},
+        )
+        .psnr
+    };
+    let (want, alone) = (score(&grid), score(&m.grid));
     // The CLI's scores sum in another order than evaluate's: the same to 1e-9 dB.
     let same = |a: f64, b: f64| (a - b).abs() < 1e-9;
     assert!(
