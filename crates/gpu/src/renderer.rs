@@ -758,10 +758,14 @@ pub fn refine_occupancy_gpu(
     let field = GpuField::new(ctx, &model.net.layout, model.params(), indices)?;
     let marcher = model.marcher();
     let mut scratch = DensityScratch::default();
+    // One staging buffer for the points of every round of every pass.
+    let points = ctx.scoped("refine positions", || {
+        device_buffer(ctx, "refine positions", 12 * u64::from(REBUILD_CHUNK))
+    })?;
     let mut failed = None;
     let report = grid.refine_near_occupied(rounds, first_round, seed, |pos| {
         if failed.is_none() {
-            match densities_on_device(ctx, &field, &marcher, pos, &mut scratch) {
+            match densities_on_device(ctx, &field, &marcher, pos, &points, &mut scratch) {
                 Ok(d) => return d,
                 Err(e) => failed = Some(e),
             }
@@ -774,27 +778,26 @@ pub fn refine_occupancy_gpu(
     }
 }
 
-/// Log-densities of `field` at ngp-space `positions`, in chunks of [`REBUILD_CHUNK`].
+/// Log-densities of `field` at ngp-space `positions`, in chunks of [`REBUILD_CHUNK`] warped
+/// into `buf`.
 fn densities_on_device(
     ctx: &GpuContext,
     field: &GpuField,
     marcher: &Marcher,
     positions: &[[f32; 3]],
+    buf: &wgpu::Buffer,
     scratch: &mut DensityScratch,
 ) -> GpuResult<Vec<f32>> {
     let mut out = Vec::with_capacity(positions.len());
     let mut warped = Vec::new();
-    let buf = ctx.scoped("refine positions", || {
-        device_buffer(ctx, "refine positions", 12 * u64::from(REBUILD_CHUNK))
-    })?;
     for part in positions.chunks(REBUILD_CHUNK as usize) {
         warped.clear();
         warped.extend(part.iter().flat_map(|&p| marcher.warp(p)));
         ctx.queue
-            .write_buffer(&buf, 0, bytemuck::cast_slice(&warped));
+            .write_buffer(buf, 0, bytemuck::cast_slice(&warped));
         let n = part.len() as u32;
         let mut encoder = ctx.device.create_command_encoder(&Default::default());
-        field.encode_density(ctx, &mut encoder, &buf, n, scratch)?;
+        field.encode_density(ctx, &mut encoder, buf, n, scratch)?;
         ctx.scoped("refine densities", || ctx.queue.submit([encoder.finish()]))?;
         let Some(log_density) = &scratch.out else {
             return input("refine: no density output".into());

@@ -97,7 +97,6 @@ pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
     Some(morton3d(i[0] as u32, i[1] as u32, i[2] as u32))
 }
 
-/// The octant of every cell that round `r` of [`OccupancyGrid::rebuild`] samples is
 /// Most passes of [`OccupancyGrid::refine_near_occupied`]: each reaches one cell further
 /// along a surface the first rounds missed.
 pub const REFINE_PASSES: usize = 16;
@@ -128,6 +127,7 @@ fn neighbourhood(c: u32) -> impl Iterator<Item = u32> {
     })
 }
 
+/// The octant of every cell that round `r` of [`OccupancyGrid::rebuild`] samples is
 /// `REBUILD_OCTANTS[r % 8]` (seed `seed + r`): opposite octants come first, so that any
 /// number of rounds spreads over the cell.
 pub const REBUILD_OCTANTS: [u32; 8] = [0, 7, 3, 4, 5, 2, 6, 1];

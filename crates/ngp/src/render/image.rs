@@ -350,11 +350,27 @@ pub fn refine_occupancy(
     first_round: usize,
     seed: u64,
 ) -> RefineReport {
+    grid.refine_near_occupied(
+        rounds,
+        first_round,
+        seed,
+        log_density_at(net, params, indices, aabb_scale),
+    )
+}
+
+/// The CPU network's log-density under `indices` at ngp-space points, as a rebuild and its
+/// refinement sample it.
+fn log_density_at<'a>(
+    net: &'a NerfNetwork,
+    params: &'a [f32],
+    indices: &'a LevelIndices,
+    aabb_scale: u32,
+) -> impl FnMut(&[[f32; 3]]) -> Vec<f32> + 'a {
     let marcher = Marcher::new(aabb_scale);
-    grid.refine_near_occupied(rounds, first_round, seed, |pos| {
+    move |pos| {
         let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
         net.density_batch(params, indices, &warped)
-    })
+    }
 }
 
 /// [`OccupancyGrid::rebuild`] from the CPU network under `indices` (how a key holder
@@ -389,9 +405,11 @@ pub fn rebuild_occupancy_in_box(
     samples_per_cell: usize,
     seed: u64,
 ) -> OccupancyGrid {
-    let marcher = Marcher::new(aabb_scale);
-    OccupancyGrid::rebuild_in_box(aabb_scale, scene_box, samples_per_cell, seed, |pos| {
-        let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
-        net.density_batch(params, indices, &warped)
-    })
+    OccupancyGrid::rebuild_in_box(
+        aabb_scale,
+        scene_box,
+        samples_per_cell,
+        seed,
+        log_density_at(net, params, indices, aabb_scale),
+    )
 }
