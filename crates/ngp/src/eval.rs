@@ -143,12 +143,15 @@ fn evaluate_by<E>(
         let render_seconds = t_render.elapsed().as_secs_f64();
         let gt = ground_truth(data, i, opts.background);
         let (w, h) = (img.width as usize, img.height as usize);
-        let p = psnr(&img.rgb, &gt);
-        let s = ssim(&img.rgb, &gt, w, h);
         blank.clear();
         blank.extend((0..w * h).flat_map(|_| opts.background));
-        blank_psnr += psnr(&blank, &gt);
-        blank_ssim += ssim(&blank, &gt, w, h);
+        // On a GPU the render takes tens of milliseconds and these scores most of a view.
+        let ((p, s), (bp, bs)) = rayon::join(
+            || (psnr(&img.rgb, &gt), ssim(&img.rgb, &gt, w, h)),
+            || (psnr(&blank, &gt), ssim(&blank, &gt, w, h)),
+        );
+        blank_psnr += bp;
+        blank_ssim += bs;
         let mut lp = None;
         if let Some(net) = lpips {
             // The ground truth goes through the network once for both comparisons.

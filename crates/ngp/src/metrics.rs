@@ -32,6 +32,8 @@ pub fn psnr(pred: &[f32], gt: &[f32]) -> f64 {
     }
 }
 
+use rayon::prelude::*;
+
 const SSIM_SIZE: usize = 11;
 const SSIM_SIGMA: f64 = 1.5;
 const SSIM_C1: f64 = 0.01 * 0.01;
@@ -50,32 +52,93 @@ fn gaussian_taps() -> [f64; SSIM_SIZE] {
     t.map(|v| v / s)
 }
 
-/// 'valid' separable filtering of a `w×h` single-channel plane.
-fn filter_valid(src: &[f64], w: usize, h: usize, taps: &[f64; SSIM_SIZE]) -> Vec<f64> {
-    let (ow, oh) = (w - SSIM_SIZE + 1, h - SSIM_SIZE + 1);
-    let mut rows = vec![0.0; ow * h];
-    for y in 0..h {
-        let r = &src[y * w..(y + 1) * w];
-        for x in 0..ow {
-            rows[y * ow + x] = taps.iter().zip(&r[x..]).map(|(t, v)| t * v).sum();
+/// Output rows of the SSIM map one task computes: its horizontal pass (the band and the
+/// window's 10 rows below it, five planes) stays in the core's cache (≈ 0.8 MB at 800 px).
+const SSIM_BAND: usize = 16;
+
+/// One channel's SSIM map for output rows `y0..y0 + out.len() / ow`: the five window
+/// statistics (means, second moments and the cross moment) filtered horizontally, then
+/// vertically, then combined. Each filtered value sums its taps in order from zero and
+/// each map value is the same expression, whatever the band, so the map does not depend
+/// on how it was split; the tap loops are outside the pixel loops so that those vectorise.
+fn ssim_band(
+    pred: &[f32],
+    gt: &[f32],
+    c: usize,
+    width: usize,
+    y0: usize,
+    out: &mut [f64],
+    taps: &[f64; SSIM_SIZE],
+) {
+    let ow = width - SSIM_SIZE + 1;
+    let rows_out = out.len() / ow;
+    let rows_in = rows_out + SSIM_SIZE - 1;
+    let (mut xs, mut ys) = (vec![0.0f64; width], vec![0.0f64; width]);
+    // Five planes of rows_in × ow: x, y, x², y², xy filtered along the row.
+    let mut hz = vec![0.0f64; 5 * rows_in * ow];
+    let plane = rows_in * ow;
+    for r in 0..rows_in {
+        let base = (y0 + r) * width;
+        for (x, (a, b)) in xs.iter_mut().zip(ys.iter_mut()).enumerate() {
+            let i = 3 * (base + x) + c;
+            *a = pred[i].clamp(0.0, 1.0) as f64;
+            *b = gt[i] as f64;
+        }
+        let (hx, rest) = hz.split_at_mut(plane);
+        let (hy, rest) = rest.split_at_mut(plane);
+        let (hxx, rest) = rest.split_at_mut(plane);
+        let (hyy, hxy) = rest.split_at_mut(plane);
+        let row = r * ow..(r + 1) * ow;
+        let (hx, hy) = (&mut hx[row.clone()], &mut hy[row.clone()]);
+        let (hxx, hyy, hxy) = (&mut hxx[row.clone()], &mut hyy[row.clone()], &mut hxy[row]);
+        for (k, &t) in taps.iter().enumerate() {
+            let (a, b) = (&xs[k..k + ow], &ys[k..k + ow]);
+            for x in 0..ow {
+                let (a, b) = (a[x], b[x]);
+                hx[x] += t * a;
+                hy[x] += t * b;
+                hxx[x] += t * (a * a);
+                hyy[x] += t * (b * b);
+                hxy[x] += t * (a * b);
+            }
         }
     }
-    let mut out = vec![0.0; ow * oh];
-    for y in 0..oh {
+    let mut v = vec![0.0f64; 5 * ow];
+    for (r, o) in out.chunks_exact_mut(ow).enumerate() {
+        v.fill(0.0);
+        let (mx, rest) = v.split_at_mut(ow);
+        let (my, rest) = rest.split_at_mut(ow);
+        let (sxx, rest) = rest.split_at_mut(ow);
+        let (syy, sxy) = rest.split_at_mut(ow);
+        for (k, &t) in taps.iter().enumerate() {
+            let at = |p: usize| &hz[p * plane + (r + k) * ow..p * plane + (r + k + 1) * ow];
+            let (hx, hy, hxx, hyy, hxy) = (at(0), at(1), at(2), at(3), at(4));
+            for x in 0..ow {
+                mx[x] += t * hx[x];
+                my[x] += t * hy[x];
+                sxx[x] += t * hxx[x];
+                syy[x] += t * hyy[x];
+                sxy[x] += t * hxy[x];
+            }
+        }
         for x in 0..ow {
-            out[y * ow + x] = (0..SSIM_SIZE)
-                .map(|k| taps[k] * rows[(y + k) * ow + x])
-                .sum();
+            let (a, b) = (mx[x], my[x]);
+            // Rounding can make a variance slightly negative; clamp like mip-NeRF does.
+            let vx = (sxx[x] - a * a).max(0.0);
+            let vy = (syy[x] - b * b).max(0.0);
+            let cov = sxy[x] - a * b;
+            o[x] = ((2.0 * a * b + SSIM_C1) * (2.0 * cov + SSIM_C2))
+                / ((a * a + b * b + SSIM_C1) * (vx + vy + SSIM_C2));
         }
     }
-    out
 }
 
 /// SSIM of interleaved RGB images (`3·width·height` values; `pred` clipped to [0,1]):
 /// 11×11 Gaussian window σ = 1.5, K1 = 0.01, K2 = 0.03, L = 1, population (not sample)
 /// statistics, mean over the 'valid' region (windows fully inside the image) of each
 /// channel, then over channels. Returns NaN for images smaller than 11×11. Panics if the
-/// lengths do not match `width·height`.
+/// lengths do not match `width·height`. Bands of rows run in parallel (rayon) and the
+/// means are summed in order, so the value is the same on any number of threads.
 pub fn ssim(pred: &[f32], gt: &[f32], width: usize, height: usize) -> f64 {
     assert_eq!(pred.len(), 3 * width * height, "ssim: pred length");
     assert_eq!(gt.len(), 3 * width * height, "ssim: gt length");
@@ -83,34 +146,16 @@ pub fn ssim(pred: &[f32], gt: &[f32], width: usize, height: usize) -> f64 {
         return f64::NAN;
     }
     let taps = gaussian_taps();
-    let n = width * height;
-    let mut total = 0.0;
-    for c in 0..3 {
-        let x: Vec<f64> = (0..n)
-            .map(|i| pred[3 * i + c].clamp(0.0, 1.0) as f64)
-            .collect();
-        let y: Vec<f64> = (0..n).map(|i| gt[3 * i + c] as f64).collect();
-        let xx: Vec<f64> = x.iter().map(|v| v * v).collect();
-        let yy: Vec<f64> = y.iter().map(|v| v * v).collect();
-        let xy: Vec<f64> = x.iter().zip(&y).map(|(a, b)| a * b).collect();
-        let mx = filter_valid(&x, width, height, &taps);
-        let my = filter_valid(&y, width, height, &taps);
-        let sxx = filter_valid(&xx, width, height, &taps);
-        let syy = filter_valid(&yy, width, height, &taps);
-        let sxy = filter_valid(&xy, width, height, &taps);
-        let mut acc = 0.0;
-        for i in 0..mx.len() {
-            let (a, b) = (mx[i], my[i]);
-            // Rounding can make a variance slightly negative; clamp like mip-NeRF does.
-            let vx = (sxx[i] - a * a).max(0.0);
-            let vy = (syy[i] - b * b).max(0.0);
-            let cov = sxy[i] - a * b;
-            acc += ((2.0 * a * b + SSIM_C1) * (2.0 * cov + SSIM_C2))
-                / ((a * a + b * b + SSIM_C1) * (vx + vy + SSIM_C2));
-        }
-        total += acc / mx.len() as f64;
-    }
-    total / 3.0
+    let (ow, oh) = (width - SSIM_SIZE + 1, height - SSIM_SIZE + 1);
+    let channel = |c: usize| {
+        let mut map = vec![0.0f64; ow * oh];
+        map.par_chunks_mut(ow * SSIM_BAND)
+            .enumerate()
+            .for_each(|(b, out)| ssim_band(pred, gt, c, width, b * SSIM_BAND, out, &taps));
+        map.iter().sum::<f64>() / map.len() as f64
+    };
+    let means: Vec<f64> = (0..3).into_par_iter().map(channel).collect();
+    means.iter().sum::<f64>() / 3.0
 }
 
 #[cfg(test)]
@@ -193,17 +238,9 @@ mod tests {
         assert!((got - expect).abs() < 1e-6, "{got} vs {expect}");
     }
 
-    #[test]
-    fn ssim_matches_direct_2d_window() {
-        // A 12×11 image has exactly two valid windows; compute them with the explicit 2-D
-        // Gaussian kernel exp(−(dx²+dy²)/(2σ²)) / Σ, per channel, with no separable filtering.
-        let (w, h) = (12, 11);
-        let a = random_image(w, h, 7);
-        let b: Vec<f32> = a
-            .iter()
-            .enumerate()
-            .map(|(i, v)| 0.8 * v + 0.1 * ((i % 5) as f32) / 5.0)
-            .collect();
+    /// SSIM with the explicit 2-D Gaussian kernel exp(−(dx²+dy²)/(2σ²)) / Σ over every
+    /// valid window of every channel, with no separable filtering.
+    fn direct_ssim(a: &[f32], b: &[f32], w: usize, h: usize) -> f64 {
         let mut kern = [[0.0f64; 11]; 11];
         let mut s = 0.0;
         for (dy, row) in kern.iter_mut().enumerate() {
@@ -213,29 +250,73 @@ mod tests {
                 s += *k;
             }
         }
+        let (ow, oh) = (w - 10, h - 10);
         let mut total = 0.0;
         for c in 0..3 {
-            for x0 in 0..2 {
-                let (mut mx, mut my, mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
-                for dy in 0..11 {
-                    for dx in 0..11 {
-                        let k = kern[dy][dx] / s;
-                        let i = 3 * (dy * w + x0 + dx) + c;
-                        let (p, q) = (a[i] as f64, b[i] as f64);
-                        mx += k * p;
-                        my += k * q;
-                        sxx += k * p * p;
-                        syy += k * q * q;
-                        sxy += k * p * q;
+            for y0 in 0..oh {
+                for x0 in 0..ow {
+                    let (mut mx, mut my, mut sxx, mut syy, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                    for dy in 0..11 {
+                        for dx in 0..11 {
+                            let k = kern[dy][dx] / s;
+                            let i = 3 * ((y0 + dy) * w + x0 + dx) + c;
+                            let (p, q) = (a[i].clamp(0.0, 1.0) as f64, b[i] as f64);
+                            mx += k * p;
+                            my += k * q;
+                            sxx += k * p * p;
+                            syy += k * q * q;
+                            sxy += k * p * q;
+                        }
                     }
+                    let (vx, vy, cv) = (sxx - mx * mx, syy - my * my, sxy - mx * my);
+                    total += ((2.0 * mx * my + SSIM_C1) * (2.0 * cv + SSIM_C2))
+                        / ((mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2));
                 }
-                let (vx, vy, cv) = (sxx - mx * mx, syy - my * my, sxy - mx * my);
-                total += ((2.0 * mx * my + SSIM_C1) * (2.0 * cv + SSIM_C2))
-                    / ((mx * mx + my * my + SSIM_C1) * (vx + vy + SSIM_C2));
             }
         }
-        let expect = total / 6.0;
+        total / (3 * ow * oh) as f64
+    }
+
+    fn dimmed(a: &[f32]) -> Vec<f32> {
+        a.iter()
+            .enumerate()
+            .map(|(i, v)| 0.8 * v + 0.1 * ((i % 5) as f32) / 5.0)
+            .collect()
+    }
+
+    #[test]
+    fn ssim_matches_direct_2d_window() {
+        // A 12×11 image has exactly two valid windows.
+        let (w, h) = (12, 11);
+        let a = random_image(w, h, 7);
+        let b = dimmed(&a);
+        let expect = direct_ssim(&a, &b, w, h);
         assert!((ssim(&a, &b, w, h) - expect).abs() < 1e-9);
         assert!(expect < 0.999 && expect > 0.5);
+    }
+
+    #[test]
+    fn ssim_split_into_bands_is_the_direct_window_on_any_thread_count() {
+        // 37 output rows: two whole bands and a part one; 13 output columns.
+        let (w, h) = (23, 2 * SSIM_BAND + 15);
+        let a = random_image(w, h, 11);
+        let b = dimmed(&a);
+        let expect = direct_ssim(&a, &b, w, h);
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| ssim(&a, &b, w, h))
+        };
+        let one = on(1);
+        assert!((one - expect).abs() < 1e-9, "{one} against {expect}");
+        for threads in [2, 3, 8] {
+            assert_eq!(on(threads).to_bits(), one.to_bits(), "{threads} threads");
+        }
+        // A prediction out of [0, 1] is clipped, as the reference's metrics clip it.
+        let over: Vec<f32> = a.iter().map(|v| v * 1.6 - 0.3).collect();
+        let clipped = direct_ssim(&over, &b, w, h);
+        assert!((ssim(&over, &b, w, h) - clipped).abs() < 1e-9);
     }
 }
