@@ -155,3 +155,62 @@ fn stego_model_hides_scene_behind_key() {
     );
     assert!((partial - wrong).abs() < 2.0);
 }
+
+/// `train --checkpoints` scores the model as `eval` scores the file it writes: PSNR, SSIM
+/// and LPIPS (none of them dropped), on the same spread test views.
+#[test]
+fn checkpoints_score_as_eval_scores_the_written_model() {
+    use testkit::cli::{ok, stegongp};
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let (scene, model) = (p("obj"), p("m.ingp"));
+    ok(&stegongp(&[
+        "synth", "--scene", "object", "--res", "32", "--train", "6", "--test", "2", "--out", &scene,
+    ]));
+    let out = stegongp(&[
+        "train",
+        &scene,
+        "--minutes",
+        "0.05",
+        "--checkpoints",
+        "0.02,0.05",
+        "--eval-views",
+        "2",
+        "--batch",
+        "4096",
+        "--log2-t",
+        "14",
+        "--occupancy-fraction",
+        "0.0078125",
+        "--device",
+        "cpu",
+        "--json",
+        "--out",
+        &model,
+    ]);
+    let log = ok(&out);
+    let run: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let cps = run["checkpoints"].as_array().unwrap();
+    assert_eq!(cps.len(), 2, "{run}");
+    assert!(log.contains("LPIPS"), "{log}");
+    let out = stegongp(&[
+        "eval", "--model", &model, "--data", &scene, "--device", "cpu", "--json",
+    ]);
+    ok(&out);
+    let ev: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let last = &cps[1];
+    assert_eq!(
+        last["step"], run["steps"],
+        "the last checkpoint is the final model"
+    );
+    // The file stores the weights in half precision: the scores move by a little.
+    for (k, tol) in [("psnr", 0.1), ("ssim", 0.002), ("lpips", 0.005)] {
+        let (a, b) = (last[k].as_f64().unwrap(), ev[k].as_f64().unwrap());
+        assert!((a - b).abs() < tol, "{k}: checkpoint {a}, eval {b}");
+    }
+    // Each checkpoint scores the model of its own time, not one model twice.
+    let first = &cps[0];
+    assert!(first["step"].as_u64() < last["step"].as_u64(), "{run}");
+    assert_ne!(first["psnr"], last["psnr"], "{run}");
+    assert_ne!(first["lpips"], last["lpips"], "{run}");
+}

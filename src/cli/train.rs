@@ -128,6 +128,8 @@ struct Checkpoint {
     step: u32,
     psnr: f64,
     ssim: f64,
+    /// AlexNet LPIPS (v0.1); none where the views are smaller than the network takes.
+    lpips: Option<f64>,
     /// The training so far: its time, the samples that reached the loss and those marched
     /// (differences between checkpoints give the steady rates).
     train_seconds: f64,
@@ -434,8 +436,9 @@ pub fn run(a: Args) -> Result<()> {
             )?;
             let eval_seconds = t_eval.elapsed().as_secs_f64();
             let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
+            let lpips = r.lpips.map_or(String::new(), |l| format!(" LPIPS {l:.4}"));
             let line = format!(
-                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4} ({} views, {:.2} s a view); {}",
+                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s a view); {}",
                 t.steps,
                 r.psnr,
                 r.ssim,
@@ -454,6 +457,7 @@ pub fn run(a: Args) -> Result<()> {
                 step: t.steps,
                 psnr: r.psnr,
                 ssim: r.ssim,
+                lpips: r.lpips,
                 train_seconds: t.seconds,
                 samples: t.samples,
                 marched: t.marched,
