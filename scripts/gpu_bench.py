@@ -409,6 +409,8 @@ def lego_summary(r, opened):
     return {
         "adapter": opened["adapter"] if opened else None,
         "lego_psnr_by_minute": {str(c["minutes"]): round(c["psnr"], 2) for c in lego["checkpoints"]},
+        "lego_lpips_by_minute": {str(c["minutes"]): None if c.get("lpips") is None else round(c["lpips"], 4)
+                                 for c in lego["checkpoints"]},
         "lego_steps": lego["steps"],
         "half_grid": lego.get("half_grid"),
         "lego_samples_per_second": round(lego["samples_per_second"]),

@@ -153,6 +153,9 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
         assert!(v.is_finite() && v > 5.0, "{k}: {v}");
     }
     assert_eq!(s["lego_psnr_by_minute"].as_object().unwrap().len(), 5);
+    let lpips = s["lego_lpips_by_minute"].as_object().unwrap();
+    assert_eq!(lpips.len(), 5);
+    assert!(lpips.values().all(|l| l.as_f64().is_some_and(|l| l > 0.0 && l < 1.0)), "{lpips:?}");
     assert_eq!(r["plain_text"]["steps"], r["pair"]["steps"]);
     assert!(Path::new(&p("out/log.txt")).is_file());
 }
