@@ -134,7 +134,7 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     let phases = &s_phases(&r);
     for name in [
         "rays: draw and march",
-        "network inference (marched)",
+        "density network (marched)",
         "network backward (trained)",
         "optimizer (Adam + EMA)",
     ] {
@@ -155,7 +155,12 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     assert_eq!(s["lego_psnr_by_minute"].as_object().unwrap().len(), 5);
     let lpips = s["lego_lpips_by_minute"].as_object().unwrap();
     assert_eq!(lpips.len(), 5);
-    assert!(lpips.values().all(|l| l.as_f64().is_some_and(|l| l > 0.0 && l < 1.0)), "{lpips:?}");
+    assert!(
+        lpips
+            .values()
+            .all(|l| l.as_f64().is_some_and(|l| l > 0.0 && l < 1.0)),
+        "{lpips:?}"
+    );
     assert_eq!(r["plain_text"]["steps"], r["pair"]["steps"]);
     assert!(Path::new(&p("out/log.txt")).is_file());
 }

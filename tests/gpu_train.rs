@@ -282,7 +282,9 @@ fn a_pipelined_run_never_waits_for_its_step_and_learns_the_same() {
 /// Past the warm-up the training pass records only the chunks the measured batches call
 /// for (half as much again as a batch is expected to ask for): with a small workspace,
 /// several chunks a batch out of 64, 8 steps train exactly what recording all 64 trains,
-/// with no ray dropped, while the batches still grow out of the first steps' fog.
+/// with no ray dropped, while the batches still grow out of the first steps' fog; and so
+/// does a workspace where one chunk holds a batch and the loss reads the training
+/// forward's outputs instead of a forward of its own (the steady state on a GPU).
 #[test]
 fn recording_the_chunks_a_batch_needs_trains_what_all_chunks_train() {
     let Some(ctx) = test_context() else { return };
@@ -296,20 +298,52 @@ fn recording_the_chunks_a_batch_needs_trains_what_all_chunks_train() {
     }
     all.set_warmup(u32::MAX);
     some.set_warmup(2);
+    // A workspace of the whole marching budget holds any batch in one chunk after the
+    // warm-up: forward, loss, backward, with no forward for the loss before.
+    let mut one = gpu_trainer(ctx, &train);
+    one.set_workspace_capacity(one.sample_budget()).unwrap();
+    one.set_warmup(2);
+    let mut single = 0;
     for step in 0..8 {
-        let (a, b) = (all.train_step().unwrap(), some.train_step().unwrap());
-        assert_eq!((a.dropped_rays, b.dropped_rays), (0, 0), "step {step}");
-        assert_eq!(a.n_samples, b.n_samples, "step {step}");
-        assert!(
-            (a.loss - b.loss).abs() <= 1e-5 * a.loss,
-            "step {step}: loss {} with every chunk, {} with those needed",
-            a.loss,
-            b.loss
+        let (a, b, c) = (
+            all.train_step().unwrap(),
+            some.train_step().unwrap(),
+            one.train_step().unwrap(),
         );
+        assert_eq!(
+            (a.dropped_rays, b.dropped_rays, c.dropped_rays),
+            (0, 0, 0),
+            "step {step}"
+        );
+        assert_eq!(a.n_samples, b.n_samples, "step {step}");
+        assert_eq!(a.n_samples, c.n_samples, "step {step}");
+        for (what, x) in [("those needed", &b), ("one chunk", &c)] {
+            assert!(
+                (a.loss - x.loss).abs() <= 1e-5 * a.loss,
+                "step {step}: loss {} with every chunk, {} with {what}",
+                a.loss,
+                x.loss
+            );
+        }
         // The one submission of each step: recording fewer chunks is not a second one.
         assert_eq!(a.submissions, b.submissions, "step {step}");
+        assert_eq!(a.submissions, c.submissions, "step {step}");
+        // The whole network runs on the compacted samples alone (the density network on
+        // the marched ones): twice where they take several chunks, once where one holds
+        // them.
+        assert_eq!(a.n_network, 2 * a.n_samples, "step {step}");
+        assert_eq!(b.n_network, 2 * b.n_samples, "step {step}");
+        assert!(
+            c.n_network == c.n_samples || (step < 3 && c.n_network == 2 * c.n_samples),
+            "step {step}: {} network samples, {} trained",
+            c.n_network,
+            c.n_samples
+        );
+        single += (c.n_network == c.n_samples) as u32;
     }
+    assert!(single >= 5, "one chunk in {single} of 8 steps");
     assert_same_step(&all.params().unwrap(), &some.params().unwrap());
+    assert_same_step(&all.params().unwrap(), &one.params().unwrap());
 }
 
 /// With the grid's fp16 copy (`set_half_grid`, `train --half-grid`) the training forwards

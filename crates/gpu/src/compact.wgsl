@@ -1,32 +1,41 @@
 // Compaction of a training batch to the samples that reach the loss (instant-ngp's
-// `compute_loss_kernel_train_nerf` writes the same compacted set): the loss kernel ran on
-// the inference outputs of every marched sample and wrote, per ray, how many of its leading
-// samples the transmittance reached (`ray_out[r].y`) and their raw-output gradient
-// (`d_raw`, zero past them). One invocation per ray reserves that many slots with one
-// atomic add and copies each used sample's position, direction and gradient there, so the
-// training pass (grid, network forward keeping activations, backward) runs on exactly those.
-// A ray whose slots would end past the capacity trains nothing and is counted.
+// `compute_loss_kernel_train_nerf` trains on the same set). A ray's samples reach the loss
+// until its transmittance falls below the threshold, and that depends on the densities
+// alone: the density network ran over every marched sample, and this kernel walks each
+// ray's log-densities as the loss does (ngp::train::loss::ray_loss), counts its leading
+// samples the transmittance reaches, reserves that many slots with one atomic add, and
+// copies each one's position, direction, step and distance there, with the ray's compacted
+// range. The colour network, the loss and the backward then run on the compacted samples
+// only. A ray whose slots would end past the capacity trains nothing and is counted; its
+// compacted range is marked SKIP, so that the loss leaves the `(0, used)` written here.
 
 struct CompactParams {
     n_rays: u32,
     row_width: u32,
     capacity: u32,
-    _pad: u32,
+    min_transmittance: f32,
 }
+
+const SKIP: u32 = 0xffffffffu;
 
 // struct GpuRay (loss.rs), 8 words: start, n, bg, target.
 @group(0) @binding(0) var<storage, read> rays: array<u32>;
-// Per ray: loss, samples used (bitcast).
-@group(0) @binding(1) var<storage, read> ray_out: array<vec2<f32>>;
-@group(0) @binding(2) var<storage, read> pos: array<f32>;
-@group(0) @binding(3) var<storage, read> dirs: array<f32>;
-@group(0) @binding(4) var<storage, read> d_raw: array<vec4<f32>>;
-@group(0) @binding(5) var<storage, read_write> pos_c: array<f32>;
-@group(0) @binding(6) var<storage, read_write> dirs_c: array<f32>;
-@group(0) @binding(7) var<storage, read_write> d_raw_c: array<vec4<f32>>;
+@group(0) @binding(1) var<storage, read> log_density: array<f32>;
+@group(0) @binding(2) var<storage, read> dt: array<f32>;
+@group(0) @binding(3) var<storage, read> dist: array<f32>;
+@group(0) @binding(4) var<storage, read> pos: array<f32>;
+@group(0) @binding(5) var<storage, read> dirs: array<f32>;
+// Per ray: the compacted range (a GpuRay whose start and n index the compacted samples).
+@group(0) @binding(6) var<storage, read_write> rays_c: array<u32>;
+// Per ray: loss (written by the loss), samples used (bitcast).
+@group(0) @binding(7) var<storage, read_write> ray_out: array<vec2<f32>>;
+@group(0) @binding(8) var<storage, read_write> pos_c: array<f32>;
+@group(0) @binding(9) var<storage, read_write> dirs_c: array<f32>;
+@group(0) @binding(10) var<storage, read_write> dt_c: array<f32>;
+@group(0) @binding(11) var<storage, read_write> dist_c: array<f32>;
 // [0]: slots asked for, [1]: samples written, [2]: rays that did not fit, [3]: unused.
-@group(0) @binding(8) var<storage, read_write> counters: array<atomic<u32>, 4>;
-@group(0) @binding(9) var<uniform> p: CompactParams;
+@group(0) @binding(12) var<storage, read_write> counters: array<atomic<u32>, 4>;
+@group(0) @binding(13) var<uniform> p: CompactParams;
 
 @compute @workgroup_size(64)
 fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -34,18 +43,38 @@ fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     if (r >= p.n_rays) {
         return;
     }
-    let used = bitcast<u32>(ray_out[r].y);
+    let start = rays[8u * r];
+    let n = rays[8u * r + 1u];
+    // The loss's forward loop, on the densities alone.
+    var tr = 1.0;
+    var used = 0u;
+    for (var j = 0u; j < n; j++) {
+        if (tr < p.min_transmittance) {
+            break;
+        }
+        let alpha = 1.0 - exp(-exp(log_density[start + j]) * dt[start + j]);
+        tr *= 1.0 - alpha;
+        used = j + 1u;
+    }
+    ray_out[r] = vec2<f32>(0.0, bitcast<f32>(used));
+    for (var k = 2u; k < 8u; k++) {
+        rays_c[8u * r + k] = rays[8u * r + k];
+    }
+    rays_c[8u * r] = 0u;
+    rays_c[8u * r + 1u] = 0u;
     if (used == 0u) {
         return;
     }
-    let start = rays[8u * r];
     let base = atomicAdd(&counters[0], used);
     // The second test catches the counter's wrap-around.
     if (base + used > p.capacity || base + used < base) {
         atomicAdd(&counters[2], 1u);
+        rays_c[8u * r + 1u] = SKIP;
         return;
     }
     atomicAdd(&counters[1], used);
+    rays_c[8u * r] = base;
+    rays_c[8u * r + 1u] = used;
     for (var j = 0u; j < used; j++) {
         let s = start + j;
         let c = base + j;
@@ -55,6 +84,7 @@ fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         dirs_c[3u * c] = dirs[3u * s];
         dirs_c[3u * c + 1u] = dirs[3u * s + 1u];
         dirs_c[3u * c + 2u] = dirs[3u * s + 2u];
-        d_raw_c[c] = d_raw[s];
+        dt_c[c] = dt[s];
+        dist_c[c] = dist[s];
     }
 }

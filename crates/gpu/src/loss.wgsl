@@ -60,6 +60,11 @@ fn loss_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         pull_up = 0.0;
     }
     let ray = rays[r];
+    // A ray the compaction could not fit (compact.wgsl's SKIP) trains nothing; its
+    // `(0, used)` stays as the compaction wrote it.
+    if (ray.n == 0xffffffffu) {
+        return;
+    }
     let bg = vec3<f32>(ray.bg[0], ray.bg[1], ray.bg[2]);
     let pixel = vec3<f32>(ray.pixel[0], ray.pixel[1], ray.pixel[2]);
     // Forward: what the ray shows and where it stops.

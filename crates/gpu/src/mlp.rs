@@ -148,6 +148,17 @@ fn bytes_of_floats(n: u64) -> u64 {
     4 * n
 }
 
+/// A device count of at most `n` samples: the buffers hold `n`.
+fn check_count(count: Option<&DeviceCount>, n: u32) -> GpuResult<()> {
+    match count {
+        Some(c) if c.max() > n => Err(GpuError::Input(format!(
+            "a count of up to {} samples, buffers for {n}",
+            c.max()
+        ))),
+        _ => Ok(()),
+    }
+}
+
 fn check_len(what: &str, buffer: &wgpu::Buffer, bytes: u64) -> GpuResult<()> {
     check_slice(what, &buffer.slice(..), bytes)
 }
@@ -537,15 +548,7 @@ impl MlpKernels {
                 batch.n, ws.capacity
             )));
         }
-        if let Some(c) = count
-            && c.max() > batch.n
-        {
-            return Err(GpuError::Input(format!(
-                "a count of up to {} samples, buffers for {}",
-                c.max(),
-                batch.n
-            )));
-        }
+        check_count(count, batch.n)?;
         if batch.n == 0 {
             if let Some(ws) = keep {
                 ws.kept.store(0, Ordering::Relaxed);
@@ -623,12 +626,28 @@ impl MlpKernels {
         batch: &EncodedBatch,
         out: &wgpu::Buffer,
     ) -> GpuResult<()> {
+        self.encode_density_counted(ctx, encoder, batch, out, None)
+    }
+
+    /// [`encode_density`](Self::encode_density) of, with `count`, only the first n samples
+    /// of `batch`, n known only on the device (at most `batch.n`). Its log-densities are
+    /// the bits [`encode_forward`](Self::encode_forward) gives (the same products in the
+    /// same order), so a ray stops where the whole network would stop it.
+    pub fn encode_density_counted(
+        &self,
+        ctx: &GpuContext,
+        encoder: &mut wgpu::CommandEncoder,
+        batch: &EncodedBatch,
+        out: &wgpu::Buffer,
+        count: Option<&DeviceCount>,
+    ) -> GpuResult<()> {
         self.check_batch(batch)?;
         check_len("density outputs", out, bytes_of_floats(u64::from(batch.n)))?;
+        check_count(count, batch.n)?;
         if batch.n == 0 {
             return Ok(());
         }
-        let groups = self.tiles(ctx, batch.n)?;
+        let groups = self.dispatch_of(ctx, batch.n, count, 0)?;
         ctx.scoped("mlp density", || {
             let p = Self::params(
                 ctx,
@@ -654,6 +673,9 @@ impl MlpKernels {
                 ],
             });
             self.encode_transpose(ctx, encoder, batch.params);
+            if let Some(c) = count {
+                c.copy_n(encoder, &p);
+            }
             Self::pass(encoder, &self.density, &group, groups);
         })
     }

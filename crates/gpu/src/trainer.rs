@@ -20,14 +20,17 @@
 //! when the one Adam step runs, as the CPU sums its workers' partials (in another order:
 //! the sums agree to rounding, not bit for bit).
 //!
-//! Each scene's batch is trained as instant-ngp trains it (`testbed_nerf.cu`): rays drawn
-//! and marched into a budget of 16× the target samples; the whole network's inference pass
-//! over every marched sample; the loss on its outputs, which finds where each ray's
-//! transmittance stops and the gradient of the samples before; those samples compacted
-//! ([`Compacted`]); then the grid and network forward keeping activations, and the
-//! backward, over the compacted samples alone (≈ the target, where the network used to
-//! run its backward on every marched sample: 3.8× as many on lego at 800 px). The
-//! gradient is the same: the samples past a ray's end had a zero gradient.
+//! Each scene's batch is trained on the samples that reach the loss, as instant-ngp trains
+//! (`testbed_nerf.cu`): rays drawn and marched into a budget of 16× the target samples;
+//! the grid and the density network over every marched sample, which is all a ray's stop
+//! depends on; each ray's stop found and the samples before it compacted ([`Compacted`]);
+//! then the grid and the whole network forward keeping activations over the compacted
+//! samples alone, the loss on those outputs, and the backward. instant-ngp runs the whole
+//! network over the marched samples and its loss kernel compacts; the colour network on
+//! the samples past the stops (three of four on lego at 800 px) changed nothing there.
+//! The gradient is the same: the samples past a ray's end had a zero gradient. Where the
+//! compacted samples need more than one chunk of the workspace (the warm-up), a forward
+//! without activations over all of them gives the loss its outputs first.
 //!
 //! Nothing is read back inside a step: every pass after the draw takes its sample count
 //! from the device ([`DeviceCount`]: the marching and compaction counters turned into
@@ -142,6 +145,15 @@ struct TrainChunk {
 }
 
 impl TrainChunk {
+    /// The chunk's grid shape, first sample and length (samples).
+    fn span(&self) -> (GridShape, u64, u64) {
+        let shape = GridShape {
+            n_samples: self.ld,
+            ld: self.ld,
+        };
+        (shape, self.first as u64, self.ld as u64)
+    }
+
     /// Chunks of `capacity` samples covering a compaction of `budget` samples, their counts
     /// read from `counters` (word 1: samples written).
     fn all(
@@ -203,6 +215,9 @@ pub struct GpuTrainer<'c> {
     counter: CountKernel,
     /// The batch's marched samples, counted on the device.
     marched: DeviceCount,
+    /// All the compacted samples, counted on the device (the loss's forward when the
+    /// training pass takes more than one chunk).
+    compacted_all: DeviceCount,
     /// The training pass's chunks of the compacted samples, each counted on the device.
     chunks: Vec<TrainChunk>,
     /// Each step's measurements, read back late.
@@ -228,7 +243,8 @@ pub struct GpuTrainer<'c> {
     ws: MlpWorkspace,
     dirs: wgpu::Buffer,
     raw: wgpu::Buffer,
-    d_raw: wgpu::Buffer,
+    /// The marched samples' log-densities (the density network's pass).
+    log_density: wgpu::Buffer,
     enc: wgpu::Buffer,
     d_enc: wgpu::Buffer,
     grad: wgpu::Buffer,
@@ -354,7 +370,7 @@ impl<'c> GpuTrainer<'c> {
             layout.n_mlp_params(),
         )?;
         let ws = field.mlp().workspace(ctx, capacity)?;
-        let compacted = Compacted::new(ctx, budget)?;
+        let compacted = Compacted::new(ctx, budget, MAX_RAYS)?;
         let counter = CountKernel::new(ctx)?;
         let chunks = TrainChunk::all(ctx, &counter, &field, &compacted.counters, budget, capacity)?;
         let grid_slot = field.grid().count_slot(ctx, budget)?;
@@ -362,14 +378,17 @@ impl<'c> GpuTrainer<'c> {
         // Word 1 of the batch's counters: samples written (within the budget).
         let slots = [grid_slot, tiles];
         let marched = DeviceCount::new(ctx, &counter, &batch.counters, 1, 0, budget, &slots)?;
+        // Word 1 of the compaction's counters: samples written.
+        let compacted_all =
+            DeviceCount::new(ctx, &counter, &compacted.counters, 1, 0, budget, &slots)?;
         let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
         let b = budget as u64;
-        let (dirs, raw, d_raw, enc, d_enc, grad, ray_out) =
+        let (dirs, raw, log_density, enc, d_enc, grad, ray_out) =
             ctx.scoped("trainer buffers", || {
                 (
                     device_buffer(ctx, "trainer dirs", 12 * b),
                     device_buffer(ctx, "trainer raw", 16 * b),
-                    device_buffer(ctx, "trainer d_raw", 16 * b),
+                    device_buffer(ctx, "trainer log-densities", 4 * b),
                     device_buffer(ctx, "trainer encoding", 4 * width * b),
                     device_buffer(
                         ctx,
@@ -409,6 +428,7 @@ impl<'c> GpuTrainer<'c> {
             compacted,
             counter,
             marched,
+            compacted_all,
             chunks,
             readback,
             lag: 0,
@@ -422,7 +442,7 @@ impl<'c> GpuTrainer<'c> {
             ws,
             dirs,
             raw,
-            d_raw,
+            log_density,
             enc,
             d_enc,
             grad,
@@ -887,7 +907,7 @@ impl<'c> GpuTrainer<'c> {
         let budget = self.batch.sample_budget();
         for sm in &m.scenes {
             let [_asked, written, with_samples, dropped] = sm.batch;
-            let [_, trained, unfit, _] = sm.compact;
+            let [_, trained, unfit, passes] = sm.compact;
             let n = written.min(budget);
             let scene_loss = sm.loss_sum / sm.n_rays.max(1) as f32;
             stats.loss += scene_loss;
@@ -897,7 +917,7 @@ impl<'c> GpuTrainer<'c> {
             stats.n_rays += with_samples as u64;
             stats.n_samples += trained as u64;
             stats.n_marched += n as u64;
-            stats.n_network += n as u64 + trained as u64;
+            stats.n_network += trained as u64 * passes.max(1) as u64;
             stats.dropped_rays += dropped as u64 + unfit as u64;
             let scene = &mut self.scenes[sm.scene];
             let asked = sm.compact[0] as f32 / sm.n_rays.max(1) as f32;
@@ -924,12 +944,13 @@ impl<'c> GpuTrainer<'c> {
         Ok(())
     }
 
-    /// Records scene `si`'s batch into `encoder`, as instant-ngp trains it: rays drawn and
-    /// marched; the network's inference pass over every marched sample and the loss on
-    /// its outputs (which finds where each ray stops, and the gradient of the samples
-    /// before); those samples compacted; the grid and network forward keeping activations
-    /// and the backward over them, chunk by chunk of the workspace, adding into the
-    /// gradient; the scene's measurements. Every count after the draw is the device's.
+    /// Records scene `si`'s batch into `encoder`, trained on the samples that reach the
+    /// loss: rays drawn and marched; the grid and the density network over every marched
+    /// sample; each ray's stop found from those densities and the samples before it
+    /// compacted; the grid and network forward keeping activations over them, the loss on
+    /// its outputs, and the backward, adding into the gradient (chunk by chunk of the
+    /// workspace, after a forward over all of them for the loss, when one chunk does not
+    /// hold them); the scene's measurements. Every count after the draw is the device's.
     /// Returns the rays drawn.
     fn encode_scene(&mut self, si: usize, encoder: &mut wgpu::CommandEncoder) -> GpuResult<u32> {
         let ctx = self.ctx;
@@ -951,9 +972,20 @@ impl<'c> GpuTrainer<'c> {
         let loss_norm = scene.loss_weight / n_rays as f32;
         let n_chunks = self.chunks_for(si);
         let slots = self.chunks[..n_chunks].iter().map(|c| c.ld).sum();
-        self.encode_inference_and_loss(encoder, si, n_rays, loss_norm, slots)?;
-        for k in 0..n_chunks {
-            self.encode_training_chunk(encoder, si, k)?;
+        self.encode_density_and_compaction(encoder, si, n_rays, slots)?;
+        self.compacted
+            .record_forward_passes(encoder, 1 + (n_chunks > 1) as u32);
+        if n_chunks == 1 {
+            self.encode_chunk_forward(encoder, si, 0)?;
+            self.encode_loss(encoder, si, n_rays, loss_norm)?;
+            self.encode_chunk_backward(encoder, si, 0)?;
+        } else {
+            self.encode_loss_forward(encoder, si)?;
+            self.encode_loss(encoder, si, n_rays, loss_norm)?;
+            for k in 0..n_chunks {
+                self.encode_chunk_forward(encoder, si, k)?;
+                self.encode_chunk_backward(encoder, si, k)?;
+            }
         }
         let scene = &self.scenes[si];
         self.readback.encode_scene(
@@ -1011,10 +1043,11 @@ impl<'c> GpuTrainer<'c> {
         }
     }
 
-    /// Chunk `k` of the training pass over the compacted samples: grid forward keeping
-    /// activations, network forward and backward, grid backward, on as many of the chunk's
-    /// samples as the compaction wrote (none: nothing is dispatched).
-    fn encode_training_chunk(
+    /// Chunk `k` of the training pass over the compacted samples: the grid forward and the
+    /// network forward keeping activations, on as many of the chunk's samples as the
+    /// compaction wrote (none: nothing is dispatched); the outputs go to `raw` from its
+    /// start (the first chunk's are the loss's when it is the only one).
+    fn encode_chunk_forward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
@@ -1022,18 +1055,72 @@ impl<'c> GpuTrainer<'c> {
     ) -> GpuResult<()> {
         let chunk = &self.chunks[k];
         chunk.count.encode(encoder);
-        let (first, ld) = (chunk.first as u64, chunk.ld as u64);
+        let (shape, first, ld) = chunk.span();
         let c = &self.compacted;
         let pos = c.pos.slice(12 * first..12 * (first + ld));
         let dirs = c.dirs.slice(12 * first..12 * (first + ld));
+        self.encode_network_forward(encoder, si, shape, pos, dirs, true, Some(&chunk.count))
+    }
+
+    /// The backward of chunk `k` after [`Self::encode_chunk_forward`] and the loss: network
+    /// and grid backward from the loss's gradient of the chunk's samples.
+    fn encode_chunk_backward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        k: usize,
+    ) -> GpuResult<()> {
+        let chunk = &self.chunks[k];
+        let (shape, first, ld) = chunk.span();
+        let c = &self.compacted;
+        let pos = c.pos.slice(12 * first..12 * (first + ld));
         let d_raw = c.d_raw.slice(16 * first..16 * (first + ld));
+        self.encode_network_backward(encoder, si, shape, pos, d_raw, Some(&chunk.count))
+    }
+
+    /// The outputs of every compacted sample into `raw`, without activations, for the loss
+    /// when the training pass takes more than one chunk.
+    fn encode_loss_forward(&self, encoder: &mut wgpu::CommandEncoder, si: usize) -> GpuResult<()> {
+        let budget = self.batch.sample_budget();
         let shape = GridShape {
-            n_samples: chunk.ld,
-            ld: chunk.ld,
+            n_samples: budget,
+            ld: budget,
         };
-        let count = Some(&chunk.count);
-        self.encode_network_forward(encoder, si, shape, pos, dirs, true, count)?;
-        self.encode_network_backward(encoder, si, shape, pos, d_raw, count)
+        self.compacted_all.encode(encoder);
+        let c = &self.compacted;
+        let (pos, dirs) = (c.pos.slice(..), c.dirs.slice(..));
+        let count = Some(&self.compacted_all);
+        self.encode_network_forward(encoder, si, shape, pos, dirs, false, count)
+    }
+
+    /// The loss of scene `si`'s `n_rays` rays on the compacted samples' outputs in `raw`,
+    /// and its gradient to them; the density pull-up while the grid's mean (on the device)
+    /// is below the reference's threshold.
+    fn encode_loss(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        n_rays: u32,
+        loss_norm: f32,
+    ) -> GpuResult<()> {
+        let c = &self.compacted;
+        let bufs = LossBuffers {
+            rays: &c.rays,
+            raw: &self.raw,
+            dt: &c.dt,
+            dist: &c.dist,
+            pos: &c.pos,
+            d_raw: &c.d_raw,
+            ray_out: &self.ray_out,
+            grid_mean: Some(self.scenes[si].occupancy.mean_buffer()),
+        };
+        let mut cfg = LossConfig::new(&self.marcher, loss_norm, DENSITY_PULL_UP);
+        cfg.pull_up_below_mean = Some(MIN_OPTICAL_THICKNESS);
+        let budget = self.batch.sample_budget();
+        self.loss
+            .encode(self.ctx, encoder, &bufs, n_rays, budget, &cfg)?;
+        self.mark(encoder, "loss");
+        Ok(())
     }
 
     /// The grid shape of `n` samples in buffers of `cap` samples: the leading dimension is
@@ -1043,16 +1130,14 @@ impl<'c> GpuTrainer<'c> {
         GridShape { n_samples: n, ld }
     }
 
-    /// Records directions, grid forward and network inference over the batch's marched
-    /// samples of scene `si` (as many as the device counted), the loss and its gradient to
-    /// the raw outputs, and the compaction of the samples that reach the loss into its
-    /// first `slots`.
-    fn encode_inference_and_loss(
+    /// Records directions, the grid forward and the density network over the batch's
+    /// marched samples of scene `si` (as many as the device counted), and the compaction
+    /// of the samples that reach the loss into its first `slots`.
+    fn encode_density_and_compaction(
         &mut self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         n_rays: u32,
-        loss_norm: f32,
         slots: u32,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
@@ -1091,33 +1176,27 @@ impl<'c> GpuTrainer<'c> {
         })?;
         self.mark(encoder, "directions");
 
-        let (pos, dirs) = (self.batch.pos.slice(..), self.dirs.slice(..));
-        self.encode_network_forward(encoder, si, shape, pos, dirs, false, Some(&self.marched))?;
-
-        // Loss and its gradient to the raw outputs; the density pull-up while the grid's
-        // mean (on the device) is below the reference's threshold.
-        let bufs = LossBuffers {
-            rays: &self.batch.rays,
-            raw: &self.raw,
-            dt: &self.batch.dt,
-            dist: &self.batch.dist,
-            pos: &self.batch.pos,
-            d_raw: &self.d_raw,
-            ray_out: &self.ray_out,
-            grid_mean: Some(self.scenes[si].occupancy.mean_buffer()),
-        };
-        let mut cfg = LossConfig::new(&self.marcher, loss_norm, DENSITY_PULL_UP);
-        cfg.pull_up_below_mean = Some(MIN_OPTICAL_THICKNESS);
-        self.loss
-            .encode(ctx, encoder, &bufs, n_rays, budget, &cfg)?;
-        self.mark(encoder, "loss");
+        let pos = self.batch.pos.slice(..);
+        self.encode_grid_forward(encoder, si, shape, pos, Some(&self.marched))?;
+        self.mark(encoder, "grid forward (marched)");
+        let eb = self.encoded_batch(shape);
+        self.field.mlp().encode_density_counted(
+            ctx,
+            encoder,
+            &eb,
+            &self.log_density,
+            Some(&self.marched),
+        )?;
+        self.mark(encoder, "density network (marched)");
 
         let inputs = CompactInputs {
             rays: &self.batch.rays,
-            ray_out: &self.ray_out,
+            log_density: &self.log_density,
+            dt: &self.batch.dt,
+            dist: &self.batch.dist,
             pos: &self.batch.pos,
             dirs: &self.dirs,
-            d_raw: &self.d_raw,
+            ray_out: &self.ray_out,
         };
         self.compacted
             .encode_within(ctx, encoder, &inputs, n_rays, slots)?;
@@ -1163,6 +1242,42 @@ impl<'c> GpuTrainer<'c> {
         count: Option<&DeviceCount>,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
+        self.encode_grid_forward(encoder, si, shape, pos, count)?;
+        self.mark(
+            encoder,
+            if keep {
+                "grid forward (trained)"
+            } else {
+                "grid forward (for the loss)"
+            },
+        );
+        let eb = self.encoded_batch(shape);
+        let ws = keep.then_some(&self.ws);
+        let mlp = self.field.mlp();
+        mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws, count)?;
+        self.mark(
+            encoder,
+            if keep {
+                "network forward (trained)"
+            } else {
+                "network forward (for the loss)"
+            },
+        );
+        Ok(())
+    }
+
+    /// The grid forward under scene `si`'s index over the first `shape.n_samples` of `pos`
+    /// (or as many as `count` says) into the encoding buffer, from the grid's fp16 copy
+    /// when there is one.
+    fn encode_grid_forward(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        si: usize,
+        shape: GridShape,
+        pos: wgpu::BufferSlice<'_>,
+        count: Option<&DeviceCount>,
+    ) -> GpuResult<()> {
+        let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
         let grid = self.field.grid();
         let index = &self.scenes[si].index;
@@ -1178,26 +1293,6 @@ impl<'c> GpuTrainer<'c> {
             Some(c) => forward.record_counted(encoder, c)?,
             None => forward.record(&mut encoder.begin_compute_pass(&Default::default())),
         }
-        self.mark(
-            encoder,
-            if keep {
-                "grid forward (trained)"
-            } else {
-                "grid forward (marched)"
-            },
-        );
-        let eb = self.encoded_batch(shape);
-        let ws = keep.then_some(&self.ws);
-        let mlp = self.field.mlp();
-        mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws, count)?;
-        self.mark(
-            encoder,
-            if keep {
-                "network forward (trained)"
-            } else {
-                "network inference (marched)"
-            },
-        );
         Ok(())
     }
 
