@@ -30,15 +30,16 @@ struct CompactParams {
 }
 
 /// What the compaction reads: the batch's rays (`GpuRay`), the marched samples'
-/// log-densities, steps, distances, positions and directions; and where it writes each
-/// ray's `(0, used)` (the loss fills in the loss).
+/// log-densities, steps, distances and positions, the rays as drawn (`GenRay`, 16 words a
+/// ray: the direction at words 4..7, which every compacted sample of the ray gets); and
+/// where it writes each ray's `(0, used)` (the loss fills in the loss).
 pub struct CompactInputs<'a> {
     pub rays: &'a wgpu::Buffer,
     pub log_density: &'a wgpu::Buffer,
     pub dt: &'a wgpu::Buffer,
     pub dist: &'a wgpu::Buffer,
     pub pos: &'a wgpu::Buffer,
-    pub dirs: &'a wgpu::Buffer,
+    pub drawn: &'a wgpu::Buffer,
     pub ray_out: &'a wgpu::Buffer,
 }
 
@@ -140,12 +141,14 @@ impl Compacted {
         }
         if n_rays > self.max_rays
             || inputs.rays.size() < 32 * n_rays as u64
+            || inputs.drawn.size() < 64 * n_rays as u64
             || inputs.ray_out.size() < 8 * n_rays as u64
         {
             return Err(GpuError::Input(format!(
-                "compaction of {n_rays} rays (at most {}): ray buffers of {} and {} bytes",
+                "compaction of {n_rays} rays (at most {}): ray buffers of {}, {} and {} bytes",
                 self.max_rays,
                 inputs.rays.size(),
+                inputs.drawn.size(),
                 inputs.ray_out.size()
             )));
         }
@@ -174,7 +177,7 @@ impl Compacted {
                     buffer_entry(2, inputs.dt),
                     buffer_entry(3, inputs.dist),
                     buffer_entry(4, inputs.pos),
-                    buffer_entry(5, inputs.dirs),
+                    buffer_entry(5, inputs.drawn),
                     buffer_entry(6, &self.rays),
                     buffer_entry(7, inputs.ray_out),
                     buffer_entry(8, &self.pos),
@@ -238,10 +241,11 @@ mod tests {
             start += n;
         }
         let n_samples = start as usize;
-        let vals: Vec<f32> = (0..n_samples * 7).map(|_| rng.next_f32()).collect();
+        let vals: Vec<f32> = (0..n_samples * 4).map(|_| rng.next_f32()).collect();
         let pos: Vec<f32> = vals[..3 * n_samples].to_vec();
-        let dirs: Vec<f32> = vals[3 * n_samples..6 * n_samples].to_vec();
-        let dist: Vec<f32> = vals[6 * n_samples..].to_vec();
+        let dist: Vec<f32> = vals[3 * n_samples..].to_vec();
+        // The rays as drawn (GenRay, 16 words): only the direction, words 4..7, is read.
+        let drawn: Vec<f32> = (0..16 * rays.len()).map(|_| rng.next_f32()).collect();
         let want: u32 = used.iter().sum();
         for capacity in [want, want / 2] {
             let rays_b = ctx
@@ -256,7 +260,7 @@ mod tests {
             let dt_b = upload(ctx, "dt", &dt).unwrap();
             let dist_b = upload(ctx, "dist", &dist).unwrap();
             let pos_b = upload(ctx, "pos", &pos).unwrap();
-            let dirs_b = upload(ctx, "dirs", &dirs).unwrap();
+            let drawn_b = upload(ctx, "drawn", &drawn).unwrap();
             let c = Compacted::new(ctx, capacity, rays.len() as u32).unwrap();
             let mut enc = ctx.device.create_command_encoder(&Default::default());
             let inputs = CompactInputs {
@@ -265,7 +269,7 @@ mod tests {
                 dt: &dt_b,
                 dist: &dist_b,
                 pos: &pos_b,
-                dirs: &dirs_b,
+                drawn: &drawn_b,
                 ray_out: &out_b,
             };
             c.encode(ctx, &mut enc, &inputs, rays.len() as u32).unwrap();
@@ -297,7 +301,7 @@ mod tests {
                     assert!(c < written && !seen[c], "ray {r}: slot {c}");
                     seen[c] = true;
                     assert_eq!(got_pos[3 * c..3 * c + 3], pos[3 * s..3 * s + 3]);
-                    assert_eq!(got_dirs[3 * c..3 * c + 3], dirs[3 * s..3 * s + 3]);
+                    assert_eq!(got_dirs[3 * c..3 * c + 3], drawn[16 * r + 4..16 * r + 7]);
                     assert_eq!((got_dt[c], got_dist[c]), (dt[s], dist[s]));
                 }
             }

@@ -4,8 +4,8 @@
 // alone: the density network ran over every marched sample, and this kernel walks each
 // ray's log-densities as the loss does (ngp::train::loss::ray_loss), counts its leading
 // samples the transmittance reaches, reserves that many slots with one atomic add, and
-// copies each one's position, direction, step and distance there, with the ray's compacted
-// range. The colour network, the loss and the backward then run on the compacted samples
+// copies each one's position, step and distance there, with the ray's direction (what the
+// CPU trainer's `w.dir.extend(repeat_n(ray.d, n))` gives its samples) and compacted range. The colour network, the loss and the backward then run on the compacted samples
 // only. A ray whose slots would end past the capacity trains nothing and is counted; its
 // compacted range is marked SKIP, so that the loss leaves the `(0, used)` written here.
 
@@ -24,7 +24,8 @@ const SKIP: u32 = 0xffffffffu;
 @group(0) @binding(2) var<storage, read> dt: array<f32>;
 @group(0) @binding(3) var<storage, read> dist: array<f32>;
 @group(0) @binding(4) var<storage, read> pos: array<f32>;
-@group(0) @binding(5) var<storage, read> dirs: array<f32>;
+// struct GenRay (rays.rs), 16 words: o (0..3), t, d (4..7), hit, bg, pixel, target, image.
+@group(0) @binding(5) var<storage, read> drawn: array<f32>;
 // Per ray: the compacted range (a GpuRay whose start and n index the compacted samples).
 @group(0) @binding(6) var<storage, read_write> rays_c: array<u32>;
 // Per ray: loss (written by the loss), samples used (bitcast).
@@ -73,6 +74,7 @@ fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     atomicAdd(&counters[1], used);
+    let d = vec3<f32>(drawn[16u * r + 4u], drawn[16u * r + 5u], drawn[16u * r + 6u]);
     rays_c[8u * r] = base;
     rays_c[8u * r + 1u] = used;
     for (var j = 0u; j < used; j++) {
@@ -81,9 +83,9 @@ fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         pos_c[3u * c] = pos[3u * s];
         pos_c[3u * c + 1u] = pos[3u * s + 1u];
         pos_c[3u * c + 2u] = pos[3u * s + 2u];
-        dirs_c[3u * c] = dirs[3u * s];
-        dirs_c[3u * c + 1u] = dirs[3u * s + 1u];
-        dirs_c[3u * c + 2u] = dirs[3u * s + 2u];
+        dirs_c[3u * c] = d.x;
+        dirs_c[3u * c + 1u] = d.y;
+        dirs_c[3u * c + 2u] = d.z;
         dt_c[c] = dt[s];
         dist_c[c] = dist[s];
     }

@@ -71,9 +71,7 @@ use super::optimizer::GpuOptimizer;
 use super::profile::StepProfiler;
 use super::rays::{RayBatch, RayKernels};
 use super::readback::StepReadback;
-use super::{
-    GpuContext, GpuError, GpuIndex, GpuResult, auto_layout_pipelines, buffer_entry, device_buffer,
-};
+use super::{GpuContext, GpuError, GpuIndex, GpuResult, device_buffer};
 use ngp::data::Dataset;
 use ngp::encoding::{LevelIndices, check_indices};
 use ngp::model::Model;
@@ -92,8 +90,6 @@ use std::cell::RefCell;
 use std::sync::Arc;
 use std::time::Instant;
 
-const DIRS_WGSL: &str = include_str!("dirs.wgsl");
-const DIRS_WORKGROUP: u32 = 64;
 /// Most rays per batch: the CPU trainer's (and the reference's) cap.
 const MAX_RAYS: u32 = MAX_RAYS_PER_BATCH;
 /// Marched samples the device holds per batch, as a multiple of the trained-sample target:
@@ -126,14 +122,6 @@ const WARMUP: u32 = 256;
 fn chunks_needed(expected: f32, capacity: u32, all: usize) -> usize {
     let want = (1.5 * expected as f64).ceil().max(1.0);
     ((want / capacity as f64).ceil() as usize).clamp(1, all)
-}
-
-#[repr(C)]
-#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
-struct DirsParams {
-    n_rays: u32,
-    row_width: u32,
-    _pad: [u32; 2],
 }
 
 /// One chunk of the training pass: the compacted samples `first ..< first + ld`, as many
@@ -241,7 +229,6 @@ pub struct GpuTrainer<'c> {
     /// and uploaded to the hold-back kernels.
     bounds: Option<TableBounds>,
     ws: MlpWorkspace,
-    dirs: wgpu::Buffer,
     raw: wgpu::Buffer,
     /// The marched samples' log-densities (the density network's pass).
     log_density: wgpu::Buffer,
@@ -249,8 +236,6 @@ pub struct GpuTrainer<'c> {
     d_enc: wgpu::Buffer,
     grad: wgpu::Buffer,
     ray_out: wgpu::Buffer,
-    dirs_pipeline: wgpu::ComputePipeline,
-    dirs_uniform: wgpu::Buffer,
     /// Occupancy updates submitted (each with its read-back) in this step so far.
     occupancy_submissions: u32,
     /// Device timestamps between the step's phases, when asked for.
@@ -383,10 +368,9 @@ impl<'c> GpuTrainer<'c> {
             DeviceCount::new(ctx, &counter, &compacted.counters, 1, 0, budget, &slots)?;
         let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
         let b = budget as u64;
-        let (dirs, raw, log_density, enc, d_enc, grad, ray_out) =
+        let (raw, log_density, enc, d_enc, grad, ray_out) =
             ctx.scoped("trainer buffers", || {
                 (
-                    device_buffer(ctx, "trainer dirs", 12 * b),
                     device_buffer(ctx, "trainer raw", 16 * b),
                     device_buffer(ctx, "trainer log-densities", 4 * b),
                     device_buffer(ctx, "trainer encoding", 4 * width * b),
@@ -399,16 +383,6 @@ impl<'c> GpuTrainer<'c> {
                     device_buffer(ctx, "trainer ray losses", 8 * MAX_RAYS as u64),
                 )
             })?;
-        let (dirs_pipeline, dirs_uniform) = ctx.scoped("trainer dirs kernel", || {
-            let [pipeline] = auto_layout_pipelines(ctx, "dirs.wgsl", DIRS_WGSL, ["dirs_main"]);
-            let uniform = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("dirs params"),
-                size: std::mem::size_of::<DirsParams>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
-            (pipeline, uniform)
-        })?;
         if config.occupancy_budget.is_some_and(|r| r > 0.0) {
             return input(
                 "an occupancy budget is for the CPU engine: a GPU keeps the reference's schedule"
@@ -440,15 +414,12 @@ impl<'c> GpuTrainer<'c> {
             kept: None,
             bounds: None,
             ws,
-            dirs,
             raw,
             log_density,
             enc,
             d_enc,
             grad,
             ray_out,
-            dirs_pipeline,
-            dirs_uniform,
             occupancy_submissions: 0,
             profiler: RefCell::new(None),
             half: None,
@@ -1130,11 +1101,12 @@ impl<'c> GpuTrainer<'c> {
         GridShape { n_samples: n, ld }
     }
 
-    /// Records directions, the grid forward and the density network over the batch's
-    /// marched samples of scene `si` (as many as the device counted), and the compaction
-    /// of the samples that reach the loss into its first `slots`.
+    /// Records the grid forward and the density network over the batch's marched samples
+    /// of scene `si` (as many as the device counted), and the compaction of the samples
+    /// that reach the loss into its first `slots`, each given its ray's direction there
+    /// (the colour network sees only those).
     fn encode_density_and_compaction(
-        &mut self,
+        &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         n_rays: u32,
@@ -1146,35 +1118,6 @@ impl<'c> GpuTrainer<'c> {
             n_samples: budget,
             ld: budget,
         };
-
-        // Per-sample directions.
-        let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
-        let groups = n_rays.div_ceil(DIRS_WORKGROUP).max(1);
-        let gx = groups.min(max_dim);
-        let params = DirsParams {
-            n_rays,
-            row_width: gx * DIRS_WORKGROUP,
-            _pad: [0; 2],
-        };
-        ctx.scoped("trainer dirs", || {
-            ctx.queue
-                .write_buffer(&self.dirs_uniform, 0, bytemuck::bytes_of(&params));
-            let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("dirs"),
-                layout: &self.dirs_pipeline.get_bind_group_layout(0),
-                entries: &[
-                    buffer_entry(0, &self.batch.drawn),
-                    buffer_entry(1, &self.batch.rays),
-                    buffer_entry(2, &self.dirs),
-                    buffer_entry(3, &self.dirs_uniform),
-                ],
-            });
-            let mut pass = encoder.begin_compute_pass(&Default::default());
-            pass.set_pipeline(&self.dirs_pipeline);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(gx, groups.div_ceil(gx), 1);
-        })?;
-        self.mark(encoder, "directions");
 
         let pos = self.batch.pos.slice(..);
         self.encode_grid_forward(encoder, si, shape, pos, Some(&self.marched))?;
@@ -1195,7 +1138,7 @@ impl<'c> GpuTrainer<'c> {
             dt: &self.batch.dt,
             dist: &self.batch.dist,
             pos: &self.batch.pos,
-            dirs: &self.dirs,
+            drawn: &self.batch.drawn,
             ray_out: &self.ray_out,
         };
         self.compacted
