@@ -12,11 +12,7 @@ use ngp::encoding::{LevelIndices, reference_indices};
 use ngp::error::Result;
 use ngp::model::Model;
 use ngp::occupancy::OccupancyGrid;
-use ngp::render::image::{
-    KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, SceneView, rebuild_occupancy_in_box,
-    refine_occupancy,
-};
-use std::convert::Infallible;
+use ngp::render::image::{KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, SceneView};
 
 /// What renders: index functions and, for a key, the rebuilt grid.
 pub struct OpenedScene {
@@ -62,30 +58,10 @@ impl OpenedScene {
 /// Opens `model` as seen through `key` (`None` or the reference key: the cover). `stealth`
 /// says the model was trained with `train --stealth`; `seed` draws the rebuild's samples.
 pub fn open_scene(model: &Model, key: Option<&Key>, stealth: bool, seed: u64) -> OpenedScene {
-    let rebuild = |indices: &LevelIndices, scene_box: Option<u32>| {
-        let mut grid = rebuild_occupancy_in_box(
-            &model.net,
-            model.params(),
-            indices,
-            model.config.aabb_scale,
-            scene_box,
-            KEY_HOLDER_SAMPLES_PER_CELL,
-            seed,
-        );
-        refine_occupancy(
-            &model.net,
-            model.params(),
-            indices,
-            &mut grid,
-            model.config.aabb_scale,
-            KEY_HOLDER_REFINE_SAMPLES,
-            KEY_HOLDER_SAMPLES_PER_CELL,
-            seed,
-        );
-        Ok::<_, Infallible>(grid)
-    };
-    let Ok(opened) = open_with(model, key, stealth, rebuild);
-    opened
+    // The key holder's grid has one recipe (`key_holder_grid_on`); the CPU engine's
+    // rebuild and refinement return no error.
+    open_scene_on(&Device::default(), model, key, stealth, seed)
+        .expect("the CPU engine's grid rebuild does not fail")
 }
 
 /// A key holder's grid of `model` under `indices`, on `device`: the rebuild's points in every
@@ -119,24 +95,13 @@ pub fn open_scene_on(
     stealth: bool,
     seed: u64,
 ) -> Result<OpenedScene> {
-    open_with(model, key, stealth, |indices, scene_box| {
-        key_holder_grid_on(device, model, indices, scene_box, seed)
-    })
-}
-
-fn open_with<E>(
-    model: &Model,
-    key: Option<&Key>,
-    stealth: bool,
-    rebuild: impl FnOnce(&LevelIndices, Option<u32>) -> std::result::Result<OccupancyGrid, E>,
-) -> std::result::Result<OpenedScene, E> {
     let layout = &model.net.layout.grid;
     Ok(match key {
         Some(k) if !k.is_reference() => {
             let indices = hidden_indices(k, &model.net.layout, model.params(), stealth);
             // Cut to the box the scene was trained in: outside it, its index meets only
             // the cover's entries, whose density would render as haze.
-            let rebuilt = rebuild(&indices, k.scene_box())?;
+            let rebuilt = key_holder_grid_on(device, model, &indices, k.scene_box(), seed)?;
             OpenedScene {
                 indices,
                 rebuilt: Some(rebuilt),
