@@ -19,8 +19,28 @@ use std::time::Duration;
 pub const MAX_HEAD: usize = 16 << 10;
 /// Largest request body (a key file is a few hundred bytes).
 pub const MAX_BODY: u64 = 64 << 10;
-/// A client must send its request, and the server answer, within this.
+/// A client must send its request within this (and take the answer no slower).
 pub const TIMEOUT: Duration = Duration::from_secs(10);
+/// The server must begin its answer within this, counted from when the request reached it.
+pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(600);
+
+/// How long the front door waits on each side.
+#[derive(Clone, Copy, Debug)]
+pub struct Waits {
+    /// For the client's request, and for the client to take each part of the answer.
+    pub client: Duration,
+    /// For the server's answer.
+    pub answer: Duration,
+}
+
+impl Default for Waits {
+    fn default() -> Self {
+        Waits {
+            client: TIMEOUT,
+            answer: ANSWER_TIMEOUT,
+        }
+    }
+}
 
 /// Why a request is turned away before the server sees it.
 #[derive(Debug, PartialEq, Eq)]
@@ -130,9 +150,9 @@ fn answer_refusal(stream: &mut TcpStream, r: &Refusal) {
     let _ = stream.write_all(text.as_bytes());
 }
 
-fn serve_one(mut client: TcpStream, inner: &Path) {
-    let _ = client.set_read_timeout(Some(TIMEOUT));
-    let _ = client.set_write_timeout(Some(TIMEOUT));
+fn serve_one(mut client: TcpStream, inner: &Path, waits: Waits) {
+    let _ = client.set_read_timeout(Some(waits.client));
+    let _ = client.set_write_timeout(Some(waits.client));
     let req = match read_request(&mut client) {
         Ok(r) => r,
         Err(r) => return answer_refusal(&mut client, &r),
@@ -140,13 +160,42 @@ fn serve_one(mut client: TcpStream, inner: &Path) {
     let Ok(mut server) = UnixStream::connect(inner) else {
         return answer_refusal(&mut client, &refuse(503, "viewer unavailable"));
     };
-    let _ = server.set_read_timeout(Some(TIMEOUT));
-    let _ = server.set_write_timeout(Some(TIMEOUT));
+    let _ = server.set_read_timeout(Some(waits.answer));
+    let _ = server.set_write_timeout(Some(waits.client));
     if server.write_all(&req.head).is_err() || server.write_all(&req.body).is_err() {
         return answer_refusal(&mut client, &refuse(503, "viewer unavailable"));
     }
-    // The server closes after its answer (Connection: close); pass it on as it comes.
-    let _ = std::io::copy(&mut server, &mut client);
+    // The server closes after its answer (Connection: close); pass it on as it comes. A
+    // server silent for the whole wait gets the client a status rather than a bare close.
+    let mut buf = [0u8; 16 << 10];
+    let mut passed = 0usize;
+    loop {
+        match server.read(&mut buf) {
+            Ok(0) => break,
+            Ok(n) => {
+                if client.write_all(&buf[..n]).is_err() {
+                    return;
+                }
+                passed += n;
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(_) => {
+                if passed == 0 {
+                    answer_refusal(
+                        &mut client,
+                        &refuse(504, "the viewer did not answer in time"),
+                    );
+                }
+                return;
+            }
+        }
+    }
+    if passed == 0 {
+        answer_refusal(
+            &mut client,
+            &refuse(502, "the viewer closed without an answer"),
+        );
+    }
 }
 
 /// A private folder for the server's socket, removed when the viewer ends.
@@ -173,12 +222,12 @@ impl Drop for SocketDir {
 
 /// Accepts connections on `front` for ever, a thread each, forwarding checked requests to
 /// the server on `inner`.
-pub fn spawn(front: TcpListener, inner: PathBuf) {
+pub fn spawn(front: TcpListener, inner: PathBuf, waits: Waits) {
     std::thread::spawn(move || {
         for conn in front.incoming() {
             let Ok(conn) = conn else { continue };
             let inner = inner.clone();
-            std::thread::spawn(move || serve_one(conn, &inner));
+            std::thread::spawn(move || serve_one(conn, &inner, waits));
         }
     });
 }
@@ -221,5 +270,67 @@ mod tests {
         let short_body = "POST / HTTP/1.1\r\nContent-Length: 10\r\n\r\nabc";
         assert_eq!(read(short_body).unwrap_err().status, 400);
         assert_eq!(read("GET / HTTP/1.1\r\nHost").unwrap_err().status, 400);
+    }
+
+    /// What a client gets through a front door whose server reads the request, waits
+    /// `delay`, then writes `answer` (nothing: it closes) and closes.
+    fn through_the_gate(delay: Duration, answer: &'static [u8], waits: Waits) -> String {
+        use std::os::unix::net::UnixListener;
+        let dir = tempfile::tempdir().unwrap();
+        let sock = dir.path().join("s.sock");
+        let inner = UnixListener::bind(&sock).unwrap();
+        let server = std::thread::spawn(move || {
+            let (mut conn, _) = inner.accept().unwrap();
+            let mut got = Vec::new();
+            let mut b = [0u8; 256];
+            while find(&got, b"\r\n\r\n").is_none() {
+                let n = conn.read(&mut b).unwrap();
+                assert!(n > 0, "the request never reached the server");
+                got.extend_from_slice(&b[..n]);
+            }
+            std::thread::sleep(delay);
+            let _ = conn.write_all(answer);
+        });
+        let front = TcpListener::bind("127.0.0.1:0").unwrap();
+        let port = front.local_addr().unwrap().port();
+        spawn(front, sock, waits);
+        let mut client = TcpStream::connect(("127.0.0.1", port)).unwrap();
+        client
+            .set_read_timeout(Some(Duration::from_secs(30)))
+            .unwrap();
+        client
+            .write_all(b"GET /info HTTP/1.1\r\nHost: h\r\n\r\n")
+            .unwrap();
+        let mut got = String::new();
+        client.read_to_string(&mut got).unwrap();
+        server.join().unwrap();
+        got
+    }
+
+    const OK: &[u8] = b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\nConnection: close\r\n\r\nok";
+
+    #[test]
+    fn a_slow_answer_is_passed_on_whole_past_the_clients_bound() {
+        // The server takes four times the client's bound (a key being opened, or requests
+        // queued behind one): the answer still arrives, untouched.
+        let waits = Waits {
+            client: Duration::from_millis(100),
+            answer: Duration::from_secs(20),
+        };
+        let got = through_the_gate(Duration::from_millis(400), OK, waits);
+        assert_eq!(got.as_bytes(), OK);
+    }
+
+    #[test]
+    fn a_silent_or_mute_server_gets_the_client_a_status_not_a_bare_close() {
+        let waits = Waits {
+            client: Duration::from_secs(5),
+            answer: Duration::from_millis(200),
+        };
+        let late = through_the_gate(Duration::from_millis(1500), OK, waits);
+        assert!(late.starts_with("HTTP/1.1 504 "), "{late}");
+        assert!(late.contains("did not answer in time"), "{late}");
+        let mute = through_the_gate(Duration::ZERO, b"", waits);
+        assert!(mute.starts_with("HTTP/1.1 502 "), "{mute}");
     }
 }

@@ -83,7 +83,7 @@ impl Viewer {
         let port = front.local_addr().map_err(|e| cannot(&e))?.port();
         let socket_dir = SocketDir::new(&random_hex(12)?).map_err(|e| cannot(&e))?;
         let server = Server::http_unix(&socket_dir.socket()).map_err(|e| cannot(&e))?;
-        gate::spawn(front, socket_dir.socket());
+        gate::spawn(front, socket_dir.socket(), gate::Waits::default());
         let mut viewer = Viewer {
             server,
             token: random_hex(24)?,
