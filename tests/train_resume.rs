@@ -309,6 +309,13 @@ fn a_state_from_another_run_or_no_state_is_refused_by_name() {
     let mut same: Vec<&str> = vec!["train", sc, "--out", o, "--save-every", "2", "--state", o];
     same.extend_from_slice(RUN);
     fails_naming(&stegongp(&same), &["two files"]);
+    // A plain run's state is a snapshot: a name its writer refuses is refused before any
+    // step is spent, not at the first save.
+    let bad_state = d.path().join("s.state");
+    let mut named: Vec<&str> = vec!["train", sc, "--out", o, "--save-every", "2"];
+    named.extend(["--state", bad_state.to_str().unwrap()]);
+    named.extend_from_slice(RUN);
+    fails_naming(&stegongp(&named), &["--state", "s.state", ".ingp"]);
     assert!(!out.exists(), "nothing written");
-    assert!(!out.exists(), "nothing written");
+    assert!(!bad_state.exists(), "no state written");
 }

@@ -227,7 +227,13 @@ pub fn run(a: Args) -> Result<()> {
     let read_seconds = t_read.elapsed().as_secs_f64();
     if a.save_every.is_some() {
         let sp = state_path(&a);
-        check_parent_dir(&sp)?;
+        if a.hidden.is_empty() {
+            // A plain run's state is a snapshot: refuse a name the writer would refuse at
+            // the first save, after the steps before it were spent.
+            check_model_path(&sp).with_context(|| "--state: a plain run's state is a snapshot")?;
+        } else {
+            check_parent_dir(&sp)?;
+        }
         if sp == a.out {
             bail!(
                 "--state {}: the model and the state need two files",
