@@ -379,6 +379,95 @@ fn the_sample_count_can_change_after_binding() {
     }
 }
 
+/// The trainer's copy of encodings (a one-chunk step's trained samples from the marched
+/// ones): each copied sample's columns are, to the bit, what the forward at its position
+/// writes, in a batch of another leading dimension, with zeros past the count; under a
+/// keyed index, where a recomputation would be dearest.
+#[test]
+fn copied_encodings_are_the_forward_at_the_copied_samples() {
+    let Some(ctx) = test_context() else { return };
+    let layout = paper(1);
+    let width = layout.config.n_output_dims();
+    let table = random_f32(layout.n_params(), 4);
+    let key = seeded_key(SchemeKind::Prf, 4, 3, 1);
+    let indices = key.level_indices(&layout);
+    let pos = positions(&layout, 500, 5);
+    let ld = pos.len() as u32;
+    let g = GridEncoding::new(ctx, &layout, GradAtomics::Auto).unwrap();
+    let index = g.upload_index(ctx, &indices).unwrap();
+    let t = upload_f32(ctx, "table", &table).unwrap();
+    let forward = |pos: &[[f32; 3]], shape: GridShape| -> Vec<f32> {
+        let p = upload_positions(ctx, pos, shape.ld).unwrap();
+        let e = upload_f32(ctx, "enc", &vec![1.0; width * shape.ld as usize]).unwrap();
+        g.bind_forward(ctx, &index, p.slice(..), t.slice(..), e.slice(..), shape)
+            .unwrap()
+            .run(ctx)
+            .unwrap();
+        download_f32(ctx, &e, width * shape.ld as usize).unwrap()
+    };
+    let marched = forward(&pos, GridShape::new(ld));
+    let marched_buf = upload_f32(ctx, "marched", &marched).unwrap();
+    // Out of order, repeated, the first and the last; 5 padding samples after them.
+    let mut r = Pcg32::new(6, 1);
+    let mut from: Vec<u32> = (0..200).map(|_| r.below(ld)).collect();
+    from.extend([0, ld - 1, 7, 7]);
+    let (m, ld2) = (from.len() as u32, from.len() as u32 + 5);
+    // Sized for the leading dimension, as the trainer's is for its chunk: the count can
+    // grow to it on the device.
+    let from_words: Vec<f32> = from
+        .iter()
+        .chain(&[u32::MAX; 5])
+        .map(|&i| f32::from_bits(i))
+        .collect();
+    let from_buf = upload_f32(ctx, "from", &from_words).unwrap();
+    let copied = upload_f32(ctx, "copied", &vec![1.0; width * ld2 as usize]).unwrap();
+    let shape = GridShape {
+        n_samples: m,
+        ld: ld2,
+    };
+    g.bind_copy(
+        ctx,
+        from_buf.slice(..),
+        marched_buf.slice(..),
+        ld,
+        copied.slice(..),
+        shape,
+    )
+    .unwrap()
+    .run(ctx)
+    .unwrap();
+    let got = download_f32(ctx, &copied, width * ld2 as usize).unwrap();
+    let picked: Vec<[f32; 3]> = from.iter().map(|&i| pos[i as usize]).collect();
+    let want = forward(&picked, shape);
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(&got), bits(&want));
+    assert!(got.iter().any(|&x| x != 0.0));
+    for (i, &x) in got.iter().enumerate() {
+        if i as u32 % ld2 >= m {
+            assert_eq!(x.to_bits(), 0, "padding sample {}", i as u32 % ld2);
+        }
+    }
+    // A copy from a batch of no samples, or a count past the leading dimension, is refused.
+    let bad = |from_ld: u32, shape: GridShape| {
+        input(g.bind_copy(
+            ctx,
+            from_buf.slice(..),
+            marched_buf.slice(..),
+            from_ld,
+            copied.slice(..),
+            shape,
+        ))
+    };
+    assert!(bad(0, shape));
+    assert!(bad(
+        ld,
+        GridShape {
+            n_samples: ld2 + 1,
+            ld: ld2
+        }
+    ));
+}
+
 fn input<T>(r: Result<T, GpuError>) -> bool {
     matches!(r, Err(GpuError::Input(_)))
 }

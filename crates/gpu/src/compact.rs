@@ -43,8 +43,8 @@ pub struct CompactInputs<'a> {
     pub ray_out: &'a wgpu::Buffer,
 }
 
-/// The compacted samples (positions, directions, steps, distances; `d_raw` for the loss's
-/// gradient), each ray's compacted range (`rays`, a `GpuRay` a ray: `n` is [`SKIP`] for a
+/// The compacted samples (positions, directions, steps, distances, marched indices; `d_raw`
+/// for the loss's gradient), each ray's compacted range (`rays`, a `GpuRay` a ray: `n` is [`SKIP`] for a
 /// ray that did not fit), and the counters: `[0]` slots asked for, `[1]` samples written,
 /// `[2]` rays that did not fit, `[3]` the whole network's forward passes over the compacted
 /// samples ([`Self::record_forward_passes`]).
@@ -53,6 +53,8 @@ pub struct Compacted {
     pub dirs: wgpu::Buffer,
     pub dt: wgpu::Buffer,
     pub dist: wgpu::Buffer,
+    /// Each compacted sample's index among the marched ones (u32).
+    pub from: wgpu::Buffer,
     pub d_raw: wgpu::Buffer,
     pub rays: wgpu::Buffer,
     pub counters: wgpu::Buffer,
@@ -77,6 +79,7 @@ impl Compacted {
                 dirs: device_buffer(ctx, "compacted directions", 12 * c),
                 dt: device_buffer(ctx, "compacted steps", 4 * c),
                 dist: device_buffer(ctx, "compacted distances", 4 * c),
+                from: device_buffer(ctx, "compacted samples' marched indices", 4 * c),
                 d_raw: device_buffer(ctx, "compacted gradients", 16 * c),
                 rays: device_buffer(ctx, "compacted rays", 32 * max_rays.max(1) as u64),
                 counters: device_buffer(ctx, "compaction counters", 16),
@@ -186,6 +189,7 @@ impl Compacted {
                     buffer_entry(11, &self.dist),
                     buffer_entry(12, &self.counters),
                     buffer_entry(13, &self.uniform),
+                    buffer_entry(14, &self.from),
                 ],
             });
             let mut pass = encoder.begin_compute_pass(&Default::default());

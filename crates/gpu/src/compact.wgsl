@@ -18,6 +18,8 @@ struct CompactParams {
 
 const SKIP: u32 = 0xffffffffu;
 
+// Each compacted sample's marched index: the training pass copies its grid encoding from
+// the marched pass's instead of computing it again (grid.wgsl, copy_main).
 // struct GpuRay (loss.rs), 8 words: start, n, bg, target.
 @group(0) @binding(0) var<storage, read> rays: array<u32>;
 @group(0) @binding(1) var<storage, read> log_density: array<f32>;
@@ -37,6 +39,7 @@ const SKIP: u32 = 0xffffffffu;
 // [0]: slots asked for, [1]: samples written, [2]: rays that did not fit, [3]: unused.
 @group(0) @binding(12) var<storage, read_write> counters: array<atomic<u32>, 4>;
 @group(0) @binding(13) var<uniform> p: CompactParams;
+@group(0) @binding(14) var<storage, read_write> from_c: array<u32>;
 
 @compute @workgroup_size(64)
 fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
@@ -88,5 +91,6 @@ fn compact_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         dirs_c[3u * c + 2u] = d.z;
         dt_c[c] = dt[s];
         dist_c[c] = dist[s];
+        from_c[c] = s;
     }
 }

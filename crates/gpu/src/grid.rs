@@ -102,7 +102,8 @@ struct GridParams {
     n_samples: u32,
     ld: u32,
     row_width: u32,
-    _pad: u32,
+    /// [`GridEncoding::bind_copy`]: the leading dimension copied from (0 elsewhere).
+    from_ld: u32,
 }
 
 /// Samples of one dispatch: `n_samples` real ones of a batch laid out with leading
@@ -138,6 +139,7 @@ pub struct GridEncoding {
     forward_half: PipelineCache,
     backward: PipelineCache,
     pack: PipelineCache,
+    copy: PipelineCache,
     /// Workgroups per dispatch row before folding into y; the device's limit, lowered by
     /// the unit tests to exercise the fold.
     max_groups_x: u32,
@@ -149,6 +151,7 @@ enum Pass {
     ForwardHalf,
     Backward,
     Pack,
+    Copy,
 }
 
 impl Pass {
@@ -158,6 +161,7 @@ impl Pass {
             Pass::ForwardHalf => "forward_half_main",
             Pass::Backward => "backward_main",
             Pass::Pack => "pack_half_main",
+            Pass::Copy => "copy_main",
         }
     }
 
@@ -167,6 +171,7 @@ impl Pass {
             Pass::ForwardHalf => "grid forward (fp16 table)",
             Pass::Backward => "grid backward",
             Pass::Pack => "grid table to fp16",
+            Pass::Copy => "grid encodings copied",
         }
     }
 }
@@ -344,6 +349,7 @@ impl GridEncoding {
             forward_half: Mutex::new(Default::default()),
             backward: Mutex::new(Default::default()),
             pack: Mutex::new(Default::default()),
+            copy: Mutex::new(Default::default()),
             max_groups_x: max_dim,
         })
     }
@@ -396,6 +402,7 @@ impl GridEncoding {
             Pass::ForwardHalf => &self.forward_half,
             Pass::Backward => &self.backward,
             Pass::Pack => &self.pack,
+            Pass::Copy => &self.copy,
         };
         let mut cache = cache.lock().unwrap_or_else(|p| p.into_inner());
         let slot = &mut cache[kinds as usize & 7];
@@ -477,6 +484,74 @@ impl GridEncoding {
         )
     }
 
+    /// The encodings of `shape`'s samples copied into `enc` (`L·F·ld` f32) from `from_enc`,
+    /// an earlier forward's encodings laid out with leading dimension `from_ld`: sample `s`
+    /// gets the columns of sample `from[s]` (each below `from_ld`). What
+    /// [`Self::bind_forward`] would write over those samples' positions, with the same
+    /// parameters, without reading the table again.
+    pub fn bind_copy(
+        &self,
+        ctx: &GpuContext,
+        from: wgpu::BufferSlice<'_>,
+        from_enc: wgpu::BufferSlice<'_>,
+        from_ld: u32,
+        enc: wgpu::BufferSlice<'_>,
+        shape: GridShape,
+    ) -> GpuResult<GridDispatch> {
+        if shape.ld == 0 || shape.n_samples > shape.ld || from_ld == 0 {
+            return input(format!(
+                "a copy of {} samples with leading dimension {} from one of {from_ld}",
+                shape.n_samples, shape.ld
+            ));
+        }
+        if self.width() * shape.ld.max(from_ld) as u64 > u32::MAX as u64 {
+            return input(format!(
+                "leading dimension {} past 2^32 words",
+                shape.ld.max(from_ld)
+            ));
+        }
+        let ld = shape.ld as u64;
+        let buffers = [
+            (
+                10,
+                storage_binding(ctx, "copied samples' sources", from, 4 * ld, false)?,
+            ),
+            (
+                11,
+                storage_binding(
+                    ctx,
+                    "encodings copied from",
+                    from_enc,
+                    4 * self.width() * from_ld as u64,
+                    false,
+                )?,
+            ),
+            (
+                6,
+                storage_binding(ctx, "encoding", enc, 4 * self.width() * ld, false)?,
+            ),
+        ];
+        let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
+        let [gx, gy] = fold_groups(shape.ld, self.max_groups_x.min(max_dim), max_dim)?;
+        let params = GridParams {
+            n_samples: shape.n_samples,
+            ld: shape.ld,
+            row_width: gx * WORKGROUP,
+            from_ld,
+        };
+        let pipeline = self.pipeline_for(ctx, 0, Pass::Copy)?;
+        let groups = [gx, gy, self.layout.levels.len() as u32];
+        bound_dispatch(
+            ctx,
+            Pass::Copy,
+            pipeline,
+            params,
+            groups,
+            &[],
+            buffers.into(),
+        )
+    }
+
     /// An fp16 copy of `table` (exactly the grid's `n_params` f32), refreshed by
     /// [`HalfTable::encode_pack`], for [`Self::bind_forward_half`]. Features go in pairs:
     /// an error for an odd F.
@@ -501,7 +576,7 @@ impl GridEncoding {
             n_samples: words,
             ld: words,
             row_width: gx * WORKGROUP,
-            _pad: 0,
+            from_ld: 0,
         };
         let pipeline = self.pack_pipeline(ctx)?;
         ctx.scoped(Pass::Pack.what(), || {
@@ -636,43 +711,55 @@ impl GridEncoding {
             n_samples: shape.n_samples,
             ld: shape.ld,
             row_width: gx * WORKGROUP,
-            _pad: 0,
+            from_ld: 0,
         };
         let pipeline = self.pipeline(ctx, index, pass)?;
         let groups = [gx, gy, self.layout.levels.len() as u32];
-        ctx.scoped(pass.what(), || {
-            let params = ctx
-                .device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("grid params"),
-                    contents: bytemuck::bytes_of(&params),
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                });
-            let mut entries = vec![
-                buffer_entry(0, &index.levels),
-                buffer_entry(1, &index.tables),
-                buffer_entry(2, &self.levels),
-                buffer_entry(3, &params),
-            ];
-            entries.extend(data.into_iter().map(|(binding, b)| wgpu::BindGroupEntry {
-                binding,
-                resource: wgpu::BindingResource::Buffer(b),
-            }));
-            let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some(pass.what()),
-                layout: &pipeline.get_bind_group_layout(0),
-                entries: &entries,
-            });
-            GridDispatch {
-                pipeline,
-                bind_group,
-                params,
-                ld: shape.ld,
-                groups,
-                what: pass.what(),
-            }
-        })
+        let fixed = [(0, &index.levels), (1, &index.tables), (2, &self.levels)];
+        bound_dispatch(ctx, pass, pipeline, params, groups, &fixed, data)
     }
+}
+
+/// `pipeline` bound to a fresh uniform of `params` (binding 3), the buffers `fixed` and the
+/// storage ranges `data`, dispatched as `groups`.
+fn bound_dispatch(
+    ctx: &GpuContext,
+    pass: Pass,
+    pipeline: wgpu::ComputePipeline,
+    params: GridParams,
+    groups: [u32; 3],
+    fixed: &[(u32, &wgpu::Buffer)],
+    data: Vec<(u32, wgpu::BufferBinding<'_>)>,
+) -> GpuResult<GridDispatch> {
+    ctx.scoped(pass.what(), || {
+        let ld = params.ld;
+        let params = ctx
+            .device
+            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("grid params"),
+                contents: bytemuck::bytes_of(&params),
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            });
+        let mut entries: Vec<_> = fixed.iter().map(|&(b, buf)| buffer_entry(b, buf)).collect();
+        entries.push(buffer_entry(3, &params));
+        entries.extend(data.into_iter().map(|(binding, b)| wgpu::BindGroupEntry {
+            binding,
+            resource: wgpu::BindingResource::Buffer(b),
+        }));
+        let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(pass.what()),
+            layout: &pipeline.get_bind_group_layout(0),
+            entries: &entries,
+        });
+        GridDispatch {
+            pipeline,
+            bind_group,
+            params,
+            ld,
+            groups,
+            what: pass.what(),
+        }
+    })
 }
 
 impl GridDispatch {

@@ -34,7 +34,8 @@ struct GridParams {
     // Invocations per dispatch row: dispatches wider than the device's workgroup limit fold
     // into y.
     row_width: u32,
-    _pad: u32,
+    // copy_main: the leading dimension of the encodings it copies from.
+    from_ld: u32,
 }
 
 // Features per level: 1, 2, 4 or 8 (grid.rs refuses others). A pipeline constant, so the
@@ -209,6 +210,36 @@ fn forward_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         }
     }
     // Padding samples get zeros: the MLP may run over whole tiles of ld.
+    for (var f = 0u; f < N_FEATURES; f++) {
+        enc[out + f * ld] = acc[f];
+    }
+}
+
+// The encodings of samples whose forward already ran in a larger batch (a training step's
+// compacted samples, each a marched one): sample s's columns copied from sample
+// copy_from[s] of copy_enc, laid out with leading dimension params.from_ld. The same bits
+// as forward_main over their positions, whatever table it read, since the parameters do
+// not change between the two passes; padding samples get zeros as there.
+@group(0) @binding(10) var<storage, read> copy_from: array<u32>;
+@group(0) @binding(11) var<storage, read> copy_enc: array<f32>;
+
+@compute @workgroup_size(128)
+fn copy_main(@builtin(global_invocation_id) gid: vec3<u32>) {
+    let s = sample_of(gid);
+    let ld = params.ld;
+    if (s >= ld) {
+        return;
+    }
+    let l = gid.z;
+    let out = l * N_FEATURES * ld + s;
+    var acc: array<f32, MAX_FEATURES>;
+    if (s < params.n_samples) {
+        let from_ld = params.from_ld;
+        let src = l * N_FEATURES * from_ld + copy_from[s];
+        for (var f = 0u; f < N_FEATURES; f++) {
+            acc[f] = copy_enc[src + f * from_ld];
+        }
+    }
     for (var f = 0u; f < N_FEATURES; f++) {
         enc[out + f * ld] = acc[f];
     }

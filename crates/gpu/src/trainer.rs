@@ -167,6 +167,15 @@ impl TrainChunk {
     }
 }
 
+/// Where a training pass's grid encodings come from.
+enum GridInput<'a> {
+    /// The grid forward at these positions (3 f32 a sample).
+    Positions(wgpu::BufferSlice<'a>),
+    /// A copy of the marched pass's encodings, still in the trainer's `enc`: each sample's
+    /// marched index (u32), as the compaction wrote it.
+    Copied(wgpu::BufferSlice<'a>),
+}
+
 /// One scene's state on the device (and the host copies the API hands out).
 struct GpuScene {
     dataset: Arc<Dataset>,
@@ -233,6 +242,9 @@ pub struct GpuTrainer<'c> {
     /// The marched samples' log-densities (the density network's pass).
     log_density: wgpu::Buffer,
     enc: wgpu::Buffer,
+    /// A one-chunk step's trained encodings, copied from the marched ones in `enc` (a
+    /// second buffer: the copy changes the leading dimension, so in place it would race).
+    enc_copied: wgpu::Buffer,
     d_enc: wgpu::Buffer,
     grad: wgpu::Buffer,
     ray_out: wgpu::Buffer,
@@ -368,12 +380,13 @@ impl<'c> GpuTrainer<'c> {
             DeviceCount::new(ctx, &counter, &compacted.counters, 1, 0, budget, &slots)?;
         let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
         let b = budget as u64;
-        let (raw, log_density, enc, d_enc, grad, ray_out) =
+        let (raw, log_density, enc, enc_copied, d_enc, grad, ray_out) =
             ctx.scoped("trainer buffers", || {
                 (
                     device_buffer(ctx, "trainer raw", 16 * b),
                     device_buffer(ctx, "trainer log-densities", 4 * b),
                     device_buffer(ctx, "trainer encoding", 4 * width * b),
+                    device_buffer(ctx, "trainer encoding, copied", 4 * width * capacity as u64),
                     device_buffer(
                         ctx,
                         "trainer encoding gradient",
@@ -417,6 +430,7 @@ impl<'c> GpuTrainer<'c> {
             raw,
             log_density,
             enc,
+            enc_copied,
             d_enc,
             grad,
             ray_out,
@@ -498,12 +512,12 @@ impl<'c> GpuTrainer<'c> {
         self.ws = self.field.mlp().workspace(ctx, capacity)?;
         let counters = &self.compacted.counters;
         self.chunks = TrainChunk::all(ctx, &self.counter, &self.field, counters, budget, capacity)?;
+        let bytes = 4 * width * capacity as u64;
         self.d_enc = ctx.scoped("trainer encoding gradient", || {
-            device_buffer(
-                ctx,
-                "trainer encoding gradient",
-                4 * width * capacity as u64,
-            )
+            device_buffer(ctx, "trainer encoding gradient", bytes)
+        })?;
+        self.enc_copied = ctx.scoped("trainer encoding, copied", || {
+            device_buffer(ctx, "trainer encoding, copied", bytes)
         })?;
         Ok(())
     }
@@ -947,15 +961,17 @@ impl<'c> GpuTrainer<'c> {
         self.compacted
             .record_forward_passes(encoder, 1 + (n_chunks > 1) as u32);
         if n_chunks == 1 {
-            self.encode_chunk_forward(encoder, si, 0)?;
+            // The marched encodings are still in `enc`: the chunk copies its samples'.
+            self.encode_chunk_forward(encoder, si, 0, true)?;
             self.encode_loss(encoder, si, n_rays, loss_norm)?;
-            self.encode_chunk_backward(encoder, si, 0)?;
+            self.encode_chunk_backward(encoder, si, 0, true)?;
         } else {
+            // The loss's forward over all compacted samples wrote over them first.
             self.encode_loss_forward(encoder, si)?;
             self.encode_loss(encoder, si, n_rays, loss_norm)?;
             for k in 0..n_chunks {
-                self.encode_chunk_forward(encoder, si, k)?;
-                self.encode_chunk_backward(encoder, si, k)?;
+                self.encode_chunk_forward(encoder, si, k, false)?;
+                self.encode_chunk_backward(encoder, si, k, false)?;
             }
         }
         let scene = &self.scenes[si];
@@ -1023,6 +1039,7 @@ impl<'c> GpuTrainer<'c> {
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         k: usize,
+        copied: bool,
     ) -> GpuResult<()> {
         let chunk = &self.chunks[k];
         chunk.count.encode(encoder);
@@ -1030,7 +1047,11 @@ impl<'c> GpuTrainer<'c> {
         let c = &self.compacted;
         let pos = c.pos.slice(12 * first..12 * (first + ld));
         let dirs = c.dirs.slice(12 * first..12 * (first + ld));
-        self.encode_network_forward(encoder, si, shape, pos, dirs, true, Some(&chunk.count))
+        let grid = match copied {
+            true => GridInput::Copied(c.from.slice(4 * first..4 * (first + ld))),
+            false => GridInput::Positions(pos),
+        };
+        self.encode_network_forward(encoder, si, shape, grid, dirs, true, Some(&chunk.count))
     }
 
     /// The backward of chunk `k` after [`Self::encode_chunk_forward`] and the loss: network
@@ -1040,13 +1061,15 @@ impl<'c> GpuTrainer<'c> {
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         k: usize,
+        copied: bool,
     ) -> GpuResult<()> {
         let chunk = &self.chunks[k];
         let (shape, first, ld) = chunk.span();
         let c = &self.compacted;
         let pos = c.pos.slice(12 * first..12 * (first + ld));
         let d_raw = c.d_raw.slice(16 * first..16 * (first + ld));
-        self.encode_network_backward(encoder, si, shape, pos, d_raw, Some(&chunk.count))
+        let count = Some(&chunk.count);
+        self.encode_network_backward(encoder, si, shape, pos, d_raw, count, copied)
     }
 
     /// The outputs of every compacted sample into `raw`, without activations, for the loss
@@ -1059,7 +1082,7 @@ impl<'c> GpuTrainer<'c> {
         };
         self.compacted_all.encode(encoder);
         let c = &self.compacted;
-        let (pos, dirs) = (c.pos.slice(..), c.dirs.slice(..));
+        let (pos, dirs) = (GridInput::Positions(c.pos.slice(..)), c.dirs.slice(..));
         let count = Some(&self.compacted_all);
         self.encode_network_forward(encoder, si, shape, pos, dirs, false, count)
     }
@@ -1122,7 +1145,7 @@ impl<'c> GpuTrainer<'c> {
         let pos = self.batch.pos.slice(..);
         self.encode_grid_forward(encoder, si, shape, pos, Some(&self.marched))?;
         self.mark(encoder, "grid forward (marched)");
-        let eb = self.encoded_batch(shape);
+        let eb = self.encoded_batch(shape, false);
         self.field.mlp().encode_density_counted(
             ctx,
             encoder,
@@ -1159,42 +1182,66 @@ impl<'c> GpuTrainer<'c> {
         )
     }
 
-    /// The trainer's encoding buffer as a batch of `shape`.
-    fn encoded_batch(&self, shape: GridShape) -> EncodedBatch<'_> {
+    /// The trainer's encoding buffer (with `copied`, the copied encodings') as a batch of
+    /// `shape`.
+    fn encoded_batch(&self, shape: GridShape, copied: bool) -> EncodedBatch<'_> {
         EncodedBatch {
             params: &self.field.params,
-            enc: &self.enc,
+            enc: if copied { &self.enc_copied } else { &self.enc },
             ld: shape.ld,
             n: shape.n_samples,
         }
     }
 
-    /// Grid forward under scene `si`'s index and network forward over the first
-    /// `shape.n_samples` of `pos` and `dirs` (or as many as `count` says, at most that), into
-    /// `raw`; with `keep`, the activations stay in the workspace for
-    /// [`Self::encode_network_backward`] (`shape` within its capacity).
+    /// The encodings of the first `shape.n_samples` samples (or as many as `count` says, at
+    /// most that): the grid forward under scene `si`'s index at `grid`'s positions, or a
+    /// copy of the marched pass's; then the network forward with `dirs`, into `raw`. With
+    /// `keep`, the activations stay in the workspace for [`Self::encode_network_backward`]
+    /// (`shape` within its capacity).
     #[allow(clippy::too_many_arguments)]
     fn encode_network_forward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         si: usize,
         shape: GridShape,
-        pos: wgpu::BufferSlice<'_>,
+        grid: GridInput<'_>,
         dirs: wgpu::BufferSlice<'_>,
         keep: bool,
         count: Option<&DeviceCount>,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
-        self.encode_grid_forward(encoder, si, shape, pos, count)?;
-        self.mark(
-            encoder,
-            if keep {
-                "grid forward (trained)"
-            } else {
-                "grid forward (for the loss)"
-            },
-        );
-        let eb = self.encoded_batch(shape);
+        let copied = matches!(grid, GridInput::Copied(_));
+        match grid {
+            GridInput::Positions(pos) => {
+                self.encode_grid_forward(encoder, si, shape, pos, count)?;
+                self.mark(
+                    encoder,
+                    if keep {
+                        "grid forward (trained)"
+                    } else {
+                        "grid forward (for the loss)"
+                    },
+                );
+            }
+            GridInput::Copied(from) => {
+                let budget = self.batch.sample_budget();
+                let width = self.field.layout().grid.config.n_output_dims() as u64;
+                let copy = self.field.grid().bind_copy(
+                    ctx,
+                    from,
+                    self.enc.slice(..4 * width * budget as u64),
+                    budget,
+                    self.enc_copied.slice(..4 * width * shape.ld as u64),
+                    shape,
+                )?;
+                match count {
+                    Some(c) => copy.record_counted(encoder, c)?,
+                    None => copy.record(&mut encoder.begin_compute_pass(&Default::default())),
+                }
+                self.mark(encoder, "encodings copied (trained)");
+            }
+        }
+        let eb = self.encoded_batch(shape, copied);
         let ws = keep.then_some(&self.ws);
         let mlp = self.field.mlp();
         mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws, count)?;
@@ -1242,7 +1289,8 @@ impl<'c> GpuTrainer<'c> {
     /// Backward of the last [`Self::encode_network_forward`] that kept its activations
     /// (with the same `count`), from `d_raw`: MLP weight gradients added into `grad`,
     /// dL/d(enc) into `d_enc`, then the grid's gradient at `pos` added into the grid block
-    /// of `grad`.
+    /// of `grad`. With `copied`, the network reads the copied encodings, as the forward did.
+    #[allow(clippy::too_many_arguments)]
     fn encode_network_backward(
         &self,
         encoder: &mut wgpu::CommandEncoder,
@@ -1251,10 +1299,11 @@ impl<'c> GpuTrainer<'c> {
         pos: wgpu::BufferSlice<'_>,
         d_raw: wgpu::BufferSlice<'_>,
         count: Option<&DeviceCount>,
+        copied: bool,
     ) -> GpuResult<()> {
         let ctx = self.ctx;
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
-        let eb = self.encoded_batch(shape);
+        let eb = self.encoded_batch(shape, copied);
         let mlp = self.field.mlp();
         let (ws, grad, d_enc) = (&self.ws, &self.grad, &self.d_enc);
         mlp.encode_backward_slice(ctx, encoder, &eb, d_raw, ws, grad, d_enc, count)?;
@@ -1309,7 +1358,7 @@ impl<'c> GpuTrainer<'c> {
                     .write_buffer(&c.dirs, 0, bytemuck::cast_slice(&dirs));
             })?;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
-            let (pos, dirs) = (c.pos.slice(..), c.dirs.slice(..));
+            let (pos, dirs) = (GridInput::Positions(c.pos.slice(..)), c.dirs.slice(..));
             self.encode_network_forward(&mut encoder, si, shape, pos, dirs, true, None)?;
             ctx.scoped("density loss forward", || {
                 ctx.queue.submit([encoder.finish()])
@@ -1329,7 +1378,7 @@ impl<'c> GpuTrainer<'c> {
             })?;
             let mut encoder = ctx.device.create_command_encoder(&Default::default());
             let (pos, d_raw) = (c.pos.slice(..), c.d_raw.slice(..));
-            self.encode_network_backward(&mut encoder, si, shape, pos, d_raw, None)?;
+            self.encode_network_backward(&mut encoder, si, shape, pos, d_raw, None, false)?;
             ctx.scoped("density loss backward", || {
                 ctx.queue.submit([encoder.finish()])
             })?;
