@@ -44,10 +44,10 @@ pub struct CompactInputs<'a> {
 }
 
 /// The compacted samples (positions, directions, steps, distances, marched indices; `d_raw`
-/// for the loss's gradient), each ray's compacted range (`rays`, a `GpuRay` a ray: `n` is [`SKIP`] for a
-/// ray that did not fit), and the counters: `[0]` slots asked for, `[1]` samples written,
-/// `[2]` rays that did not fit, `[3]` the whole network's forward passes over the compacted
-/// samples ([`Self::record_forward_passes`]).
+/// for the loss's gradient), each ray's compacted range (`rays`, a `GpuRay` a ray: `n` is
+/// [`SKIP`] for a ray that did not fit), and the counters: `[0]` slots asked for, `[1]`
+/// samples written, `[2]` rays that did not fit, `[3]` the whole network's forward passes
+/// over the compacted samples ([`Self::record_forward_passes`]).
 pub struct Compacted {
     pub pos: wgpu::Buffer,
     pub dirs: wgpu::Buffer,

@@ -4,10 +4,12 @@
 // alone: the density network ran over every marched sample, and this kernel walks each
 // ray's log-densities as the loss does (ngp::train::loss::ray_loss), counts its leading
 // samples the transmittance reaches, reserves that many slots with one atomic add, and
-// copies each one's position, step and distance there, with the ray's direction (what the
-// CPU trainer's `w.dir.extend(repeat_n(ray.d, n))` gives its samples) and compacted range. The colour network, the loss and the backward then run on the compacted samples
-// only. A ray whose slots would end past the capacity trains nothing and is counted; its
-// compacted range is marked SKIP, so that the loss leaves the `(0, used)` written here.
+// copies each one's position, step, distance and marched index there, with the ray's
+// direction (what the CPU trainer's `w.dir.extend(repeat_n(ray.d, n))` gives its samples)
+// and compacted range. The colour network, the loss and the backward then run on the
+// compacted samples only. A ray whose slots would end past the capacity trains nothing
+// and is counted; its compacted range is marked SKIP, so that the loss leaves the
+// `(0, used)` written here.
 
 struct CompactParams {
     n_rays: u32,
@@ -18,8 +20,6 @@ struct CompactParams {
 
 const SKIP: u32 = 0xffffffffu;
 
-// Each compacted sample's marched index: the training pass copies its grid encoding from
-// the marched pass's instead of computing it again (grid.wgsl, copy_main).
 // struct GpuRay (loss.rs), 8 words: start, n, bg, target.
 @group(0) @binding(0) var<storage, read> rays: array<u32>;
 @group(0) @binding(1) var<storage, read> log_density: array<f32>;
@@ -39,6 +39,8 @@ const SKIP: u32 = 0xffffffffu;
 // [0]: slots asked for, [1]: samples written, [2]: rays that did not fit, [3]: unused.
 @group(0) @binding(12) var<storage, read_write> counters: array<atomic<u32>, 4>;
 @group(0) @binding(13) var<uniform> p: CompactParams;
+// Each compacted sample's marched index: the training pass copies its grid encoding from
+// the marched pass's instead of computing it again (grid.wgsl, copy_main).
 @group(0) @binding(14) var<storage, read_write> from_c: array<u32>;
 
 @compute @workgroup_size(64)

@@ -444,6 +444,10 @@ impl GridEncoding {
                 index.n_levels()
             ));
         }
+        self.check_ld(shape)
+    }
+
+    fn check_ld(&self, shape: GridShape) -> GpuResult<()> {
         if shape.ld == 0 || shape.n_samples > shape.ld {
             return input(format!(
                 "{} samples with leading dimension {}: need 0 < n ≤ ld",
@@ -498,58 +502,22 @@ impl GridEncoding {
         enc: wgpu::BufferSlice<'_>,
         shape: GridShape,
     ) -> GpuResult<GridDispatch> {
-        if shape.ld == 0 || shape.n_samples > shape.ld || from_ld == 0 {
-            return input(format!(
-                "a copy of {} samples with leading dimension {} from one of {from_ld}",
-                shape.n_samples, shape.ld
-            ));
-        }
-        if self.width() * shape.ld.max(from_ld) as u64 > u32::MAX as u64 {
-            return input(format!(
-                "leading dimension {} past 2^32 words",
-                shape.ld.max(from_ld)
-            ));
-        }
-        let ld = shape.ld as u64;
+        self.check_ld(shape)?;
+        self.check_ld(GridShape::new(from_ld))?;
+        let (ld, width) = (shape.ld as u64, self.width());
+        let pipeline = self.pipeline_for(ctx, 0, Pass::Copy)?;
         let buffers = [
-            (
-                10,
-                storage_binding(ctx, "copied samples' sources", from, 4 * ld, false)?,
-            ),
+            (10, "copied samples' sources", from, 4 * ld, false),
             (
                 11,
-                storage_binding(
-                    ctx,
-                    "encodings copied from",
-                    from_enc,
-                    4 * self.width() * from_ld as u64,
-                    false,
-                )?,
+                "encodings copied from",
+                from_enc,
+                4 * width * from_ld as u64,
+                false,
             ),
-            (
-                6,
-                storage_binding(ctx, "encoding", enc, 4 * self.width() * ld, false)?,
-            ),
+            (6, "encoding", enc, 4 * width * ld, false),
         ];
-        let max_dim = ctx.device.limits().max_compute_workgroups_per_dimension;
-        let [gx, gy] = fold_groups(shape.ld, self.max_groups_x.min(max_dim), max_dim)?;
-        let params = GridParams {
-            n_samples: shape.n_samples,
-            ld: shape.ld,
-            row_width: gx * WORKGROUP,
-            from_ld,
-        };
-        let pipeline = self.pipeline_for(ctx, 0, Pass::Copy)?;
-        let groups = [gx, gy, self.layout.levels.len() as u32];
-        bound_dispatch(
-            ctx,
-            Pass::Copy,
-            pipeline,
-            params,
-            groups,
-            &[],
-            buffers.into(),
-        )
+        self.bound(ctx, Pass::Copy, pipeline, shape, from_ld, &[], buffers)
     }
 
     /// An fp16 copy of `table` (exactly the grid's `n_params` f32), refreshed by
@@ -701,6 +669,25 @@ impl GridEncoding {
         buffers: [(u32, &str, wgpu::BufferSlice<'_>, u64, bool); 3],
     ) -> GpuResult<GridDispatch> {
         self.check_shape(index, shape)?;
+        let pipeline = self.pipeline(ctx, index, pass)?;
+        let fixed = [(0, &index.levels), (1, &index.tables), (2, &self.levels)];
+        self.bound(ctx, pass, pipeline, shape, 0, &fixed, buffers)
+    }
+
+    /// `pipeline` over `shape` (one invocation a sample and level, rows folded into y),
+    /// bound to a fresh uniform of its parameters (binding 3), the buffers `fixed` and the
+    /// storage ranges `buffers` (binding, what, range, bytes needed, exactly).
+    #[allow(clippy::too_many_arguments)]
+    fn bound(
+        &self,
+        ctx: &GpuContext,
+        pass: Pass,
+        pipeline: wgpu::ComputePipeline,
+        shape: GridShape,
+        from_ld: u32,
+        fixed: &[(u32, &wgpu::Buffer)],
+        buffers: [(u32, &str, wgpu::BufferSlice<'_>, u64, bool); 3],
+    ) -> GpuResult<GridDispatch> {
         let mut data = Vec::with_capacity(buffers.len());
         for (binding, what, slice, need, exact) in buffers {
             data.push((binding, storage_binding(ctx, what, slice, need, exact)?));
@@ -711,55 +698,38 @@ impl GridEncoding {
             n_samples: shape.n_samples,
             ld: shape.ld,
             row_width: gx * WORKGROUP,
-            from_ld: 0,
+            from_ld,
         };
-        let pipeline = self.pipeline(ctx, index, pass)?;
         let groups = [gx, gy, self.layout.levels.len() as u32];
-        let fixed = [(0, &index.levels), (1, &index.tables), (2, &self.levels)];
-        bound_dispatch(ctx, pass, pipeline, params, groups, &fixed, data)
-    }
-}
-
-/// `pipeline` bound to a fresh uniform of `params` (binding 3), the buffers `fixed` and the
-/// storage ranges `data`, dispatched as `groups`.
-fn bound_dispatch(
-    ctx: &GpuContext,
-    pass: Pass,
-    pipeline: wgpu::ComputePipeline,
-    params: GridParams,
-    groups: [u32; 3],
-    fixed: &[(u32, &wgpu::Buffer)],
-    data: Vec<(u32, wgpu::BufferBinding<'_>)>,
-) -> GpuResult<GridDispatch> {
-    ctx.scoped(pass.what(), || {
-        let ld = params.ld;
-        let params = ctx
-            .device
-            .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("grid params"),
-                contents: bytemuck::bytes_of(&params),
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        ctx.scoped(pass.what(), || {
+            let params = ctx
+                .device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("grid params"),
+                    contents: bytemuck::bytes_of(&params),
+                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                });
+            let mut entries: Vec<_> = fixed.iter().map(|&(b, buf)| buffer_entry(b, buf)).collect();
+            entries.push(buffer_entry(3, &params));
+            entries.extend(data.into_iter().map(|(binding, b)| wgpu::BindGroupEntry {
+                binding,
+                resource: wgpu::BindingResource::Buffer(b),
+            }));
+            let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some(pass.what()),
+                layout: &pipeline.get_bind_group_layout(0),
+                entries: &entries,
             });
-        let mut entries: Vec<_> = fixed.iter().map(|&(b, buf)| buffer_entry(b, buf)).collect();
-        entries.push(buffer_entry(3, &params));
-        entries.extend(data.into_iter().map(|(binding, b)| wgpu::BindGroupEntry {
-            binding,
-            resource: wgpu::BindingResource::Buffer(b),
-        }));
-        let bind_group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some(pass.what()),
-            layout: &pipeline.get_bind_group_layout(0),
-            entries: &entries,
-        });
-        GridDispatch {
-            pipeline,
-            bind_group,
-            params,
-            ld,
-            groups,
-            what: pass.what(),
-        }
-    })
+            GridDispatch {
+                pipeline,
+                bind_group,
+                params,
+                ld: shape.ld,
+                groups,
+                what: pass.what(),
+            }
+        })
+    }
 }
 
 impl GridDispatch {
@@ -769,6 +739,22 @@ impl GridDispatch {
         pass.set_bind_group(0, &self.bind_group, &[]);
         let [x, y, z] = self.groups;
         pass.dispatch_workgroups(x, y, z);
+    }
+
+    /// Records the dispatch into a pass of its own: counted on the device with `count`
+    /// ([`Self::record_counted`]), else over its whole bound shape.
+    pub fn record_maybe_counted(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        count: Option<&DeviceCount>,
+    ) -> GpuResult<()> {
+        match count {
+            Some(c) => self.record_counted(encoder, c),
+            None => {
+                self.record(&mut encoder.begin_compute_pass(&Default::default()));
+                Ok(())
+            }
+        }
     }
 
     /// Records the dispatch with the sample count known only on the device: `count`'s n

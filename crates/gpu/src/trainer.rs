@@ -1234,10 +1234,7 @@ impl<'c> GpuTrainer<'c> {
                     self.enc_copied.slice(..4 * width * shape.ld as u64),
                     shape,
                 )?;
-                match count {
-                    Some(c) => copy.record_counted(encoder, c)?,
-                    None => copy.record(&mut encoder.begin_compute_pass(&Default::default())),
-                }
+                copy.record_maybe_counted(encoder, count)?;
                 self.mark(encoder, "encodings copied (trained)");
             }
         }
@@ -1279,10 +1276,7 @@ impl<'c> GpuTrainer<'c> {
                 grid.bind_forward(ctx, index, pos, table, enc, shape)?
             }
         };
-        match count {
-            Some(c) => forward.record_counted(encoder, c)?,
-            None => forward.record(&mut encoder.begin_compute_pass(&Default::default())),
-        }
+        forward.record_maybe_counted(encoder, count)?;
         Ok(())
     }
 
@@ -1316,10 +1310,7 @@ impl<'c> GpuTrainer<'c> {
             self.grad.slice(grid_bytes),
             shape,
         )?;
-        match count {
-            Some(c) => backward.record_counted(encoder, c)?,
-            None => backward.record(&mut encoder.begin_compute_pass(&Default::default())),
-        }
+        backward.record_maybe_counted(encoder, count)?;
         self.mark(encoder, "grid backward (trained)");
         Ok(())
     }
