@@ -21,7 +21,8 @@ pub const MAX_HEAD: usize = 16 << 10;
 pub const MAX_BODY: u64 = 64 << 10;
 /// A client must send its request within this (and take the answer no slower).
 pub const TIMEOUT: Duration = Duration::from_secs(10);
-/// The server must begin its answer within this, counted from when the request reached it.
+/// The server must send each part of its answer within this (the first counted from when
+/// the request reached it).
 pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(600);
 
 /// How long the front door waits on each side.
@@ -169,9 +170,9 @@ fn serve_one(mut client: TcpStream, inner: &Path, waits: Waits) {
     // server silent for the whole wait gets the client a status rather than a bare close.
     let mut buf = [0u8; 16 << 10];
     let mut passed = 0usize;
-    loop {
+    let (status, reason) = loop {
         match server.read(&mut buf) {
-            Ok(0) => break,
+            Ok(0) => break (502, "the viewer closed without an answer"),
             Ok(n) => {
                 if client.write_all(&buf[..n]).is_err() {
                     return;
@@ -179,22 +180,11 @@ fn serve_one(mut client: TcpStream, inner: &Path, waits: Waits) {
                 passed += n;
             }
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
-            Err(_) => {
-                if passed == 0 {
-                    answer_refusal(
-                        &mut client,
-                        &refuse(504, "the viewer did not answer in time"),
-                    );
-                }
-                return;
-            }
+            Err(_) => break (504, "the viewer did not answer in time"),
         }
-    }
+    };
     if passed == 0 {
-        answer_refusal(
-            &mut client,
-            &refuse(502, "the viewer closed without an answer"),
-        );
+        answer_refusal(&mut client, &refuse(status, reason));
     }
 }
 
