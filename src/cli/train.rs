@@ -87,7 +87,9 @@ pub struct Args {
     /// keys.
     #[arg(long, value_name = "N|Mm", value_parser = parse_every)]
     pub save_every: Option<SaveEvery>,
-    /// Where --save-every writes (default: the model's path with `.state` added).
+    /// Where --save-every writes. A plain run's state is a snapshot, named like a model
+    /// (.ingp or .msgpack; default MODEL.checkpoint.msgpack); a stego run's defaults to the
+    /// model's path with `.state` added.
     #[arg(long, value_name = "PATH")]
     pub state: Option<PathBuf>,
     /// Go on from a state --save-every wrote, with the same data, keys, options and thread
