@@ -218,23 +218,35 @@ fn assert_same_step(p1: &[f32], p2: &[f32]) {
 }
 
 /// A run that reads its measurements two steps late (as `train --device gpu` does past its
-/// warm-up, which this one skips): every step is one submission (and one per occupancy
+/// warm-up, which these runs skip): every step is one submission (and one per occupancy
 /// update) that the host never waits for inside the step; the measurements of each step
-/// arrive two steps later and the last two with
-/// `flush_stats`; it learns as the run that reads each step at its end does, to the noise
-/// of the device's sums. That run waits once a step, at its end, and submits once too.
+/// arrive two steps later and the last two with `flush_stats`; it learns as the run that
+/// reads each step at its end does, to the noise of the device's sums. That run waits once
+/// a step, at its end, and submits once too.
+///
+/// With the grid's fp16 copy (`set_half_grid`, `train --half-grid`) the training forwards
+/// read the table rounded to fp16, refreshed in the step's own submission: that run, read
+/// at each step's end, learns as the f32 one does on weights of its own (the copy was
+/// read), still in one submission a step. The three runs share this test so that the plain
+/// run, the comparison for both, trains once.
 #[test]
-fn a_pipelined_run_never_waits_for_its_step_and_learns_the_same() {
+fn a_pipelined_run_and_the_fp16_grid_copy_learn_as_the_plain_run_does() {
     let Some(ctx) = test_context() else { return };
     let dir = tempfile::tempdir().unwrap();
     let (train, test) = scene(dir.path());
     let train = Arc::new(train);
     const N: u32 = 40;
-    let mut models = Vec::new();
-    for lag in [0, stegongp::gpu::trainer::MAX_LAG] {
+    let mut runs = Vec::new();
+    for (lag, half) in [
+        (0, false),
+        (stegongp::gpu::trainer::MAX_LAG, false),
+        (0, true),
+    ] {
         let mut t = gpu_trainer(ctx, &train);
         t.set_read_lag(lag).unwrap();
         t.set_warmup(0);
+        t.set_half_grid(half).unwrap();
+        assert_eq!(t.half_grid(), half);
         let mut measured = 0;
         let mut samples = 0u64;
         for step in 0..N {
@@ -242,7 +254,7 @@ fn a_pipelined_run_never_waits_for_its_step_and_learns_the_same() {
             assert_eq!(
                 s.submissions,
                 1 + s.occupancy_updates,
-                "lag {lag}, step {step}"
+                "lag {lag}, half {half}, step {step}"
             );
             // Read at its end, a step waits for the device unless the device was already
             // done; read late, never.
@@ -263,20 +275,37 @@ fn a_pipelined_run_never_waits_for_its_step_and_learns_the_same() {
         assert_eq!(rest.primary_loss.is_some(), lag > 0);
         assert!(t.flush_stats().unwrap().primary_loss.is_none());
         eprintln!(
-            "lag {lag}: {measured} steps reported in the run, {} trained samples, {} in the \
-             flush",
-            samples, rest.n_samples
+            "lag {lag}, half {half}: {measured} steps reported in the run, {samples} trained \
+             samples, {} in the flush",
+            rest.n_samples
         );
         assert_eq!(measured + lag, N);
         assert!(rest.n_samples > 0 || lag == 0);
-        models.push(psnr_of(&t.model(rest.loss).unwrap(), &test));
+        let model = t.model(rest.loss).unwrap();
+        runs.push((psnr_of(&model, &test), model.params().to_vec()));
     }
+    let [plain, late, half] = [0, 1, 2].map(|i| runs[i].0);
     eprintln!(
-        "PSNR after {N} steps: read in step {:.2} dB, two steps late {:.2} dB",
-        models[0], models[1]
+        "PSNR after {N} steps: read in step {plain:.2} dB, two steps late {late:.2} dB, \
+         fp16 grid copy {half:.2} dB"
     );
-    assert!(models[0] > 11.0, "{:.2} dB: did not learn", models[0]);
-    assert!((models[0] - models[1]).abs() < 0.5, "{models:?}");
+    assert!(plain > 11.0, "{plain:.2} dB: did not learn");
+    assert!(
+        (plain - late).abs() < 0.5,
+        "read late: {late:.2} against {plain:.2} dB"
+    );
+    assert!(
+        half > 11.0,
+        "{half:.2} dB: the fp16 copy's run did not learn"
+    );
+    assert!(
+        (plain - half).abs() < 0.5,
+        "fp16 copy: {half:.2} against {plain:.2} dB"
+    );
+    assert_ne!(
+        runs[0].1, runs[2].1,
+        "the fp16 copy changed nothing: not read"
+    );
 }
 
 /// Past the warm-up the training pass records only the chunks the measured batches call
@@ -344,51 +373,4 @@ fn recording_the_chunks_a_batch_needs_trains_what_all_chunks_train() {
     assert!(single >= 5, "one chunk in {single} of 8 steps");
     assert_same_step(&all.params().unwrap(), &some.params().unwrap());
     assert_same_step(&all.params().unwrap(), &one.params().unwrap());
-}
-
-/// With the grid's fp16 copy (`set_half_grid`, `train --half-grid`) the training forwards
-/// read the table rounded to fp16, refreshed in the step's own submission: the run learns
-/// as the f32 one does (within 0.5 dB after 40 steps) on weights of its own (the copy was
-/// read), still in one submission a step.
-#[test]
-fn the_fp16_grid_copy_trains_as_the_f32_table_does() {
-    let Some(ctx) = test_context() else { return };
-    let dir = tempfile::tempdir().unwrap();
-    let (train, test) = scene(dir.path());
-    let train = Arc::new(train);
-    const N: u32 = 40;
-    let mut runs = Vec::new();
-    for half in [false, true] {
-        let mut t = gpu_trainer(ctx, &train);
-        t.set_half_grid(half).unwrap();
-        assert_eq!(t.half_grid(), half);
-        let mut loss = 0.0;
-        for step in 0..N {
-            let s = t.train_step().unwrap();
-            assert_eq!(
-                s.submissions,
-                1 + s.occupancy_updates,
-                "half {half}, step {step}"
-            );
-            assert_eq!(s.dropped_rays, 0);
-            loss = s.loss;
-        }
-        let model = t.model(loss).unwrap();
-        runs.push((psnr_of(&model, &test), model.params().to_vec()));
-    }
-    eprintln!(
-        "PSNR after {N} steps: f32 table {:.2} dB, fp16 copy {:.2} dB",
-        runs[0].0, runs[1].0
-    );
-    assert!(runs[1].0 > 11.0, "{:.2} dB: did not learn", runs[1].0);
-    assert!(
-        (runs[0].0 - runs[1].0).abs() < 0.5,
-        "{:.2} {:.2}",
-        runs[0].0,
-        runs[1].0
-    );
-    assert_ne!(
-        runs[0].1, runs[1].1,
-        "the fp16 copy changed nothing: not read"
-    );
 }
