@@ -86,6 +86,64 @@ pub const GROUP: usize = 4;
 pub const MAX_STEPS: u32 = 10_000_000;
 const BLOCK: usize = 1 << 14;
 
+/// One group's parameters and optimizer state, a lane each.
+struct Lanes<'a> {
+    w: &'a mut [f32; GROUP],
+    m: &'a mut [f32; GROUP],
+    v: &'a mut [f32; GROUP],
+    st: &'a mut [u32; GROUP],
+    ema: &'a mut [f32; GROUP],
+}
+
+/// The update of one whole group, the first `n_matrix` of its lanes MLP weights: the
+/// scalar loop's arithmetic in the same order (so the same bits), written lane-wise with
+/// selects instead of a branch a lane, so that the group's square roots and divisions go
+/// in one vector instruction each instead of one each per parameter.
+// Lane loops index several arrays in step on purpose: that is what vectorises.
+#[allow(clippy::needless_range_loop)]
+#[inline(always)]
+fn adam_group(
+    c: &OptimizerConfig,
+    lr: f32,
+    correction: &[f32],
+    n_matrix: usize,
+    grads: &mut [&mut [f32]],
+    g0: usize,
+    s: Lanes,
+) {
+    let mut g = [0.0f32; GROUP];
+    for gb in grads.iter_mut() {
+        let gb: &mut [f32; GROUP] = (&mut gb[g0..g0 + GROUP]).try_into().unwrap();
+        for j in 0..GROUP {
+            g[j] += gb[j];
+        }
+        *gb = [0.0; GROUP];
+    }
+    let last = correction.len() - 1;
+    for j in 0..GROUP {
+        let is_matrix = j < n_matrix;
+        let update = is_matrix || g[j] != 0.0;
+        let gj = if is_matrix {
+            g[j] + c.l2_reg * s.w[j]
+        } else {
+            g[j]
+        };
+        let t = s.st[j] + 1;
+        let m = c.beta1 * s.m[j] + (1.0 - c.beta1) * gj;
+        let v = c.beta2 * s.v[j] + (1.0 - c.beta2) * gj * gj;
+        // `t` is at most the optimizer's step, the table's last entry (`extend_tables`).
+        let lr_eff = lr * correction[(t as usize).min(last)];
+        let w = s.w[j] - lr_eff * m / (v.sqrt() + c.epsilon);
+        if update {
+            s.st[j] = t;
+            s.m[j] = m;
+            s.v[j] = v;
+            s.w[j] = w;
+        }
+        s.ema[j] = c.ema_decay * s.ema[j] + (1.0 - c.ema_decay) * s.w[j];
+    }
+}
+
 /// The positions of the set bits of a bitmap given as 64-bit words, in increasing order.
 pub fn set_bits(words: impl Iterator<Item = u64>) -> impl Iterator<Item = usize> {
     words.enumerate().flat_map(|(k, word)| {
@@ -282,6 +340,24 @@ impl Optimizer {
                         }
                     }
                     es[gi] = step;
+                    if g1 - g0 == GROUP {
+                        adam_group(
+                            &c,
+                            lr,
+                            correction,
+                            n_matrix.saturating_sub(start + g0),
+                            &mut gs,
+                            g0,
+                            Lanes {
+                                w: (&mut w[g0..g1]).try_into().unwrap(),
+                                m: (&mut m[g0..g1]).try_into().unwrap(),
+                                v: (&mut v[g0..g1]).try_into().unwrap(),
+                                st: (&mut st[g0..g1]).try_into().unwrap(),
+                                ema: (&mut ema[g0..g1]).try_into().unwrap(),
+                            },
+                        );
+                        continue;
+                    }
                     for i in g0..g1 {
                         let mut g = 0.0f32;
                         for gb in gs.iter_mut() {
@@ -414,6 +490,68 @@ mod tests {
                 ed[i],
                 es[i]
             );
+        }
+    }
+
+    /// The whole-group path (`adam_group`) against the per-parameter loop written out here,
+    /// bit for bit: a group that straddles the MLP weights' end, a partial last group (which
+    /// takes the loop), lanes with zero, negative-zero and non-zero gradients from three
+    /// workers, over steps enough for the bias correction to change.
+    #[test]
+    fn whole_groups_update_as_the_per_parameter_loop_does() {
+        let (n, n_matrix) = (4 * GROUP + 3, GROUP + 2);
+        let c = OptimizerConfig::default();
+        let mut opt = Optimizer::new(c, n, n_matrix);
+        let mut w: Vec<f32> = (0..n).map(|i| (i as f32 * 0.61).cos()).collect();
+        let (mut rw, mut rm, mut rv, mut rst, mut rema) = (
+            w.clone(),
+            vec![0.0f32; n],
+            vec![0.0f32; n],
+            vec![0u32; n],
+            vec![0.0f32; n],
+        );
+        let mut rng = crate::rng::Pcg32::new(5, 1);
+        for step in 1..=12u32 {
+            let grads: Vec<Vec<f32>> = (0..3)
+                .map(|_| {
+                    (0..n)
+                        .map(|_| match rng.next_u32() % 4 {
+                            0 => 0.0,
+                            1 => -0.0,
+                            _ => rng.next_f32() - 0.5,
+                        })
+                        .collect()
+                })
+                .collect();
+            let lr = c.learning_rate(step - 1);
+            for i in 0..n {
+                let mut g = 0.0f32;
+                for gb in &grads {
+                    g += gb[i];
+                }
+                let is_matrix = i < n_matrix;
+                if is_matrix || g != 0.0 {
+                    if is_matrix {
+                        g += c.l2_reg * rw[i];
+                    }
+                    rst[i] += 1;
+                    rm[i] = c.beta1 * rm[i] + (1.0 - c.beta1) * g;
+                    rv[i] = c.beta2 * rv[i] + (1.0 - c.beta2) * g * g;
+                    let lr_eff = lr * c.adam_correction(rst[i]);
+                    rw[i] -= lr_eff * rm[i] / (rv[i].sqrt() + c.epsilon);
+                }
+                rema[i] = c.ema_decay * rema[i] + (1.0 - c.ema_decay) * rw[i];
+            }
+            let mut grads = grads;
+            opt.step(&mut w, &mut grads, None);
+            assert!(grads.iter().all(|g| g.iter().all(|&x| x == 0.0)));
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            let (m, v, st) = opt.moments();
+            assert_eq!(bits(&w), bits(&rw), "weights, step {step}");
+            assert_eq!(bits(m), bits(&rm), "first moments, step {step}");
+            assert_eq!(bits(v), bits(&rv), "second moments, step {step}");
+            assert_eq!(st, &rst[..], "update counts, step {step}");
+            assert_eq!(bits(&opt.ema), bits(&rema), "EMA, step {step}");
         }
     }
 
