@@ -123,7 +123,9 @@ pub struct StepStats {
     pub penalised: u32,
     pub seconds: f64,
     /// Time spent refreshing occupancy grids, in rays (march + network + loss), and in the
-    /// optimizer, within `seconds`.
+    /// optimizer, within `seconds`. On a device backend these are the host's times between
+    /// those points of the step (recording, submitting, and any wait a submission makes),
+    /// not the device's: its phases are in the device profile (`--profile-every`).
     pub occupancy_seconds: f64,
     pub rays_seconds: f64,
     pub optimizer_seconds: f64,
