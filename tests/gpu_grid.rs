@@ -425,17 +425,17 @@ fn copied_encodings_are_the_forward_at_the_copied_samples() {
         n_samples: m,
         ld: ld2,
     };
-    g.bind_copy(
-        ctx,
-        from_buf.slice(..),
-        marched_buf.slice(..),
-        ld,
-        copied.slice(..),
-        shape,
-    )
-    .unwrap()
-    .run(ctx)
-    .unwrap();
+    let bind = |from_ld: u32, shape: GridShape| {
+        g.bind_copy(
+            ctx,
+            from_buf.slice(..),
+            marched_buf.slice(..),
+            from_ld,
+            copied.slice(..),
+            shape,
+        )
+    };
+    bind(ld, shape).unwrap().run(ctx).unwrap();
     let got = download_f32(ctx, &copied, width * ld2 as usize).unwrap();
     let picked: Vec<[f32; 3]> = from.iter().map(|&i| pos[i as usize]).collect();
     let want = forward(&picked, shape);
@@ -448,16 +448,7 @@ fn copied_encodings_are_the_forward_at_the_copied_samples() {
         }
     }
     // A copy from a batch of no samples, or a count past the leading dimension, is refused.
-    let bad = |from_ld: u32, shape: GridShape| {
-        input(g.bind_copy(
-            ctx,
-            from_buf.slice(..),
-            marched_buf.slice(..),
-            from_ld,
-            copied.slice(..),
-            shape,
-        ))
-    };
+    let bad = |from_ld: u32, shape: GridShape| input(bind(from_ld, shape));
     assert!(bad(0, shape));
     assert!(bad(
         ld,

@@ -183,6 +183,17 @@ fn sample_of(gid: vec3<u32>) -> u32 {
     return gid.x + gid.y * params.row_width;
 }
 
+// Sample s's features of level l into enc, feature-major at leading dimension params.ld.
+// Padding samples (s >= params.n_samples) pass zeros: the MLP may run over whole tiles of
+// ld.
+fn store_encoding(l: u32, s: u32, acc: ptr<function, array<f32, MAX_FEATURES>>) {
+    let ld = params.ld;
+    let out = l * N_FEATURES * ld + s;
+    for (var f = 0u; f < N_FEATURES; f++) {
+        enc[out + f * ld] = (*acc)[f];
+    }
+}
+
 @compute @workgroup_size(128)
 fn forward_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     let s = sample_of(gid);
@@ -191,7 +202,6 @@ fn forward_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let l = gid.z;
-    let out = l * N_FEATURES * ld + s;
     var acc: array<f32, MAX_FEATURES>;
     if (s < params.n_samples) {
         let k = grid_corners(l, s);
@@ -209,10 +219,7 @@ fn forward_main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
-    // Padding samples get zeros: the MLP may run over whole tiles of ld.
-    for (var f = 0u; f < N_FEATURES; f++) {
-        enc[out + f * ld] = acc[f];
-    }
+    store_encoding(l, s, &acc);
 }
 
 // The encodings of samples whose forward already ran in a larger batch (a training step's
@@ -231,7 +238,6 @@ fn copy_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let l = gid.z;
-    let out = l * N_FEATURES * ld + s;
     var acc: array<f32, MAX_FEATURES>;
     if (s < params.n_samples) {
         let from_ld = params.from_ld;
@@ -240,9 +246,7 @@ fn copy_main(@builtin(global_invocation_id) gid: vec3<u32>) {
             acc[f] = copy_enc[src + f * from_ld];
         }
     }
-    for (var f = 0u; f < N_FEATURES; f++) {
-        enc[out + f * ld] = acc[f];
-    }
+    store_encoding(l, s, &acc);
 }
 
 // forward_main reading the fp16 copy, as tiny-cuda-nn's forward reads its fp16 parameters
@@ -256,7 +260,6 @@ fn forward_half_main(@builtin(global_invocation_id) gid: vec3<u32>) {
         return;
     }
     let l = gid.z;
-    let out = l * N_FEATURES * ld + s;
     var acc: array<f32, MAX_FEATURES>;
     if (s < params.n_samples) {
         let k = grid_corners(l, s);
@@ -273,9 +276,7 @@ fn forward_half_main(@builtin(global_invocation_id) gid: vec3<u32>) {
             }
         }
     }
-    for (var f = 0u; f < N_FEATURES; f++) {
-        enc[out + f * ld] = acc[f];
-    }
+    store_encoding(l, s, &acc);
 }
 
 // The fp16 copy of the table, one word (two floats) per invocation, params.n_samples words.
