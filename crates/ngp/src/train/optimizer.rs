@@ -86,62 +86,98 @@ pub const GROUP: usize = 4;
 pub const MAX_STEPS: u32 = 10_000_000;
 const BLOCK: usize = 1 << 14;
 
-/// One group's parameters and optimizer state, a lane each.
-struct Lanes<'a> {
-    w: &'a mut [f32; GROUP],
-    m: &'a mut [f32; GROUP],
-    v: &'a mut [f32; GROUP],
-    st: &'a mut [u32; GROUP],
-    ema: &'a mut [f32; GROUP],
+/// One block's share of every worker's gradient buffer: each block owns a disjoint range
+/// of every buffer, so the blocks run in parallel without building a list of slices a
+/// block (which would allocate in the optimizer's hot loop).
+struct GradBlock<'a> {
+    /// The buffers' base addresses, in worker order (the order the sum is taken in).
+    bases: &'a [usize],
+    start: usize,
+    len: usize,
 }
 
-/// The update of one whole group, the first `n_matrix` of its lanes MLP weights: the
-/// scalar loop's arithmetic in the same order (so the same bits), written lane-wise with
-/// selects instead of a branch a lane, so that the group's square roots and divisions go
-/// in one vector instruction each instead of one each per parameter.
+impl GradBlock<'_> {
+    /// The sum over workers of parameters `start + i0 ..` (`width` of them, at most
+    /// [`GROUP`]; the rest of the lanes 0), each buffer's entries zeroed as they are read.
+    #[inline(always)]
+    fn take(&mut self, i0: usize, width: usize) -> [f32; GROUP] {
+        assert!(width <= GROUP && i0 + width <= self.len);
+        let mut g = [0.0f32; GROUP];
+        for &base in self.bases {
+            // SAFETY: `step` checked that every buffer holds the parameters' count, this
+            // block's range lies within it (asserted above), no other block touches it,
+            // and `step` holds the buffers mutably borrowed while the blocks run.
+            let gb = unsafe {
+                std::slice::from_raw_parts_mut((base as *mut f32).add(self.start + i0), width)
+            };
+            for (gj, x) in g.iter_mut().zip(gb.iter_mut()) {
+                *gj += *x;
+                *x = 0.0;
+            }
+        }
+        g
+    }
+}
+
+/// The Adam + EMA update of one group of parameters, `width` of them (a whole group but
+/// maybe the last), the first `n_matrix` of them MLP weights: written lane-wise with
+/// selects instead of a branch a parameter, so that a whole group's square roots and
+/// divisions go in one vector instruction each. Every lane takes the per-parameter
+/// order of operations (tiny-cuda-nn's), so either path gives the same bits.
 // Lane loops index several arrays in step on purpose: that is what vectorises.
-#[allow(clippy::needless_range_loop)]
+#[allow(clippy::needless_range_loop, clippy::too_many_arguments)]
 #[inline(always)]
 fn adam_group(
     c: &OptimizerConfig,
     lr: f32,
     correction: &[f32],
     n_matrix: usize,
-    grads: &mut [&mut [f32]],
-    g0: usize,
-    s: Lanes,
+    g: [f32; GROUP],
+    w: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    st: &mut [u32],
+    ema: &mut [f32],
 ) {
-    let mut g = [0.0f32; GROUP];
-    for gb in grads.iter_mut() {
-        let gb: &mut [f32; GROUP] = (&mut gb[g0..g0 + GROUP]).try_into().unwrap();
-        for j in 0..GROUP {
-            g[j] += gb[j];
-        }
-        *gb = [0.0; GROUP];
-    }
+    let width = w.len();
+    // Lanes past `width` compute on zeros and are never stored.
+    let lanes = |x: &[f32]| {
+        let mut a = [0.0f32; GROUP];
+        a[..width].copy_from_slice(x);
+        a
+    };
+    let (w0, m0, v0, e0) = (lanes(w), lanes(m), lanes(v), lanes(ema));
+    let mut st0 = [0u32; GROUP];
+    st0[..width].copy_from_slice(st);
     let last = correction.len() - 1;
+    let (mut w1, mut m1, mut v1, mut st1, mut e1) = (w0, m0, v0, st0, e0);
     for j in 0..GROUP {
         let is_matrix = j < n_matrix;
         let update = is_matrix || g[j] != 0.0;
         let gj = if is_matrix {
-            g[j] + c.l2_reg * s.w[j]
+            g[j] + c.l2_reg * w0[j]
         } else {
             g[j]
         };
-        let t = s.st[j] + 1;
-        let m = c.beta1 * s.m[j] + (1.0 - c.beta1) * gj;
-        let v = c.beta2 * s.v[j] + (1.0 - c.beta2) * gj * gj;
+        let t = st0[j] + 1;
+        let mj = c.beta1 * m0[j] + (1.0 - c.beta1) * gj;
+        let vj = c.beta2 * v0[j] + (1.0 - c.beta2) * gj * gj;
         // `t` is at most the optimizer's step, the table's last entry (`extend_tables`).
         let lr_eff = lr * correction[(t as usize).min(last)];
-        let w = s.w[j] - lr_eff * m / (v.sqrt() + c.epsilon);
+        let wj = w0[j] - lr_eff * mj / (vj.sqrt() + c.epsilon);
         if update {
-            s.st[j] = t;
-            s.m[j] = m;
-            s.v[j] = v;
-            s.w[j] = w;
+            st1[j] = t;
+            m1[j] = mj;
+            v1[j] = vj;
+            w1[j] = wj;
         }
-        s.ema[j] = c.ema_decay * s.ema[j] + (1.0 - c.ema_decay) * s.w[j];
+        e1[j] = c.ema_decay * e0[j] + (1.0 - c.ema_decay) * w1[j];
     }
+    w.copy_from_slice(&w1[..width]);
+    m.copy_from_slice(&m1[..width]);
+    v.copy_from_slice(&v1[..width]);
+    st.copy_from_slice(&st1[..width]);
+    ema.copy_from_slice(&e1[..width]);
 }
 
 /// The positions of the set bits of a bitmap given as 64-bit words, in increasing order.
@@ -302,8 +338,7 @@ impl Optimizer {
         for g in grads.iter() {
             assert_eq!(g.len(), n, "gradient buffer size");
         }
-        // Raw pointers let each block take disjoint slices of every gradient buffer.
-        let grad_ptrs: Vec<usize> = grads.iter_mut().map(|g| g.as_mut_ptr() as usize).collect();
+        let bases: Vec<usize> = grads.iter_mut().map(|g| g.as_mut_ptr() as usize).collect();
         params
             .par_chunks_mut(BLOCK)
             .zip(self.m.par_chunks_mut(BLOCK))
@@ -315,14 +350,11 @@ impl Optimizer {
             .for_each(|(b, (((((w, m), v), st), ema), es))| {
                 let start = b * BLOCK;
                 let len = w.len();
-                debug_assert!(start + len <= n);
-                // SAFETY: blocks are disjoint and every buffer holds n elements (asserted).
-                let mut gs: Vec<&mut [f32]> = grad_ptrs
-                    .iter()
-                    .map(|&p| unsafe {
-                        std::slice::from_raw_parts_mut((p as *mut f32).add(start), len)
-                    })
-                    .collect();
+                let mut grads = GradBlock {
+                    bases: &bases,
+                    start,
+                    len,
+                };
                 for (gi, g0) in (0..len).step_by(GROUP).enumerate() {
                     let group = start / GROUP + gi;
                     let g1 = (g0 + GROUP).min(len);
@@ -340,42 +372,23 @@ impl Optimizer {
                         }
                     }
                     es[gi] = step;
+                    let n_matrix = n_matrix.saturating_sub(start + g0);
+                    let r = g0..g1;
+                    let (w, m, v, st, ema) = (
+                        &mut w[r.clone()],
+                        &mut m[r.clone()],
+                        &mut v[r.clone()],
+                        &mut st[r.clone()],
+                        &mut ema[r],
+                    );
+                    // The two calls differ only in that the first one's width is a
+                    // constant, so that it inlines to straight vector code.
                     if g1 - g0 == GROUP {
-                        adam_group(
-                            &c,
-                            lr,
-                            correction,
-                            n_matrix.saturating_sub(start + g0),
-                            &mut gs,
-                            g0,
-                            Lanes {
-                                w: (&mut w[g0..g1]).try_into().unwrap(),
-                                m: (&mut m[g0..g1]).try_into().unwrap(),
-                                v: (&mut v[g0..g1]).try_into().unwrap(),
-                                st: (&mut st[g0..g1]).try_into().unwrap(),
-                                ema: (&mut ema[g0..g1]).try_into().unwrap(),
-                            },
-                        );
-                        continue;
-                    }
-                    for i in g0..g1 {
-                        let mut g = 0.0f32;
-                        for gb in gs.iter_mut() {
-                            g += gb[i];
-                            gb[i] = 0.0;
-                        }
-                        let is_matrix = start + i < n_matrix;
-                        if is_matrix || g != 0.0 {
-                            if is_matrix {
-                                g += c.l2_reg * w[i];
-                            }
-                            st[i] += 1;
-                            m[i] = c.beta1 * m[i] + (1.0 - c.beta1) * g;
-                            v[i] = c.beta2 * v[i] + (1.0 - c.beta2) * g * g;
-                            let lr_eff = lr * correction[st[i] as usize];
-                            w[i] -= lr_eff * m[i] / (v[i].sqrt() + c.epsilon);
-                        }
-                        ema[i] = c.ema_decay * ema[i] + (1.0 - c.ema_decay) * w[i];
+                        let g = grads.take(g0, GROUP);
+                        adam_group(&c, lr, correction, n_matrix, g, w, m, v, st, ema);
+                    } else {
+                        let g = grads.take(g0, g1 - g0);
+                        adam_group(&c, lr, correction, n_matrix, g, w, m, v, st, ema);
                     }
                 }
             });
@@ -493,9 +506,9 @@ mod tests {
         }
     }
 
-    /// The whole-group path (`adam_group`) against the per-parameter loop written out here,
-    /// bit for bit: a group that straddles the MLP weights' end, a partial last group (which
-    /// takes the loop), lanes with zero, negative-zero and non-zero gradients from three
+    /// `adam_group` against the per-parameter loop written out here, bit for bit: a group
+    /// that straddles the MLP weights' end, a partial last group (the same function at a
+    /// width under 4), lanes with zero, negative-zero and non-zero gradients from three
     /// workers, over steps enough for the bias correction to change.
     #[test]
     fn whole_groups_update_as_the_per_parameter_loop_does() {
