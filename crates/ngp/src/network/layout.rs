@@ -27,17 +27,18 @@ impl MlpShape {
     }
 
     /// `(rows = outputs, cols = inputs)` of each weight matrix, input layer first.
-    pub fn matrices(&self) -> Vec<(usize, usize)> {
-        let mut m = vec![(self.width, self.n_in)];
-        for _ in 1..self.n_hidden_layers {
-            m.push((self.width, self.width));
-        }
-        m.push((self.n_out_padded, self.width));
-        m
+    pub fn matrices(&self) -> impl Iterator<Item = (usize, usize)> + use<> {
+        let (width, n_in, n_out) = (self.width, self.n_in, self.n_out_padded);
+        let hidden = self.n_hidden_layers.saturating_sub(1);
+        std::iter::once((width, n_in))
+            .chain(std::iter::repeat_n((width, width), hidden))
+            .chain(std::iter::once((n_out, width)))
     }
 
+    /// The weights' count, in closed form: every forward and backward pass checks it.
     pub fn n_params(&self) -> usize {
-        self.matrices().iter().map(|(r, c)| r * c).sum()
+        let hidden = self.n_hidden_layers.saturating_sub(1);
+        self.width * (self.n_in + hidden * self.width + self.n_out_padded)
     }
 }
 
@@ -121,6 +122,24 @@ mod tests {
         })
         .unwrap();
         assert_eq!(l8.n_params, 11_692_032);
-        assert_eq!(l.color_mlp.matrices(), vec![(64, 32), (64, 64), (16, 64)]);
+        assert_eq!(
+            l.color_mlp.matrices().collect::<Vec<_>>(),
+            vec![(64, 32), (64, 64), (16, 64)]
+        );
+    }
+
+    #[test]
+    fn the_closed_form_count_is_the_sum_over_the_matrices() {
+        for (n_in, width, hidden, n_out) in [
+            (32, 64, 1, 16),
+            (19, 64, 2, 3),
+            (32, 128, 4, 1),
+            (5, 16, 0, 1),
+        ] {
+            let s = MlpShape::new(n_in, width, hidden, n_out);
+            let sum: usize = s.matrices().map(|(r, c)| r * c).sum();
+            assert_eq!(s.n_params(), sum, "{s:?}");
+            assert_eq!(s.matrices().count(), hidden.max(1) + 1, "{s:?}");
+        }
     }
 }

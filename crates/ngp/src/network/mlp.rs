@@ -278,7 +278,7 @@ pub fn backward(
 pub(crate) fn naive_forward(shape: &MlpShape, w: &[f32], x: &[f32]) -> Vec<f32> {
     let mut a = x.to_vec();
     let mut off = 0;
-    for (k, (rows, cols)) in shape.matrices().into_iter().enumerate() {
+    for (k, (rows, cols)) in shape.matrices().enumerate() {
         let mut y = vec![0f32; rows];
         for o in 0..rows {
             let mut acc = 0f32;
@@ -310,7 +310,7 @@ mod tests {
     #[test]
     fn matrix_offsets_match_shape() {
         let s = MlpShape::new(32, 64, 2, 3);
-        let m = s.matrices();
+        let m: Vec<_> = s.matrices().collect();
         assert_eq!(matrix_offset(&s, 0), 0);
         assert_eq!(matrix_offset(&s, 1), m[0].0 * m[0].1);
         assert_eq!(matrix_offset(&s, 2), m[0].0 * m[0].1 + m[1].0 * m[1].1);

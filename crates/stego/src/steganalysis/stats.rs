@@ -258,7 +258,7 @@ pub fn mlp_matrices(layout: &NerfLayout) -> Vec<MatrixSpan> {
         ),
     ];
     for (network, shape, offset, n_in, n_out) in nets {
-        let mats = shape.matrices();
+        let mats: Vec<_> = shape.matrices().collect();
         let last = mats.len() - 1;
         let mut at = offset;
         for (layer, &(rows, cols)) in mats.iter().enumerate() {
