@@ -239,6 +239,26 @@ fn passphrase_keys_are_salted_by_default_and_recreated_with_the_printed_salt() {
     assert!(!p("e.json").exists());
 }
 
+/// A key file in a folder that does not exist: refused with the folder named, before a
+/// passphrase is read, and nothing created.
+#[test]
+fn keygen_into_a_missing_folder_names_the_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("keys").join("k.json");
+    for args in [vec![], vec!["--passphrase"]] {
+        let mut a = args.clone();
+        a.extend(["--out", out.to_str().unwrap()]);
+        let (ok, text) = keygen(&a, Some("a passphrase long enough\n"));
+        assert!(!ok, "{text}");
+        assert!(
+            text.contains("does not exist") && text.contains("keys"),
+            "{text}"
+        );
+        assert!(!text.contains("Passphrase"), "{text}");
+        assert!(!dir.path().join("keys").exists());
+    }
+}
+
 #[test]
 fn keygen_never_writes_through_a_link_at_the_output_path() {
     use std::os::unix::fs::symlink;

@@ -66,6 +66,9 @@ fn read_passphrase() -> anyhow::Result<String> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
+    // Before a passphrase is asked for: a missing folder is the user's to make (we do not
+    // choose where keys live, nor that folder's permissions).
+    super::common::check_parent_dir(&args.out)?;
     let config = GridConfig {
         n_levels: args.levels,
         log2_hashmap_size: args.log2_hashmap_size,
