@@ -107,6 +107,25 @@ fn train_rejects_bad_datasets_without_writing_a_model() {
     );
 }
 
+/// A worker count or a table the machine cannot hold is refused before anything is
+/// allocated, with the reason: `--workers 100000` was an out-of-memory kill (exit 137)
+/// part-way through allocating 100 000 gradient buffers of 49 MB.
+#[test]
+fn training_larger_than_memory_is_refused_up_front() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("obj");
+    testkit::cli::synth(&scene, "object", 16, 2);
+    let (s, m) = (scene.to_str().unwrap(), d.path().join("m.ingp"));
+    let m = m.to_str().unwrap();
+    let common = ["train", s, "--out", m, "--steps", "1", "--device", "cpu"];
+    let out = stegongp(&[&common[..], &["--workers", "100000"]].concat());
+    fails_with(&out, &["100000 workers", "at most 256"]);
+    // 2^26 entries a level, 256 workers: terabytes, whatever the machine.
+    let out = stegongp(&[&common[..], &["--workers", "256", "--log2-t", "26"]].concat());
+    fails_with(&out, &["GB", "--workers", "--log2-t"]);
+    assert!(!Path::new(m).exists());
+}
+
 #[test]
 fn unknown_option_values_are_refused() {
     let out = stegongp(&[

@@ -6,6 +6,7 @@ pub mod grid_updates;
 mod held;
 pub mod hooks;
 pub mod loss;
+pub mod memory;
 pub mod optimizer;
 pub mod schedule;
 pub mod state;

@@ -211,12 +211,17 @@ impl Trainer {
                 measured_marched: 0,
             });
         }
-        let params = net.init_params(config.seed);
         let n_workers = if config.workers == 0 {
             rayon::current_num_threads()
         } else {
             config.workers
         };
+        super::memory::check(
+            net.layout.n_params,
+            n_workers,
+            super::memory::available_bytes(),
+        )?;
+        let params = net.init_params(config.seed);
         let workers = (0..n_workers).map(|_| Worker::new(params.len())).collect();
         let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
         let grid_updates = GridUpdates::new(config.occupancy_budget);
