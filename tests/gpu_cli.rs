@@ -127,3 +127,34 @@ fn auto_and_cpu_say_which_device_ran() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("cuda") && err.contains("gpu"), "{err}");
 }
+
+/// A batch the device cannot hold is refused before training, with the most it holds. A
+/// batch near 2^32 used to wrap in the capacity's rounding and report "hold 0".
+#[test]
+fn a_batch_larger_than_the_device_holds_is_refused_with_its_limit() {
+    if test_context().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("obj");
+    testkit::cli::synth(&scene, "object", 16, 2);
+    let model = d.path().join("m.ingp");
+    for batch in ["4000000000", "4294967295"] {
+        let out = stegongp(&[
+            "train",
+            scene.to_str().unwrap(),
+            "--batch",
+            batch,
+            "--steps",
+            "1",
+            "--device",
+            "gpu",
+            "--out",
+            model.to_str().unwrap(),
+        ]);
+        testkit::cli::fails_naming(&out, &[batch, "samples per batch", "at most"]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("at most 0 "), "{err}");
+        assert!(!model.exists());
+    }
+}

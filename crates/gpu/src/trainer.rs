@@ -320,15 +320,15 @@ impl<'c> GpuTrainer<'c> {
             .min(fitting(4 * width));
         // A multiple of LD_GRANULE: the training pass binds its chunks at offsets of it,
         // which the device's storage alignment (256 bytes at most) divides.
-        let capacity = config
-            .batch_samples
-            .saturating_mul(CAPACITY_FACTOR)
-            .next_multiple_of(LD_GRANULE)
-            .min(fitting(4 * ACT_ROWS))
-            .min(budget / LD_GRANULE * LD_GRANULE);
+        // In u64: a batch near u32::MAX rounded up to the granule would wrap to 0.
+        let most = (fitting(4 * ACT_ROWS) as u64).min((budget / LD_GRANULE * LD_GRANULE) as u64);
+        let capacity = (config.batch_samples as u64 * CAPACITY_FACTOR as u64)
+            .next_multiple_of(LD_GRANULE as u64)
+            .min(most) as u32;
         if capacity < config.batch_samples {
             return input(format!(
-                "{} samples per batch: the device's {max}-byte bindings hold {capacity}",
+                "{} samples per batch: more than this device's {max}-byte bindings hold \
+                 (at most {most} samples a batch)",
                 config.batch_samples
             ));
         }
