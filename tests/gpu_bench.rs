@@ -63,12 +63,10 @@ fn ok_script(args: &[&str]) -> String {
 #[test]
 fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     if python_with_pillow().is_none() {
-        let ci = std::env::var("CI").is_ok_and(|v| v == "true");
-        assert!(
-            !ci,
-            "CI=true: the GPU benchmark's test needs python3 with Pillow (on PATH or /usr/bin)"
+        testkit::missing(
+            "python3 with Pillow (on PATH or /usr/bin)",
+            "the GPU benchmark's test needs it; Debian: python3-pil",
         );
-        eprintln!("skipping: python3 with Pillow not found");
         return;
     }
     if stegongp::gpu::test_context().is_none() {

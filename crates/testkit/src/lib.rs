@@ -15,3 +15,12 @@ pub mod geometry;
 pub mod keys;
 pub mod models;
 pub mod scenes;
+
+/// A test's outside requirement is missing (a package, a program): with `CI=true` that is a
+/// failure, since `.ci/run` installs it; elsewhere the test says what it skips and why.
+/// The caller returns after it.
+pub fn missing(what: &str, install: &str) {
+    let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+    assert!(!ci, "CI=true and no {what}: {install}");
+    eprintln!("skipping: no {what} ({install})");
+}
