@@ -80,7 +80,8 @@ pub struct StepOptions {
     /// seconds; a GPU keeps the reference's.
     #[cfg_attr(feature = "clap", arg(long, value_name = "R"))]
     pub occupancy_budget: Option<f32>,
-    /// Worker threads (gradient partitions); 0 = one per core.
+    /// Worker threads (gradient partitions, each a whole gradient buffer); 0 = one per core;
+    /// at most 256, and no more than the memory available holds.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub workers: usize,
 }

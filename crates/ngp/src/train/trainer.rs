@@ -49,7 +49,8 @@ pub struct TrainConfig {
     /// Steps scene 0 trains alone before the others join (0: all from the start).
     pub solo_steps: u32,
     pub optimizer: OptimizerConfig,
-    /// Worker count (gradient partitions); 0 = one per core.
+    /// Worker count (gradient partitions); 0 = one per core; at most
+    /// [`MAX_WORKERS`](super::memory::MAX_WORKERS), within the memory available.
     pub workers: usize,
 }
 
