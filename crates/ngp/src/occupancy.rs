@@ -81,10 +81,19 @@ pub fn mip_from_dt(dt: f32, pos: [f32; 3], max_cascade: u32) -> u32 {
     (mip as i32).max(e).min(max_cascade as i32) as u32
 }
 
+/// `2^k` for a normal float's exponent (`-126 ..= 127`), built from its bits: the value
+/// `exp2f(k)` gives (a test checks every cascade's), without a libm call on every marched
+/// step.
+#[inline]
+pub fn pow2(k: i32) -> f32 {
+    debug_assert!((-126..=127).contains(&k), "2^{k} is not a normal f32");
+    f32::from_bits(((k + 127) as u32) << 23)
+}
+
 /// Morton cell of `pos` in cascade `mip`, or `None` outside it.
 #[inline]
 pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
-    let s = (-(mip as i32) as f32).exp2();
+    let s = pow2(-(mip as i32));
     let g = GRID_SIZE as f32;
     let mut i = [0i32; 3];
     for d in 0..3 {

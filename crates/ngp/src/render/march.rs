@@ -2,7 +2,7 @@
 //! (exponential steps with cone angle 1/256 for larger aabb scales), samples only in occupied
 //! occupancy-grid cells, empty cells skipped to the next voxel boundary (spec §3.2).
 
-use crate::occupancy::{GRID_SIZE, MIN_CONE_STEPSIZE, OccupancyGrid, mip_from_dt};
+use crate::occupancy::{GRID_SIZE, MIN_CONE_STEPSIZE, OccupancyGrid, mip_from_dt, pow2};
 
 /// Most samples along one training ray (`NERF_STEPS`).
 pub const MAX_SAMPLES_PER_RAY: usize = 1024;
@@ -109,7 +109,7 @@ impl Marcher {
     /// transmittance grow past 1).
     #[inline]
     pub fn calc_dt(&self, t: f32) -> f32 {
-        (self.stepping.advance(t, 1.0) - t).max(0.0)
+        self.stepping.dt_from(t, self.stepping.steps_at(t))
     }
 
     /// Marches from `t` and appends at most `max_samples` samples (network position, dt,
@@ -136,7 +136,9 @@ impl Marcher {
             if n >= max_samples {
                 return Some(t);
             }
-            let dt = self.calc_dt(t);
+            // `t` in stepping space, once for the step and the skip (a logarithm each).
+            let st = self.stepping.steps_at(t);
+            let dt = self.stepping.dt_from(t, st);
             let mip = mip_from_dt(dt, p, self.max_cascade);
             let next = if grid.is_occupied(p, mip) {
                 pos.push(self.warp(p));
@@ -145,7 +147,7 @@ impl Marcher {
                 n += 1;
                 t + dt
             } else {
-                self.stepping.past_voxel(t, p, d, idir, mip)
+                self.stepping.past_voxel(t, st, p, d, idir, mip)
             };
             // Far from the camera a step can be smaller than the spacing of floats at t
             // (a camera 10^6 away from a unit box): step to the next float instead of
@@ -229,12 +231,27 @@ impl Stepping {
         self.distance_at(self.steps_at(t) + n)
     }
 
-    /// Skips to the next voxel boundary of cascade `mip`, staying on the step lattice.
+    /// One step from `t`, given `st = steps_at(t)`: `advance(t, 1) - t`, never negative.
     #[inline]
-    fn past_voxel(&self, t: f32, p: [f32; 3], d: [f32; 3], idir: [f32; 3], mip: u32) -> f32 {
-        let res = GRID_SIZE as f32 / (mip as f32).exp2();
+    fn dt_from(&self, t: f32, st: f32) -> f32 {
+        (self.distance_at(st + 1.0) - t).max(0.0)
+    }
+
+    /// Skips to the next voxel boundary of cascade `mip`, staying on the step lattice;
+    /// `ts = steps_at(t)`.
+    #[inline]
+    fn past_voxel(
+        &self,
+        t: f32,
+        ts: f32,
+        p: [f32; 3],
+        d: [f32; 3],
+        idir: [f32; 3],
+        mip: u32,
+    ) -> f32 {
+        // Dividing by a power of two is exact: the reference's GRID_SIZE / exp2(mip).
+        let res = GRID_SIZE as f32 * pow2(-(mip as i32));
         let target = t + distance_to_next_voxel(p, d, idir, res);
-        let ts = self.steps_at(t);
         let tt = self.steps_at(target);
         self.distance_at(ts + (tt - ts).max(0.5).ceil())
     }
@@ -403,6 +420,117 @@ mod tests {
                 );
                 let dt = (reference_advance(t, m.cone_angle(), 1.0) - t).max(0.0);
                 assert_eq!(m.calc_dt(t).to_bits(), dt.to_bits());
+            }
+        }
+    }
+
+    /// The march as the reference writes it: `calc_dt` and the skip each from `t` (the
+    /// skip's `to_stepping_space(t)` computed again), the cell and the voxel size through
+    /// `exp2`.
+    #[allow(clippy::too_many_arguments)]
+    fn reference_march(
+        m: &Marcher,
+        grid: &OccupancyGrid,
+        o: [f32; 3],
+        d: [f32; 3],
+        mut t: f32,
+        max_samples: usize,
+        out: &mut Vec<([f32; 3], f32, f32)>,
+    ) -> Option<f32> {
+        let c = m.cone_angle();
+        let to = |t: f32| {
+            let st = Stepping::new(c);
+            st.steps_at(t)
+        };
+        let idir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
+        loop {
+            let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+            if !m.contains(p) {
+                return None;
+            }
+            if out.len() >= max_samples {
+                return Some(t);
+            }
+            let dt = (reference_advance(t, c, 1.0) - t).max(0.0);
+            let mip = mip_from_dt(dt, p, m.max_cascade);
+            let next = if reference_is_occupied(grid, p, mip) {
+                out.push((m.warp(p), dt, t));
+                t + dt
+            } else {
+                let res = GRID_SIZE as f32 / (mip as f32).exp2();
+                let target = t + distance_to_next_voxel(p, d, idir, res);
+                let (ts, tt) = (to(t), to(target));
+                Stepping::new(c).distance_at(ts + (tt - ts).max(0.5).ceil())
+            };
+            t = if next > t { next } else { t.next_up() };
+        }
+    }
+
+    /// `density_grid_occupied_at`, the cascade's scale through `exp2`.
+    fn reference_is_occupied(grid: &OccupancyGrid, p: [f32; 3], mip: u32) -> bool {
+        let s = (-(mip as i32) as f32).exp2();
+        let mut i = [0u32; 3];
+        for k in 0..3 {
+            let u = (p[k] - 0.5) * s + 0.5;
+            let g = (u * GRID_SIZE as f32) as i32;
+            if u < 0.0 || !(0..GRID_SIZE as i32).contains(&g) {
+                return false;
+            }
+            i[k] = g as u32;
+        }
+        let cell = crate::occupancy::morton3d(i[0], i[1], i[2]) as usize
+            + mip as usize * crate::occupancy::N_CELLS;
+        grid.bitfield()[cell / 8] & (1 << (cell % 8)) != 0
+    }
+
+    #[test]
+    fn powers_of_two_from_bits_are_exp2s() {
+        for k in -126..=127 {
+            assert_eq!(pow2(k).to_bits(), (k as f32).exp2().to_bits(), "2^{k}");
+        }
+    }
+
+    /// One stepping-space logarithm a marched step (shared by the step and the skip) and
+    /// powers of two from their bits march the reference's samples to the bit: random
+    /// occupancy grids, every cascade count, rays from inside and outside the box.
+    #[test]
+    fn marching_is_the_reference_form_to_the_bit() {
+        let mut r = crate::rng::Pcg32::new(11, 5);
+        for aabb in [1, 4, 16, 128] {
+            for occupied in [0.02f32, 0.3, 0.9] {
+                let m = Marcher::new(aabb);
+                let mut grid = OccupancyGrid::new(aabb);
+                grid.density
+                    .iter_mut()
+                    .for_each(|v| *v = if r.next_f32() < occupied { 1.0 } else { 0.0 });
+                grid.update_bitfield();
+                let mut total = 0;
+                for _ in 0..300 {
+                    let span = aabb as f32 * 1.5;
+                    let o = [0, 1, 2].map(|_| 0.5 + (r.next_f32() - 0.5) * span);
+                    let d = [0, 1, 2].map(|_| r.next_f32() - 0.5);
+                    let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    let d = d.map(|x| x / len);
+                    let Some((t0, _)) = m.intersect(o, d) else {
+                        continue;
+                    };
+                    let cap = [7, 64, 4096][total % 3];
+                    let mut want = Vec::new();
+                    let want_t = reference_march(&m, &grid, o, d, t0, cap, &mut want);
+                    let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+                    let got_t = m.march(&grid, o, d, t0, cap, &mut p, &mut dt, &mut ts);
+                    assert_eq!(got_t.map(f32::to_bits), want_t.map(f32::to_bits));
+                    assert_eq!(p.len(), want.len(), "aabb {aabb}, {occupied}");
+                    for (k, (wp, wdt, wt)) in want.iter().enumerate() {
+                        assert_eq!(p[k].map(f32::to_bits), wp.map(f32::to_bits));
+                        assert_eq!(
+                            (dt[k].to_bits(), ts[k].to_bits()),
+                            (wdt.to_bits(), wt.to_bits())
+                        );
+                    }
+                    total += want.len();
+                }
+                assert!(total > 0, "aabb {aabb}, {occupied}: no sample to compare");
             }
         }
     }
