@@ -1080,6 +1080,35 @@ mod tests {
     use backend::Device;
     use ngp::encoding::GridConfig;
 
+    /// A reused model's scores come from its sidecar: they must read back as the run that
+    /// trained it had them, or a rerun's report differs in the last digit (serde_json's
+    /// default float parser is off by an ulp on some inputs; `float_roundtrip` is exact).
+    #[test]
+    fn a_sidecars_numbers_read_back_to_the_bit() {
+        let mut x = 0x9e37_79b9_7f4a_7c15u64;
+        for k in 0..20_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            // PSNR-like values, then any finite double.
+            let v = if k % 2 == 0 {
+                10.0 + (x >> 11) as f64 / (1u64 << 53) as f64 * 40.0
+            } else {
+                f64::from_bits(x)
+            };
+            if !v.is_finite() {
+                continue;
+            }
+            let text = serde_json::to_string(&json!({ "cover_psnr": v })).unwrap();
+            let back: serde_json::Value = serde_json::from_str(&text).unwrap();
+            assert_eq!(
+                back["cover_psnr"].as_f64().unwrap().to_bits(),
+                v.to_bits(),
+                "{text}"
+            );
+        }
+    }
+
     fn exp_config(hidden_from_step: u32, hidden_loss_weight: f32) -> ExpConfig {
         ExpConfig {
             out: "out".into(),
