@@ -438,10 +438,7 @@ mod tests {
         out: &mut Vec<([f32; 3], f32, f32)>,
     ) -> Option<f32> {
         let c = m.cone_angle();
-        let to = |t: f32| {
-            let st = Stepping::new(c);
-            st.steps_at(t)
-        };
+        let stepping = Stepping::new(c);
         let idir = [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]];
         loop {
             let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
@@ -459,8 +456,8 @@ mod tests {
             } else {
                 let res = GRID_SIZE as f32 / (mip as f32).exp2();
                 let target = t + distance_to_next_voxel(p, d, idir, res);
-                let (ts, tt) = (to(t), to(target));
-                Stepping::new(c).distance_at(ts + (tt - ts).max(0.5).ceil())
+                let (ts, tt) = (stepping.steps_at(t), stepping.steps_at(target));
+                stepping.distance_at(ts + (tt - ts).max(0.5).ceil())
             };
             t = if next > t { next } else { t.next_up() };
         }
@@ -505,7 +502,7 @@ mod tests {
                     .for_each(|v| *v = if r.next_f32() < occupied { 1.0 } else { 0.0 });
                 grid.update_bitfield();
                 let mut total = 0;
-                for _ in 0..300 {
+                for ray in 0..300 {
                     let span = aabb as f32 * 1.5;
                     let o = [0, 1, 2].map(|_| 0.5 + (r.next_f32() - 0.5) * span);
                     let d = [0, 1, 2].map(|_| r.next_f32() - 0.5);
@@ -514,7 +511,7 @@ mod tests {
                     let Some((t0, _)) = m.intersect(o, d) else {
                         continue;
                     };
-                    let cap = [7, 64, 4096][total % 3];
+                    let cap = [7, 64, 4096][ray % 3];
                     let mut want = Vec::new();
                     let want_t = reference_march(&m, &grid, o, d, t0, cap, &mut want);
                     let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
