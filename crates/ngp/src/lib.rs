@@ -14,6 +14,7 @@ pub mod metrics;
 pub mod model;
 pub mod network;
 pub mod occupancy;
+pub mod pages;
 pub mod render;
 pub mod rng;
 pub mod snapshot;

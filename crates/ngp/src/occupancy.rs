@@ -162,7 +162,7 @@ impl OccupancyGrid {
         let nc = n_cascades(aabb_scale);
         OccupancyGrid {
             n_cascades: nc,
-            density: vec![0.0; N_CELLS * nc],
+            density: crate::pages::zeroed(N_CELLS * nc),
             bitfield: vec![0xff; N_CELLS / 8 * nc],
             mean: 0.0,
             ema_step: 0,

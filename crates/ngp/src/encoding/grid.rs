@@ -462,13 +462,15 @@ impl GridTable<'_> {
 /// The fp16 bits of `table` if every value is an fp16 (so [`GridTable::F16`] encodes to the
 /// same bits as the f32 table), else `None`.
 pub fn exact_half_table(table: &[f32]) -> Option<Vec<u16>> {
-    table
-        .iter()
-        .map(|&v| {
-            let h = half::f16::from_f32(v);
-            (h.to_f32().to_bits() == v.to_bits()).then_some(h.to_bits())
-        })
-        .collect()
+    let mut out = crate::pages::with_capacity(table.len());
+    for &v in table {
+        let h = half::f16::from_f32(v);
+        if h.to_f32().to_bits() != v.to_bits() {
+            return None;
+        }
+        out.push(h.to_bits());
+    }
+    Some(out)
 }
 
 /// Encodes `pos` (in [0,1]^3) into `enc` (feature-major, leading dimension `ld`) and keeps

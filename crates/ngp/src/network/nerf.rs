@@ -71,7 +71,7 @@ impl NerfNetwork {
     pub fn init_params(&self, seed: u64) -> Vec<f32> {
         let l = &self.layout;
         let mut r = Pcg32::new(seed, 0x6e65_7266);
-        let mut p = Vec::with_capacity(l.n_params);
+        let mut p = crate::pages::with_capacity(l.n_params);
         for shape in [l.density_mlp, l.color_mlp] {
             for (rows, cols) in shape.matrices() {
                 let s = (6.0 / (rows + cols) as f32).sqrt();

@@ -551,15 +551,19 @@ fn camera(c: Obj) -> R<SnapshotCamera> {
 }
 
 fn decode_params(bin: &[u8], elem: usize) -> Vec<f32> {
+    let mut out = crate::pages::with_capacity(bin.len() / elem.max(1));
     if elem == 2 {
-        bin.chunks_exact(2)
-            .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
-            .collect()
+        out.extend(
+            bin.chunks_exact(2)
+                .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32()),
+        );
     } else {
-        bin.chunks_exact(4)
-            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
-            .collect()
+        out.extend(
+            bin.chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])),
+        );
     }
+    out
 }
 
 pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {

@@ -23,7 +23,7 @@ impl HoldBack {
     pub(super) fn new(n_params: usize, n_matrix: usize) -> Self {
         HoldBack {
             gate: vec![0; n_params.div_ceil(64)],
-            pending: vec![0.0; n_params],
+            pending: crate::pages::zeroed(n_params),
             n_matrix,
         }
     }

@@ -9,6 +9,7 @@
 //! Gradients arrive as one buffer per worker thread; the update sums them, zeroes them and
 //! updates every parameter in one parallel pass over memory.
 
+use crate::pages;
 use rayon::prelude::*;
 
 #[derive(Clone, Copy, Debug)]
@@ -244,10 +245,10 @@ impl Optimizer {
         Optimizer {
             config,
             n_matrix,
-            m: vec![0.0; n_params],
-            v: vec![0.0; n_params],
-            steps: vec![0; n_params],
-            ema: vec![0.0; n_params],
+            m: pages::zeroed(n_params),
+            v: pages::zeroed(n_params),
+            steps: pages::zeroed(n_params),
+            ema: pages::zeroed(n_params),
             ema_step: vec![0; n_params.div_ceil(GROUP)],
             step: 0,
             correction: vec![0.0],

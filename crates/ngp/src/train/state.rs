@@ -84,7 +84,7 @@ pub fn scene_from(
     f: &Fields,
     cells: usize,
 ) -> Result<(crate::occupancy::OccupancyGrid, (u32, u32, u32))> {
-    let mut density = vec![0.0f32; cells];
+    let mut density = crate::pages::zeroed::<f32>(cells);
     f.f32s_into("density", &mut density)?;
     let mut bitfield = vec![0u8; cells / 8];
     f.bytes_into("bitfield", &mut bitfield)?;

@@ -30,7 +30,7 @@ pub(super) struct Worker {
 impl Worker {
     pub(super) fn new(n_params: usize) -> Self {
         Worker {
-            grad: vec![0.0; n_params],
+            grad: crate::pages::zeroed(n_params),
             touched: Touched::new(n_params),
             ws: Vec::new(),
             pos: Vec::new(),
