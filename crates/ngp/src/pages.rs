@@ -115,6 +115,15 @@ mod tests {
             );
             return;
         }
+        // A process the kernel was told to give none (prctl PR_SET_THP_DISABLE) says so.
+        let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+        if status
+            .lines()
+            .any(|l| l.replace(char::is_whitespace, "") == "THP_enabled:0")
+        {
+            eprintln!("skipping: transparent huge pages are disabled for this process");
+            return;
+        }
         let mut v = zeroed::<f32>(16 << 20); // 64 MiB
         v.fill(1.0);
         // With `defrag` at its default the kernel compacts memory for advised ranges at
