@@ -19,22 +19,22 @@ const HUGE_PAGE: usize = 2 << 20;
 /// `Vec::with_capacity(n)` whose storage, when it is large, is advised to use huge pages
 /// before anything is written to it (fill it with `extend` or `push`).
 pub fn with_capacity<T>(n: usize) -> Vec<T> {
-    let v = Vec::with_capacity(n);
-    advise(
-        v.as_ptr() as usize,
-        n.saturating_mul(std::mem::size_of::<T>()),
-    );
-    v
+    advised(Vec::with_capacity(n))
 }
 
-/// `vec![T::default(); n]` (zeros) on huge pages where the kernel allows. The allocator
-/// maps a large zeroed block without writing it, so the advice comes before any page is
-/// touched and nothing is written now that training would not write anyway.
+/// `vec![T::default(); n]` on huge pages where the kernel allows. For the numbers the
+/// tables hold, whose default is all zero bits, the allocator maps a large block without
+/// writing it, so the advice comes before any page is touched and nothing is written now
+/// that training would not write anyway.
 pub fn zeroed<T: Clone + Default>(n: usize) -> Vec<T> {
-    let v = vec![T::default(); n];
+    advised(vec![T::default(); n])
+}
+
+/// `v`, its whole allocation advised.
+fn advised<T>(v: Vec<T>) -> Vec<T> {
     advise(
         v.as_ptr() as usize,
-        n.saturating_mul(std::mem::size_of::<T>()),
+        v.capacity().saturating_mul(std::mem::size_of::<T>()),
     );
     v
 }
