@@ -14,6 +14,13 @@ but no Rust toolchain and no network, in one short run.
                 one rebuilt from the network, as the hidden scene's is), and writes OUT/gpu_bench.json (rewritten
                 after every phase, so a run cut short keeps what it measured) and OUT/log.txt.
 
+  prepare DIR --capture PATH
+                carries a real capture instead of lego (any folder `train` reads, its files
+                byte for byte; `--capture-skip` leaves out what the loader does not read);
+                `run` then trains it on the GPU at `--capture-downscale` for `--capture-minutes`
+                (held-out PSNR at each minute) and brings the model back in parts of at most
+                15 MiB (what a lent machine returns), which `join` puts together again here.
+
 `--small` makes both ends tiny (a generated scene instead of lego, seconds instead of
 minutes, the software adapter allowed) so that the whole path runs in CI on llvmpipe
 (tests/gpu_bench.rs). Needs Python 3 with Pillow at both ends.
@@ -34,6 +41,10 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 LIMIT = 64 * 1024 * 1024
+# A lent machine returns files of at most 16 MiB each, 8 of them and 64 MiB in all: the
+# capture's model comes back in parts below that.
+PART = 15 * 1024 * 1024
+MAX_PARTS = 6
 # The Vulkan loader, and the GL vendor-neutral dispatch (glvnd) libraries that NVIDIA's
 # Vulkan driver (libGLX_nvidia) needs at run time: without them the loader finds the driver
 # but "could not get 'vkCreateInstance'" from it, and no adapter is listed.
@@ -71,7 +82,7 @@ def tracked_bytes():
         ).stdout
     except (OSError, subprocess.CalledProcessError):
         # Not a git checkout: every file but the build and the carry folders.
-        skip = {"target", ".git", ".carry", "out"}
+        skip = {"target", ".git", ".carry", ".carry-capture", "out"}
         return sum(f.stat().st_size for f in REPO.rglob("*")
                    if f.is_file() and not skip & set(f.relative_to(REPO).parts))
     total = 0
@@ -139,6 +150,47 @@ def prepare_scene(src, dst, test_views):
     return {"views": sizes, "png_bytes": png_bytes, "webp_bytes": webp_bytes}
 
 
+def sha256_of(path):
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def copy_capture(src, dst, skip):
+    """Every file of the capture `src` into `dst`, byte for byte, but those under a
+    relative path in `skip`; a digest of the whole (names and contents) says which capture
+    a run measured."""
+    if not src.is_dir():
+        fail(f"{src}: no such capture folder")
+    skip = [Path(s) for s in skip]
+    for s in skip:
+        if s.is_absolute() or ".." in s.parts or not (src / s).exists():
+            fail(f"--capture-skip {s}: not a file or folder inside {src}")
+    tree = hashlib.sha256()
+    files = 0
+    total = 0
+    for f in sorted(src.rglob("*")):
+        rel = f.relative_to(src)
+        if any(rel.parts[: len(s.parts)] == s.parts for s in skip):
+            continue
+        if f.is_symlink():
+            fail(f"{f}: a symbolic link; the capture must be plain files")
+        if not f.is_file():
+            continue
+        out = dst / rel
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(f, out)
+        tree.update(str(rel).encode() + b"\0" + sha256_of(out).encode() + b"\n")
+        files += 1
+        total += out.stat().st_size
+    if files == 0:
+        fail(f"{src}: no files to carry")
+    return {"source": str(src), "files": files, "bytes": total,
+            "skipped": [str(s) for s in skip], "sha256": tree.hexdigest()}
+
+
 def build_portable():
     env = dict(os.environ, RUSTFLAGS="-C target-cpu=x86-64-v3")
     cmd = ["cargo", "build", "--profile", "portable", "--locked", "--target-dir",
@@ -185,10 +237,13 @@ def prepare(a):
                    "xz_bytes": (d / "stegongp.xz").stat().st_size},
         "small": a.small,
     }
-    lego = Path(a.lego)
-    if not (lego / "transforms_train.json").is_file():
-        fail(f"{lego}: no transforms_train.json (lego, or --lego DIR)")
-    manifest["lego"] = prepare_scene(lego, d / "lego", a.test_views)
+    if a.capture:
+        manifest["capture"] = copy_capture(Path(a.capture), d / "capture", a.capture_skip)
+    else:
+        lego = Path(a.lego)
+        if not (lego / "transforms_train.json").is_file():
+            fail(f"{lego}: no transforms_train.json (lego, or --lego DIR)")
+        manifest["lego"] = prepare_scene(lego, d / "lego", a.test_views)
     if a.no_loader:
         manifest["loader"] = []
     else:
@@ -325,6 +380,9 @@ class Run:
             self.note(f"  fma fused: {opened.get('fma_fused')}")
             for k, v in opened["limits"].items():
                 self.note(f"  {k}: {v}")
+        if "capture" in self.results["manifest"]:
+            self.capture(opened)
+            return
         self.data()
         self.save()
 
@@ -386,6 +444,80 @@ class Run:
         print(json.dumps(self.results["summary"], indent=1))
 
 
+    def capture(self, opened):
+        """The carried capture trained on the GPU with the default options, its held-out views
+        scored at each minute, and the model brought back in parts."""
+        a = self.a
+        src = Path(a.dir) / "capture"
+        model = self.work / "capture.ingp"
+        common = ["--device", "gpu", "--json"] + (["--half-grid"] if a.half_grid else [])
+        if a.small:
+            common += ["--batch", "4096", "--occupancy-fraction", "0.0078125"]
+        cm = a.capture_minutes
+        k = 2 if a.small else max(1, min(5, round(cm)))
+        marks = [round(cm * (i + 1) / k, 4) for i in range(k)]
+        # Every held-out view (a capture's every 8th) at each checkpoint.
+        r = self.cmd(
+            "train", src, "--downscale", a.capture_downscale, "--out", model, "--minutes", cm,
+            "--checkpoints", ",".join(map(str, marks)), "--profile-every",
+            "5" if a.small else "50", "--eval-views", "1000", *common, json_out=True)
+        r["steady"] = steady(r)
+        self.results["capture"] = r
+        self.save()
+        self.results["capture_model"] = self.send_back(model)
+        self.results["summary"] = capture_summary(self.results, opened)
+        self.save()
+        shutil.rmtree(self.work, ignore_errors=True)
+        print(json.dumps(self.results["summary"], indent=1))
+
+    def send_back(self, model):
+        """`model` into OUT as parts of at most PART bytes (a lent machine returns no file
+        over 16 MiB), with what `join` checks them against."""
+        size = model.stat().st_size
+        n = -(-size // PART)
+        info = {"bytes": size, "sha256": sha256_of(model), "parts": []}
+        if n > MAX_PARTS:
+            self.note(f"the model ({size} bytes) is too large to come back in {MAX_PARTS} parts; "
+                      "not written to OUT")
+            return info
+        with open(model, "rb") as f:
+            for i in range(n):
+                name = f"capture.ingp.part{i}"
+                tmp = self.out / (name + ".tmp")
+                tmp.write_bytes(f.read(PART))
+                os.replace(tmp, self.out / name)
+                info["parts"].append(name)
+        self.note(f"model: {size} bytes in {n} parts under {self.out}")
+        return info
+
+
+def join(a):
+    """The parts a capture run wrote, put together again and checked against its JSON."""
+    res = Path(a.results)
+    try:
+        info = json.loads((res / "gpu_bench.json").read_text())["capture_model"]
+    except (OSError, ValueError, KeyError) as e:
+        fail(f"{res / 'gpu_bench.json'}: no capture model recorded ({e})")
+    if not info["parts"]:
+        fail(f"{res}: the run brought no parts back (the model was {info['bytes']} bytes)")
+    out = Path(a.model)
+    tmp = out.with_name(out.name + ".tmp")
+    try:
+        with open(tmp, "wb") as w:
+            for name in info["parts"]:
+                part = res / name
+                if not part.is_file():
+                    fail(f"{part}: missing")
+                w.write(part.read_bytes())
+        if tmp.stat().st_size != info["bytes"] or sha256_of(tmp) != info["sha256"]:
+            fail(f"{res}: the parts do not make the model the run wrote "
+                 f"({tmp.stat().st_size} bytes against {info['bytes']}, or another sha256)")
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    print(f"{out}: {info['bytes']} bytes, sha256 {info['sha256']}", file=sys.stderr)
+
+
 def steady(train):
     """Trained samples/s and steps/s between the last two checkpoints: past the warm-up."""
     cps = train.get("checkpoints", [])
@@ -423,6 +555,24 @@ def lego_summary(r, opened):
     }
 
 
+def capture_summary(r, opened):
+    c = r["capture"]
+    return {
+        "adapter": opened["adapter"] if opened else None,
+        "capture": r["manifest"]["capture"]["source"],
+        "capture_psnr_by_minute": {str(p["minutes"]): round(p["psnr"], 2) for p in c["checkpoints"]},
+        "capture_steps": c["steps"],
+        "capture_samples_per_second": round(c["samples_per_second"]),
+        "capture_steady": c.get("steady"),
+        "capture_per_step": {k: c.get(k) for k in (
+            "trained_per_step", "marched_per_step", "network_per_step", "dropped_rays",
+            "host_waits_per_step", "submissions_per_step", "occupancy_updates")},
+        "capture_device_ms_per_step": {p["phase"]: round(p["ms"], 3)
+                                       for p in c.get("device_phases_ms", [])},
+        "capture_model": r["capture_model"],
+    }
+
+
 def summary(r, opened):
     pair = r["pair"]
     s = {
@@ -449,6 +599,10 @@ def main():
     pp.add_argument("--no-loader", action="store_true", help="do not download the Vulkan loader")
     pp.add_argument("--small", action="store_true", help="fast compression (CI)")
     pp.add_argument("--force", action="store_true")
+    pp.add_argument("--capture", help="carry this capture (any folder `train` reads) instead of lego")
+    pp.add_argument("--capture-skip", action="append", default=[], metavar="REL",
+                    help="leave out this file or folder of the capture (e.g. sparse_txt, a text "
+                         "copy of its binary COLMAP model); repeatable")
     pr = sub.add_parser("run", help="measure, on the machine with the GPU")
     pr.add_argument("dir")
     pr.add_argument("out")
@@ -461,14 +615,27 @@ def main():
                     help="lego alone (a second, shorter run on the same machine)")
     pr.add_argument("--half-grid", action="store_true",
                     help="train with the grid's fp16 copy (train --half-grid), to set beside a run without")
+    pr.add_argument("--capture-minutes", type=float, default=None,
+                    help="a carried capture's training budget (default 3)")
+    pr.add_argument("--capture-downscale", type=int, default=None,
+                    help="a carried capture's image downscale (default 4)")
+    pj = sub.add_parser("join", help="here: the model a capture run brought back, in one file")
+    pj.add_argument("results", help="the run's OUT, as it came back")
+    pj.add_argument("model", help="the model file to write")
     a = p.parse_args()
     if a.what == "prepare":
         prepare(a)
+    elif a.what == "join":
+        join(a)
     else:
         if a.lego_minutes is None:
             a.lego_minutes = 0.05 if a.small else 5.0
         if a.pair_minutes is None:
             a.pair_minutes = 0.05 if a.small else 2.0
+        if a.capture_minutes is None:
+            a.capture_minutes = 0.05 if a.small else 3.0
+        if a.capture_downscale is None:
+            a.capture_downscale = 1 if a.small else 4
         Run(a).run()
 
 

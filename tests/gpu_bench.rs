@@ -163,6 +163,113 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
     assert!(Path::new(&p("out/log.txt")).is_file());
 }
 
+/// A real capture carried instead of lego (here a generated scene, with a file the carry
+/// leaves out), trained on the adapter in small mode, its model brought back in parts that
+/// `join` puts together again, byte for byte, into a model the CPU renders; a damaged part
+/// is refused and leaves no model.
+#[test]
+fn gpu_bench_capture_mode_brings_the_model_back() {
+    if python_with_pillow().is_none() {
+        testkit::missing(
+            "python3 with Pillow (on PATH or /usr/bin)",
+            "the GPU benchmark's test needs it; Debian: python3-pil",
+        );
+        return;
+    }
+    if stegongp::gpu::test_context().is_none() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let p = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    synth_object(&p("cap"), "24", "6", "2");
+    std::fs::create_dir(p("cap/notes")).unwrap();
+    std::fs::write(p("cap/notes/big.txt"), vec![b'x'; 1 << 16]).unwrap();
+    let binary = bin();
+    let prepared = ok_script(&[
+        "prepare",
+        &p("carry"),
+        "--small",
+        "--capture",
+        &p("cap"),
+        "--capture-skip",
+        "notes",
+        "--binary",
+        binary.to_str().unwrap(),
+        "--no-loader",
+    ]);
+    let manifest: serde_json::Value = serde_json::from_str(&prepared).unwrap();
+    // 6 + 2 images and the two transforms files, the notes left behind; no lego.
+    assert_eq!(manifest["capture"]["files"], 10, "{manifest}");
+    assert!(manifest.get("lego").is_none());
+    assert!(Path::new(&p("carry/capture/transforms_train.json")).is_file());
+    assert!(!Path::new(&p("carry/capture/notes")).exists());
+    // A skip outside the capture is an error naming it.
+    let out = script(&[
+        "prepare",
+        &p("carry2"),
+        "--small",
+        "--capture",
+        &p("cap"),
+        "--capture-skip",
+        "../x",
+        "--binary",
+        binary.to_str().unwrap(),
+        "--no-loader",
+    ]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--capture-skip ../x"));
+
+    ok_script(&["run", &p("carry"), &p("out"), "--small", "--allow-software"]);
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(p("out/gpu_bench.json")).unwrap()).unwrap();
+    assert!(r.get("lego").is_none() && r.get("pair").is_none());
+    let c = &r["capture"];
+    assert_eq!(c["device"]["kind"], "gpu");
+    assert_eq!(c["checkpoints"].as_array().unwrap().len(), 2);
+    let psnr = r["summary"]["capture_psnr_by_minute"].as_object().unwrap();
+    assert_eq!(psnr.len(), 2);
+    assert!(
+        psnr.values().all(|v| v.as_f64().is_some_and(|v| v > 5.0)),
+        "{psnr:?}"
+    );
+    let parts = r["capture_model"]["parts"].as_array().unwrap();
+    assert!(!parts.is_empty());
+    for part in parts {
+        let f = dir.path().join("out").join(part.as_str().unwrap());
+        assert!(std::fs::metadata(&f).unwrap().len() <= 15 << 20);
+    }
+
+    ok_script(&["join", &p("out"), &p("m.ingp")]);
+    let size = std::fs::metadata(p("m.ingp")).unwrap().len();
+    assert_eq!(size, r["capture_model"]["bytes"].as_u64().unwrap());
+    let eval = stdout_ok(&stegongp(&[
+        "eval",
+        "--model",
+        &p("m.ingp"),
+        "--data",
+        &p("cap"),
+        "--device",
+        "cpu",
+        "--no-lpips",
+        "--json",
+    ]));
+    let eval: serde_json::Value = serde_json::from_str(&eval).unwrap();
+    assert!(eval["psnr"].as_f64().unwrap() > 5.0, "{eval}");
+
+    let last = dir
+        .path()
+        .join("out")
+        .join(parts.last().unwrap().as_str().unwrap());
+    let mut bytes = std::fs::read(&last).unwrap();
+    bytes[0] ^= 1;
+    std::fs::write(&last, bytes).unwrap();
+    let out = script(&["join", &p("out"), &p("m2.ingp")]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("do not make the model the run wrote"), "{err}");
+    assert!(!Path::new(&p("m2.ingp")).exists() && !Path::new(&p("m2.ingp.tmp")).exists());
+}
+
 /// `train` on the CPU engine over a small generated object, 2 steps, with `extra` options;
 /// the folder (for the model's path) and the process's output.
 fn train_on_cpu(extra: &[&str]) -> (tempfile::TempDir, std::process::Output) {
