@@ -60,16 +60,21 @@ fn ok_script(args: &[&str]) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
-#[test]
-fn gpu_bench_script_runs_end_to_end_in_small_mode() {
+/// Whether the script can run here: a Python with Pillow (said when missing) and an adapter.
+fn script_can_run() -> bool {
     if python_with_pillow().is_none() {
         testkit::missing(
             "python3 with Pillow (on PATH or /usr/bin)",
             "the GPU benchmark's test needs it; Debian: python3-pil",
         );
-        return;
+        return false;
     }
-    if stegongp::gpu::test_context().is_none() {
+    stegongp::gpu::test_context().is_some()
+}
+
+#[test]
+fn gpu_bench_script_runs_end_to_end_in_small_mode() {
+    if !script_can_run() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -169,14 +174,7 @@ fn gpu_bench_script_runs_end_to_end_in_small_mode() {
 /// is refused and leaves no model.
 #[test]
 fn gpu_bench_capture_mode_brings_the_model_back() {
-    if python_with_pillow().is_none() {
-        testkit::missing(
-            "python3 with Pillow (on PATH or /usr/bin)",
-            "the GPU benchmark's test needs it; Debian: python3-pil",
-        );
-        return;
-    }
-    if stegongp::gpu::test_context().is_none() {
+    if !script_can_run() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
