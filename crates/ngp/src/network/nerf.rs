@@ -3,7 +3,7 @@
 //! first 3 outputs = raw rgb).
 //!
 //! A chunk of at most [`CHUNK`] samples goes through every stage before the next starts; all
-//! intermediate values are feature-major (`feature·CHUNK + sample`) in a reusable
+//! intermediate values are feature-major (`feature·LD + sample`) in a reusable
 //! [`Workspace`]. The density MLP writes its 16 outputs straight into rows 0..16 of the
 //! colour MLP's input and the SH encoder into rows 16..32, so nothing is copied.
 
@@ -18,6 +18,17 @@ use rayon::prelude::*;
 
 /// Maximum samples per forward/backward call (512 beat 256/1024/2048 in the notes).
 pub const CHUNK: usize = 512;
+
+/// The workspace's leading dimension: the distance between two features' rows of a chunk.
+/// One cache line longer than [`CHUNK`]. Rows 2 KiB apart all fall in two of L1's 64 sets
+/// (a line's set is its address's bits 6–11), and gemm's packing of a weight gradient's
+/// left operand reads 16 such rows side by side, which then crowd each other and everything
+/// else out of those sets. With rows an odd number of lines apart, any 16 consecutive rows
+/// sit in 16 different sets. The products and their order are unchanged, so are the bits;
+/// the packing went from 8.8 % to 3.6 % of a fox-colmap training run
+/// (benchmarks/engine.md, "A padded leading dimension").
+const LD: usize = CHUNK + 16;
+const _: () = assert!((LD * 4).is_multiple_of(64) && !(LD * 4 / 64).is_multiple_of(2));
 
 /// Outputs of the colour MLP that are used (rgb); its rows 3..15 are padding.
 const RGB: usize = 3;
@@ -107,15 +118,15 @@ impl NerfNetwork {
             } else {
                 GridCache::for_inference(CHUNK)
             },
-            enc: vec![0.0; dm.n_in * CHUNK],
-            dens_hidden: vec![0.0; mlp::hidden_len(&dm, CHUNK)],
-            color_in: vec![0.0; cm.n_in * CHUNK],
-            color_hidden: vec![0.0; mlp::hidden_len(&cm, CHUNK)],
-            rgb: vec![0.0; RGB * CHUNK],
-            d_rgb: scratch(RGB * CHUNK),
-            d_hidden: scratch(2 * width * CHUNK),
-            d_dens_out: scratch(DENSITY_OUT * CHUNK),
-            d_enc: scratch(dm.n_in * CHUNK),
+            enc: vec![0.0; dm.n_in * LD],
+            dens_hidden: vec![0.0; mlp::hidden_len(&dm, LD)],
+            color_in: vec![0.0; cm.n_in * LD],
+            color_hidden: vec![0.0; mlp::hidden_len(&cm, LD)],
+            rgb: vec![0.0; RGB * LD],
+            d_rgb: scratch(RGB * LD),
+            d_hidden: scratch(2 * width * LD),
+            d_dens_out: scratch(DENSITY_OUT * LD),
+            d_enc: scratch(dm.n_in * LD),
         }
     }
 
@@ -142,15 +153,7 @@ impl NerfNetwork {
         assert!(n <= CHUNK, "at most CHUNK samples per call");
         let l = &self.layout;
         let (wd, _, _) = self.blocks(params);
-        grid::forward(
-            &l.grid,
-            table,
-            indices,
-            pos,
-            &mut ws.grid,
-            &mut ws.enc,
-            CHUNK,
-        );
+        grid::forward(&l.grid, table, indices, pos, &mut ws.grid, &mut ws.enc, LD);
         ws.n = n;
         let dm = &l.density_mlp;
         mlp::forward(
@@ -158,10 +161,10 @@ impl NerfNetwork {
             wd,
             &ws.enc,
             &mut ws.dens_hidden,
-            &mut ws.color_in[..DENSITY_OUT * CHUNK],
+            &mut ws.color_in[..DENSITY_OUT * LD],
             DENSITY_OUT,
             n,
-            CHUNK,
+            LD,
         );
     }
 
@@ -196,7 +199,7 @@ impl NerfNetwork {
         assert!(dir.len() == n && out.len() >= n, "pos/dir/out lengths");
         self.density_stage(params, table, indices, pos, ws);
         let (_, wc, _) = self.blocks(params);
-        sh::encode(dir, &mut ws.color_in[DENSITY_OUT * CHUNK..], CHUNK);
+        sh::encode(dir, &mut ws.color_in[DENSITY_OUT * LD..], LD);
         let cm = &self.layout.color_mlp;
         debug_assert_eq!(cm.n_in, DENSITY_OUT + SH4_DIMS);
         mlp::forward(
@@ -207,10 +210,10 @@ impl NerfNetwork {
             &mut ws.rgb,
             RGB,
             n,
-            CHUNK,
+            LD,
         );
-        let (r, rest) = ws.rgb.split_at(CHUNK);
-        let (g, b) = rest.split_at(CHUNK);
+        let (r, rest) = ws.rgb.split_at(LD);
+        let (g, b) = rest.split_at(LD);
         let dens = &ws.color_in[..CHUNK];
         for (s, o) in out[..n].iter_mut().enumerate() {
             *o = [r[s], g[s], b[s], dens[s]];
@@ -245,7 +248,7 @@ impl NerfNetwork {
 
         for (s, d) in d_out[..n].iter().enumerate() {
             for (k, &v) in d[..RGB].iter().enumerate() {
-                ws.d_rgb[k * CHUNK + s] = v;
+                ws.d_rgb[k * LD + s] = v;
             }
         }
         let cm = &l.color_mlp;
@@ -258,7 +261,7 @@ impl NerfNetwork {
             &ws.d_rgb,
             RGB,
             n,
-            CHUNK,
+            LD,
             g_col,
             &mut ws.d_hidden,
             Some((&mut ws.d_dens_out, DENSITY_OUT)),
@@ -277,12 +280,12 @@ impl NerfNetwork {
             &ws.d_dens_out,
             DENSITY_OUT,
             n,
-            CHUNK,
+            LD,
             g_dens,
             &mut ws.d_hidden,
             Some((&mut ws.d_enc, n_enc)),
         );
-        grid::backward(&l.grid, &ws.grid, &ws.d_enc, CHUNK, g_grid);
+        grid::backward(&l.grid, &ws.grid, &ws.d_enc, LD, g_grid);
     }
 
     /// `out[i] = log_density_raw` only (occupancy-grid updates). Overwrites `ws`'s forward
@@ -300,15 +303,7 @@ impl NerfNetwork {
         assert!(n <= CHUNK, "at most CHUNK samples per call");
         let l = &self.layout;
         let (wd, _, table) = self.blocks(params);
-        grid::forward(
-            &l.grid,
-            table,
-            indices,
-            pos,
-            &mut ws.grid,
-            &mut ws.enc,
-            CHUNK,
-        );
+        grid::forward(&l.grid, table, indices, pos, &mut ws.grid, &mut ws.enc, LD);
         ws.n = n;
         let dm = &l.density_mlp;
         // Hidden layer for the whole chunk, then just output row 0.
@@ -319,14 +314,14 @@ impl NerfNetwork {
             &ws.enc,
             &mut ws.dens_hidden,
             n,
-            CHUNK,
+            LD,
             true,
         );
         let w1 = &wd[mlp::matrix_offset(dm, 1)..][..dm.width];
         let o = &mut out[..n];
         o.fill(0.0);
         for (j, &wj) in w1.iter().enumerate() {
-            let h = &ws.dens_hidden[j * CHUNK..j * CHUNK + n];
+            let h = &ws.dens_hidden[j * LD..j * LD + n];
             for (o, &h) in o.iter_mut().zip(h) {
                 *o = wj.mul_add(h, *o);
             }
