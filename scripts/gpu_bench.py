@@ -387,9 +387,7 @@ class Run:
         self.save()
 
         lego = self.work / "lego"
-        common = ["--device", "gpu", "--json"] + (["--half-grid"] if a.half_grid else [])
-        if small:
-            common += ["--batch", "4096", "--occupancy-fraction", "0.0078125"]
+        common = self.train_options()
         # Checkpoints score 8 test views (all the carried ones).
         scored = [*common, "--eval-views", "8"]
         lm = a.lego_minutes
@@ -443,6 +441,12 @@ class Run:
         shutil.rmtree(self.work, ignore_errors=True)
         print(json.dumps(self.results["summary"], indent=1))
 
+    def train_options(self):
+        """`train`'s options for every GPU training of a run; tiny batches in small mode."""
+        opts = ["--device", "gpu", "--json"] + (["--half-grid"] if self.a.half_grid else [])
+        if self.a.small:
+            opts += ["--batch", "4096", "--occupancy-fraction", "0.0078125"]
+        return opts
 
     def capture(self, opened):
         """The carried capture trained on the GPU with the default options, its held-out views
@@ -450,9 +454,7 @@ class Run:
         a = self.a
         src = Path(a.dir) / "capture"
         model = self.work / "capture.ingp"
-        common = ["--device", "gpu", "--json"] + (["--half-grid"] if a.half_grid else [])
-        if a.small:
-            common += ["--batch", "4096", "--occupancy-fraction", "0.0078125"]
+        common = self.train_options()
         cm = a.capture_minutes
         k = 2 if a.small else max(1, min(5, round(cm)))
         marks = [round(cm * (i + 1) / k, 4) for i in range(k)]
@@ -536,6 +538,20 @@ def steady(train):
     }
 
 
+PER_STEP = ("trained_per_step", "marched_per_step", "network_per_step", "dropped_rays",
+            "host_waits_per_step", "submissions_per_step")
+
+
+def per_step(train, extra=()):
+    """A training's counters per step (the keys of `train --json`)."""
+    return {k: train.get(k) for k in (*PER_STEP, *extra)}
+
+
+def device_ms(train):
+    """A training's device time per step by phase, in ms."""
+    return {p["phase"]: round(p["ms"], 3) for p in train.get("device_phases_ms", [])}
+
+
 def lego_summary(r, opened):
     lego = r["lego"]
     return {
@@ -547,11 +563,8 @@ def lego_summary(r, opened):
         "half_grid": lego.get("half_grid"),
         "lego_samples_per_second": round(lego["samples_per_second"]),
         "lego_steady": lego.get("steady"),
-        "lego_per_step": {k: lego.get(k) for k in (
-            "trained_per_step", "marched_per_step", "network_per_step", "dropped_rays",
-            "host_waits_per_step", "submissions_per_step")},
-        "lego_device_ms_per_step": {p["phase"]: round(p["ms"], 3)
-                                    for p in lego.get("device_phases_ms", [])},
+        "lego_per_step": per_step(lego),
+        "lego_device_ms_per_step": device_ms(lego),
     }
 
 
@@ -564,11 +577,8 @@ def capture_summary(r, opened):
         "capture_steps": c["steps"],
         "capture_samples_per_second": round(c["samples_per_second"]),
         "capture_steady": c.get("steady"),
-        "capture_per_step": {k: c.get(k) for k in (
-            "trained_per_step", "marched_per_step", "network_per_step", "dropped_rays",
-            "host_waits_per_step", "submissions_per_step", "occupancy_updates")},
-        "capture_device_ms_per_step": {p["phase"]: round(p["ms"], 3)
-                                       for p in c.get("device_phases_ms", [])},
+        "capture_per_step": per_step(c, ("occupancy_updates",)),
+        "capture_device_ms_per_step": device_ms(c),
         "capture_model": r["capture_model"],
     }
 
