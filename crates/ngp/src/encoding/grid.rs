@@ -28,7 +28,8 @@ const PREFETCH_NEXT_LEVEL: bool = true;
 /// Prefetches `p`'s line into L2, not L1. The prefetches here run a whole pass ahead of their
 /// use (a level's corners for a chunk, then its gather; the next level's gradient lines
 /// during this level's scatter): up to 4096 lines, 256 KB, in between, which L2 holds and
-/// L1 (32–48 KB) does not. Against `_MM_HINT_T0` on the AMD EPYC, the same bits: training
+/// L1 (32–48 KB) does not. (The last level's scatter has no next level; it prefetches
+/// `PREFETCH_AHEAD` samples ahead instead.) Against `_MM_HINT_T0` on the AMD EPYC, the same bits: training
 /// +14 % (medians), views −4 to −6 % (benchmarks/engine.md, "Prefetching into L2").
 #[inline(always)]
 fn prefetch<T>(p: *const T) {
