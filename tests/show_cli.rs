@@ -10,7 +10,7 @@ use std::time::Duration;
 use stegongp::show::frame::Rgb8;
 use stegongp::show::video::decode_mp4;
 use testkit::browser::{Browser, decode_base64, find_chromium};
-use testkit::cli::{bin, fails_naming, ok, stegongp};
+use testkit::cli::{bin, fails_naming, ok, stdout_ok, stegongp};
 
 /// A cover object and a hidden text scene in one model, trained on the CPU (≈ 30 s), with
 /// its key.
@@ -178,6 +178,71 @@ fn video_frames_match_render_of_the_same_cameras() {
             "frame {i}: decoded MP4 frame {decoded:.1} dB from render's (4:2:0 alone: {bound:.1} dB)"
         );
     }
+}
+
+/// As instant-ngp: `render` (like its screenshots, videos and viewer) stops rays at 0.01
+/// unless told otherwise, `eval` (like its run.py on test views) at 1e-4.
+#[test]
+fn render_stops_rays_where_the_viewer_does_and_eval_where_scoring_does() {
+    let f = fixture();
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let base = [
+        "--model",
+        &f.p("m.ingp"),
+        "--data",
+        &f.p("cover"),
+        "--views",
+        "1",
+    ];
+    let render = |out: &str, t: Option<&str>| {
+        let mut args = vec!["render"];
+        args.extend(base);
+        args.extend(["--out", out]);
+        if let Some(t) = t {
+            args.extend(["--min-transmittance", t]);
+        }
+        ok(&stegongp(&args));
+    };
+    render(&p("default"), None);
+    render(&p("viewing"), Some("0.01"));
+    render(&p("scoring"), Some("0.0001"));
+    let bytes = |dir: &str, name: &str| std::fs::read(d.path().join(dir).join(name)).unwrap();
+    for name in ["rgb_000.png", "depth_000.png", "opacity_000.png"] {
+        assert!(
+            bytes("default", name) == bytes("viewing", name),
+            "{name}: render's default is not --min-transmittance 0.01"
+        );
+    }
+    // Rays through the object stop with T just under 0.01 at 0.01 (opacity ~0.99, 8-bit
+    // 252–254) and under 1e-4 at 1e-4 (255): the opacities tell the two apart.
+    assert!(
+        bytes("default", "opacity_000.png") != bytes("scoring", "opacity_000.png"),
+        "render's default stops rays where 1e-4 does"
+    );
+    let samples = |t: Option<&str>| {
+        let mut args = vec!["eval"];
+        args.extend(base);
+        args.extend(["--no-lpips", "--json"]);
+        if let Some(t) = t {
+            args.extend(["--min-transmittance", t]);
+        }
+        let v: serde_json::Value = serde_json::from_str(&stdout_ok(&stegongp(&args))).unwrap();
+        v["views"][0]["samples_per_ray"].as_f64().unwrap()
+    };
+    let (default, scoring, viewing) = (
+        samples(None),
+        samples(Some("0.0001")),
+        samples(Some("0.01")),
+    );
+    assert_eq!(
+        default, scoring,
+        "eval's default is not --min-transmittance 1e-4"
+    );
+    assert!(
+        viewing < scoring,
+        "0.01 evaluates {viewing} samples a ray, 1e-4 {scoring}"
+    );
 }
 
 #[test]

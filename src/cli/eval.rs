@@ -5,6 +5,7 @@ use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::save_png_rgb;
 use stegongp::ngp::eval::{EvalResult, evaluate_on};
 use stegongp::ngp::lpips::Lpips;
+use stegongp::ngp::render::image::SCORING_MIN_TRANSMITTANCE;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -30,7 +31,7 @@ pub fn run(a: Args) -> Result<()> {
         scene,
         opts,
         which,
-    } = a.view.open()?;
+    } = a.view.open(SCORING_MIN_TRANSMITTANCE)?;
     let mut renderer = scene.renderer(&device, &model)?;
     if !a.json {
         eprintln!("device: {}", device.report());

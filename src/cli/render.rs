@@ -2,6 +2,7 @@ use super::common::{ViewArgs, Viewing, ensure_locked_dir, progress};
 use anyhow::Result;
 use std::path::PathBuf;
 use stegongp::ngp::data::{save_png_gray, save_png_rgb};
+use stegongp::ngp::render::image::VIEWING_MIN_TRANSMITTANCE;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -20,7 +21,7 @@ pub fn run(a: Args) -> Result<()> {
         scene,
         opts,
         which,
-    } = a.view.open()?;
+    } = a.view.open(VIEWING_MIN_TRANSMITTANCE)?;
     let mut renderer = scene.renderer(&device, &model)?;
     eprintln!("device: {}", device.report());
     let _lock = ensure_locked_dir(&a.out)?;
@@ -28,9 +29,27 @@ pub fn run(a: Args) -> Result<()> {
         which.len() as u64,
         "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} views {msg}",
     );
-    for &i in &which {
+    for (done, &i) in which.iter().enumerate() {
+        let started = std::time::Instant::now();
         let img = renderer.render(&data.frames[i].camera, &opts)?;
+        let seconds = started.elapsed().as_secs_f64();
         let (w, h) = (img.width, img.height);
+        let profile = if img.profile.n_rays > 0 {
+            format!(
+                ", {:.0} samples a ray; {}",
+                img.n_samples as f64 / img.profile.n_rays as f64,
+                img.profile.split()
+            )
+        } else {
+            String::new()
+        };
+        pb.suspend(|| {
+            eprintln!(
+                "[{}/{}] view {i:3}: {w}×{h} in {seconds:.2} s{profile}",
+                done + 1,
+                which.len()
+            )
+        });
         save_png_rgb(&a.out.join(format!("rgb_{i:03}.png")), w, h, &img.rgb)?;
         let max_depth = img.depth.iter().cloned().fold(0.0f32, f32::max).max(1e-6);
         save_png_gray(

@@ -8,7 +8,7 @@ use std::io::Write;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 use stegongp::ngp::model::Model;
-use stegongp::ngp::render::image::Background;
+use stegongp::ngp::render::image::{Background, VIEWING_MIN_TRANSMITTANCE};
 use stegongp::show::server::{Viewer, ViewerOptions, ViewerRig};
 use stegongp::stego::options::choice;
 
@@ -46,10 +46,10 @@ pub struct Args {
     pub frame_seconds: f32,
     #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
-    /// Transmittance a full frame's rays stop at: 0.01, as instant-ngp's own viewer (1e-4,
-    /// as `render` and `eval`, takes ~20 % longer for a change the eye hardly sees).
-    /// Interactive frames stop at 0.01 at least.
-    #[arg(long, default_value_t = 0.01, value_parser = transmittance)]
+    /// Transmittance a full frame's rays stop at: 0.01, as instant-ngp's own viewer and
+    /// `render` (1e-4, as `eval` scores views, takes ~60 % longer on a capture for a change
+    /// the eye hardly sees). Interactive frames stop at 0.01 at least.
+    #[arg(long, default_value_t = VIEWING_MIN_TRANSMITTANCE, value_parser = transmittance)]
     pub min_transmittance: f32,
     /// The camera path file the page's record button appends to (nerfstudio's format; an
     /// existing one is continued).

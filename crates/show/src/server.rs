@@ -11,7 +11,7 @@ use crate::path::{CameraPath, NerfFrame, PathCamera, SceneRig, nerfstudio_json};
 use backend::Device;
 use ngp::error::{Error, Result};
 use ngp::model::Model;
-use ngp::render::image::RenderOptions;
+use ngp::render::image::{RenderOptions, VIEWING_MIN_TRANSMITTANCE};
 use serde_json::{Value, json};
 use std::io::Read;
 use std::net::SocketAddr;
@@ -37,7 +37,8 @@ pub struct ViewerOptions {
     /// `interactive_scale`.
     pub frame_seconds: f32,
     pub background: [f32; 3],
-    /// Transmittance a full frame's rays stop at; interactive frames stop at 0.01.
+    /// Transmittance a full frame's rays stop at; interactive frames stop at
+    /// [`VIEWING_MIN_TRANSMITTANCE`] at least.
     pub min_transmittance: f32,
     /// Where the record button writes its nerfstudio camera path.
     pub record: PathBuf,
@@ -462,7 +463,7 @@ fn frame(
     let opts = RenderOptions {
         background: ctx.opts.background,
         min_transmittance: if fast {
-            ctx.opts.min_transmittance.max(0.01)
+            ctx.opts.min_transmittance.max(VIEWING_MIN_TRANSMITTANCE)
         } else {
             ctx.opts.min_transmittance
         },

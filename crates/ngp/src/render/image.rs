@@ -52,11 +52,20 @@ impl Background {
     }
 }
 
+/// Where instant-ngp stops a ray when it scores held-out views (`scripts/run.py` sets it
+/// before rendering the test set): `eval`'s default, and [`RenderOptions::default`]'s.
+pub const SCORING_MIN_TRANSMITTANCE: f32 = 1e-4;
+
+/// Where instant-ngp stops a ray for everything else it renders (the testbed's default:
+/// screenshots, videos and its viewer): `render`'s, `video`'s and `view`'s default. Fewer
+/// samples behind surfaces, for a change the eye hardly sees (benchmarks/engine.md).
+pub const VIEWING_MIN_TRANSMITTANCE: f32 = 0.01;
+
 #[derive(Clone, Copy, Debug)]
 pub struct RenderOptions {
     /// Background colour (sRGB, [0,1]); [`Background::rgb`] gives the usual two.
     pub background: [f32; 3],
-    /// A ray stops below this transmittance (instant-ngp's run.py evaluates with 1e-4).
+    /// A ray stops below this transmittance ([`SCORING_MIN_TRANSMITTANCE`] by default).
     pub min_transmittance: f32,
     /// Samples marched per live ray per wave. (The reference's GPU renderer marches
     /// `clamp(rays / live rays, 1, 8)` between compactions; on the CPU the smaller waves'
@@ -69,7 +78,7 @@ impl Default for RenderOptions {
     fn default() -> Self {
         RenderOptions {
             background: [1.0; 3],
-            min_transmittance: 1e-4,
+            min_transmittance: SCORING_MIN_TRANSMITTANCE,
             samples_per_wave: 8,
         }
     }
