@@ -11,7 +11,7 @@ use stegongp::ngp::eval::{evaluate_on, ground_truth, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
-use stegongp::ngp::render::image::RenderOptions;
+use stegongp::ngp::render::image::{RenderOptions, VIEWING_MIN_TRANSMITTANCE};
 use stegongp::show::frame::Rgb8;
 use stegongp::show::path::{PathCamera, SceneRig};
 use stegongp::show::video::Mp4Video;
@@ -227,8 +227,14 @@ pub fn run(a: Args) -> Result<()> {
         .map(|s| s.renderer(&device, &model))
         .collect::<stegongp::Result<Vec<_>>>()?;
     let labels: Vec<&str> = looks.iter().map(|(_, l)| *l).collect();
+    // Pictures to look at stop rays where `render` and `video` do; the scores above, where
+    // `eval` does.
+    let look = RenderOptions {
+        min_transmittance: VIEWING_MIN_TRANSMITTANCE,
+        ..ropts
+    };
     let mut side_by_side = |camera: &PathCamera, size: u32| -> Result<Rgb8> {
-        render_frame(&mut renderers, &labels, &camera.camera(size, size), &ropts)
+        render_frame(&mut renderers, &labels, &camera.camera(size, size), &look)
     };
     let large_path = a.out.join("demo_large.png");
     let large = side_by_side(
