@@ -71,15 +71,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             done += 1;
             if !a.json {
-                let profile = if img.profile.n_rays > 0 {
-                    format!(
-                        ", {:.0} samples a ray; {}",
-                        v.samples_per_ray,
-                        img.profile.split()
-                    )
-                } else {
-                    String::new()
-                };
+                let profile = img.profile_note();
                 eprintln!(
                     "[{done}/{}] view {i:3}: PSNR {:.2} dB, SSIM {:.4}{} ({:.2} s{profile})",
                     which.len(),

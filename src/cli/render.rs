@@ -34,20 +34,12 @@ pub fn run(a: Args) -> Result<()> {
         let img = renderer.render(&data.frames[i].camera, &opts)?;
         let seconds = started.elapsed().as_secs_f64();
         let (w, h) = (img.width, img.height);
-        let profile = if img.profile.n_rays > 0 {
-            format!(
-                ", {:.0} samples a ray; {}",
-                img.n_samples as f64 / img.profile.n_rays as f64,
-                img.profile.split()
-            )
-        } else {
-            String::new()
-        };
         pb.suspend(|| {
             eprintln!(
-                "[{}/{}] view {i:3}: {w}×{h} in {seconds:.2} s{profile}",
+                "[{}/{}] view {i:3}: {w}×{h} in {seconds:.2} s{}",
                 done + 1,
-                which.len()
+                which.len(),
+                img.profile_note()
             )
         });
         save_png_rgb(&a.out.join(format!("rgb_{i:03}.png")), w, h, &img.rgb)?;

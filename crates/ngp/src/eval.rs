@@ -176,11 +176,7 @@ fn evaluate_by<E>(
             ssim: s,
             lpips: lp,
             render_seconds,
-            samples_per_ray: if img.profile.n_rays > 0 {
-                img.n_samples as f64 / img.profile.n_rays as f64
-            } else {
-                0.0
-            },
+            samples_per_ray: img.samples_per_ray().unwrap_or(0.0),
         };
         on_view(&score, &img, &gt);
         views.push(score);

@@ -99,6 +99,22 @@ pub struct RenderedImage {
     pub profile: RenderProfile,
 }
 
+impl RenderedImage {
+    /// Network samples a ray that entered the scene's box; `None` where no ray did or the
+    /// renderer keeps no profile (a GPU's).
+    pub fn samples_per_ray(&self) -> Option<f64> {
+        (self.profile.n_rays > 0).then(|| self.n_samples as f64 / self.profile.n_rays as f64)
+    }
+
+    /// ", 52 samples a ray; march 28% · network 70% · composite 2%" for a progress line, or
+    /// nothing where the renderer keeps no profile.
+    pub fn profile_note(&self) -> String {
+        self.samples_per_ray()
+            .map(|n| format!(", {n:.0} samples a ray; {}", self.profile.split()))
+            .unwrap_or_default()
+    }
+}
+
 /// Where a CPU rendering's time went: seconds summed over the threads, so the phases' shares
 /// are what counts, and how many rays entered the box.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
