@@ -142,6 +142,31 @@ fn unknown_option_values_are_refused() {
     fails_with(&out, &["castle"]);
     let out = stegongp(&["keygen", "--scheme", "rot13", "--out", "k"]);
     fails_with(&out, &["rot13"]);
+    // A room's camera and furniture are the room's alone.
+    let d = tempfile::tempdir().unwrap();
+    let x = d.path().join("x");
+    let out = stegongp(&[
+        "synth",
+        "--scene",
+        "object",
+        "--furnished",
+        "--out",
+        x.to_str().unwrap(),
+    ]);
+    fails_with(&out, &["--furnished", "room"]);
+    let out = stegongp(&[
+        "synth",
+        "--scene",
+        "room",
+        "--aabb-scale",
+        "16",
+        "--height",
+        "3",
+        "--out",
+        x.to_str().unwrap(),
+    ]);
+    fails_with(&out, &["height 3"]);
+    assert!(!x.join("transforms.json").exists());
 }
 
 #[test]

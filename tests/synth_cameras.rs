@@ -105,6 +105,7 @@ fn nerf_synthetic_source_with_val() {
             n_test: 4,
             seed: 3,
             aabb_scale: 2,
+            ..Default::default()
         },
         &src,
     )
@@ -140,6 +141,7 @@ fn instant_ngp_source_holds_out_every_eighth() {
             n_test: 3,
             seed: 2,
             aabb_scale: 4,
+            ..Default::default()
         },
         &src,
     )

@@ -83,6 +83,7 @@ pub fn run(a: Args) -> Result<()> {
                     n_test: 8,
                     seed,
                     aabb_scale: 1,
+                    ..Default::default()
                 },
                 dir,
             )?;
@@ -124,6 +125,8 @@ pub fn run(a: Args) -> Result<()> {
             occupancy_fraction: 0.125,
             // The demo's figure and floors were measured on the reference's schedule.
             occupancy_budget: Some(0.0),
+            // ...and on the reference's step.
+            coarse_march: Some(0),
             workers: 0,
         },
         options: HiddenOptions::default(),

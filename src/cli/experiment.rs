@@ -194,6 +194,7 @@ pub fn run(mut a: Args) -> Result<()> {
                 n_test: 10,
                 seed,
                 aabb_scale: 1,
+                ..Default::default()
             };
             eprintln!("generating {} ({res} px)", dir.display());
             generate(&opts, &dir)?;

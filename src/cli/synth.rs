@@ -2,7 +2,7 @@ use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::ngp::data::LoadOptions;
 use stegongp::synth::cameras_from::generate_from_cameras;
-use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::synth::{RoomOptions, SceneKind, SynthOptions, generate};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -46,6 +46,19 @@ pub struct Args {
     /// (e.g. images_8), as `train --images`.
     #[arg(long)]
     pub images: Option<String>,
+    /// Room scene: the height of every view (default: --res, square views), e.g. --res 400
+    /// --height 266 for a phone photo's 3:2.
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// Room scene: the horizontal field of view in degrees (default: lego's 39.6; a phone's
+    /// main camera is about 65).
+    #[arg(long, value_name = "DEGREES")]
+    pub fov: Option<f32>,
+    /// Room scene: a furnished room, like an indoor 360° capture (brick walls about three
+    /// times the cameras' distance away, a plank floor under a pedestal, furniture drawn
+    /// from --seed; every surface with detail a few pixels across) instead of the bare one.
+    #[arg(long)]
+    pub furnished: bool,
     /// Write into a non-empty directory.
     #[arg(long)]
     pub force: bool,
@@ -62,6 +75,12 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     let scene = a.scene.clone().with_text(&a.text);
+    if scene != SceneKind::Room && (a.height.is_some() || a.fov.is_some() || a.furnished) {
+        bail!(
+            "--height, --fov and --furnished are the room scene's (--scene room); the other \
+             scenes are seen by lego's square cameras"
+        );
+    }
     let s = if let Some(from) = &a.cameras_from {
         let given: Vec<&str> = [
             ("--res", a.res.is_some()),
@@ -104,6 +123,11 @@ pub fn run(a: Args) -> Result<()> {
             n_test: a.test.unwrap_or(25),
             seed: a.seed,
             aabb_scale: a.aabb_scale.unwrap_or(1),
+            room: RoomOptions {
+                height: a.height,
+                fov_x_degrees: a.fov,
+                furnished: a.furnished,
+            },
         };
         generate(&opts, &a.out)?
     };
@@ -120,7 +144,7 @@ pub fn run(a: Args) -> Result<()> {
                 c.views_seeing_centre,
                 c.views
             ),
-            None => format!("{}×{}", s.resolution, s.resolution),
+            None => format!("{}×{}", s.resolution, s.height),
         };
         eprintln!(
             "{}: {} scene, {} train + {} val + {} test views at {size} in {:.1} s",

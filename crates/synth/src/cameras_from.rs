@@ -320,6 +320,7 @@ pub fn generate_from_cameras(
         dir: out_dir.to_path_buf(),
         scene: name,
         resolution: meta.width,
+        height: meta.height,
         n_train: count(Split::Train),
         n_val: count(Split::Val),
         n_test: count(Split::Test),

@@ -132,6 +132,20 @@ pub struct SynthOptions {
     /// Written into the transforms as `aabb_scale` (power of two ≤ 128). A room's walls are
     /// placed inside the box it gives; object and text scenes fit the unit box whatever it is.
     pub aabb_scale: u32,
+    /// The room scene's own choices (ignored by the other scenes).
+    pub room: RoomOptions,
+}
+
+/// How a room scene looks and is photographed.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct RoomOptions {
+    /// Height of every view (default: the width, `resolution`).
+    pub height: Option<u32>,
+    /// Horizontal field of view in degrees (default: lego's, 39.6°).
+    pub fov_x_degrees: Option<f32>,
+    /// A furnished room ([`scene::furnished_room`]: brick walls nearer the object, a floor
+    /// under a pedestal, furniture drawn from the seed) instead of the bare one.
+    pub furnished: bool,
 }
 
 impl Default for SynthOptions {
@@ -144,6 +158,7 @@ impl Default for SynthOptions {
             n_test: 25,
             seed: 0,
             aabb_scale: 1,
+            room: RoomOptions::default(),
         }
     }
 }
@@ -185,6 +200,9 @@ pub struct SynthSummary {
     pub scene: String,
     /// Width of every view (and its height, but with `cameras_from`).
     pub resolution: u32,
+    /// Height of every view (the width, but for a room's [`RoomOptions::height`] and the
+    /// cameras of `cameras_from`).
+    pub height: u32,
     pub n_train: usize,
     pub n_val: usize,
     pub n_test: usize,
@@ -290,10 +308,15 @@ fn poses(n: usize, random: bool, seed: u64, stream: u64) -> Vec<[[f32; 4]; 4]> {
 /// Straight-alpha RGBA8 rendering of one view, 2×2 stratified samples per pixel.
 pub fn render_view(scene: &Scene, c2w: &[[f32; 4]; 4], res: u32) -> Vec<u8> {
     let focal = 0.5 * res as f32 / (0.5 * CAMERA_ANGLE_X).tan();
+    render_pinhole(scene, c2w, res, res, focal)
+}
+
+/// [`render_view`] of a `w×h` pinhole camera of focal length `focal` pixels, centred.
+fn render_pinhole(scene: &Scene, c2w: &[[f32; 4]; 4], w: u32, h: u32, focal: f32) -> Vec<u8> {
     let o = [c2w[0][3], c2w[1][3], c2w[2][3]];
-    let half = 0.5 * res as f32;
-    render_rgba(scene, res as usize, res as usize, |x, y| {
-        let dc = [(x - half) / focal, -(y - half) / focal, -1.0];
+    let (half_w, half_h) = (0.5 * w as f32, 0.5 * h as f32);
+    render_rgba(scene, w as usize, h as usize, |x, y| {
+        let dc = [(x - half_w) / focal, -(y - half_h) / focal, -1.0];
         let d = normalize([
             c2w[0][0] * dc[0] + c2w[0][1] * dc[1] + c2w[0][2] * dc[2],
             c2w[1][0] * dc[0] + c2w[1][1] * dc[1] + c2w[1][2] * dc[2],
@@ -415,12 +438,36 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
         dir: out_dir.to_path_buf(),
         scene: name,
         resolution: opts.resolution,
+        height: opts.resolution,
         n_train: opts.n_train,
         n_val: opts.n_val,
         n_test: opts.n_test,
         seconds: t0.elapsed().as_secs_f64(),
         cameras_from: None,
     })
+}
+
+/// A furnished room's walls, as a share of the bare room's half-size: about three times the
+/// cameras' distance from the object, as in an indoor 360° capture.
+const FURNISHED_WALLS: f32 = 0.6;
+
+/// A room view's width, height and focal length (pixels), checked.
+fn room_camera(opts: &SynthOptions) -> Result<(u32, u32, f32)> {
+    let (w, h) = (opts.resolution, opts.room.height.unwrap_or(opts.resolution));
+    if !(8..=4096).contains(&h) {
+        return Err(Error::Config(format!("height {h} outside 8..=4096")));
+    }
+    let fov = opts
+        .room
+        .fov_x_degrees
+        .map_or(CAMERA_ANGLE_X, f32::to_radians);
+    if !(fov.is_finite() && fov > 0.01 && fov < 3.0) {
+        return Err(Error::Config(format!(
+            "field of view {} degrees outside (0.6, 171)",
+            fov.to_degrees()
+        )));
+    }
+    Ok((w, h, 0.5 * w as f32 / (0.5 * fov).tan()))
 }
 
 /// The room scene in the instant-ngp format: `n_train + n_test` views in one list (the
@@ -435,22 +482,26 @@ fn generate_room(
             "a room scene needs aabb_scale ≥ 2: its walls lie outside the unit box".into(),
         ));
     }
+    let (res, height, focal) = room_camera(opts)?;
     let half = room_half_size(opts.aabb_scale);
-    let scene = scene::room_scene(half);
+    let radius = room_camera_radius(opts.aabb_scale);
+    let scene = if opts.room.furnished {
+        scene::furnished_room(FURNISHED_WALLS * half, radius + 1.5, opts.seed)
+    } else {
+        scene::room_scene(half)
+    };
     let n = opts.n_train + opts.n_val + opts.n_test;
     let images = out_dir.join("images");
     std::fs::create_dir_all(&images).map_err(|e| Error::io(&images, e))?;
-    let ps = room_poses(n, room_camera_radius(opts.aabb_scale), opts.seed);
-    let res = opts.resolution;
+    let ps = room_poses(n, radius, opts.seed);
     for (i, p) in ps.iter().enumerate() {
-        let rgba = render_view(&scene, p, res);
+        let rgba = render_pinhole(&scene, p, res, height, focal);
         let path = images.join(format!("{i:04}.png"));
         write_atomic_with(&path, |f| {
             use std::io::Write;
-            f.write_all(&encode_png(res, res, &rgba)?)
+            f.write_all(&encode_png(res, height, &rgba)?)
         })?;
     }
-    let focal = 0.5 * res as f32 / (0.5 * CAMERA_ANGLE_X).tan();
     let frames: Vec<serde_json::Value> = ps
         .iter()
         .enumerate()
@@ -458,8 +509,8 @@ fn generate_room(
         .collect();
     let json = serde_json::json!({
         "fl_x": focal, "fl_y": focal,
-        "cx": res as f32 / 2.0, "cy": res as f32 / 2.0,
-        "w": res, "h": res,
+        "cx": res as f32 / 2.0, "cy": height as f32 / 2.0,
+        "w": res, "h": height,
         "aabb_scale": opts.aabb_scale,
         "frames": frames,
     });
@@ -468,8 +519,17 @@ fn generate_room(
     let n_test = n.div_ceil(8);
     Ok(SynthSummary {
         dir: out_dir.to_path_buf(),
-        scene: format!("room (aabb_scale {})", opts.aabb_scale),
+        scene: format!(
+            "{}room (aabb_scale {})",
+            if opts.room.furnished {
+                "furnished "
+            } else {
+                ""
+            },
+            opts.aabb_scale
+        ),
         resolution: res,
+        height,
         n_train: n - n_test,
         n_val: 0,
         n_test,
@@ -583,6 +643,70 @@ mod tests {
         assert!(!d.path().join("a/transforms_val.json").exists());
         let other = poses(3, true, 5, 1);
         assert_ne!(other, poses(3, true, 4, 1));
+    }
+
+    /// A furnished room photographed as a phone does (3:2, 65°) loads as a capture: the
+    /// size and focal length asked for, opaque views (the room encloses every camera), the
+    /// same bytes for a seed, other furniture for another, and not the bare room.
+    #[test]
+    fn a_furnished_room_is_a_capture_of_the_size_and_lens_asked_for() {
+        use ngp::data::{Dataset, LoadOptions, Split};
+        let d = tempfile::tempdir().unwrap();
+        let room = |furnished: bool, seed: u64, name: &str| {
+            let opts = SynthOptions {
+                scene: SceneKind::Room,
+                resolution: 36,
+                n_train: 7,
+                n_test: 1,
+                seed,
+                aabb_scale: 16,
+                room: RoomOptions {
+                    height: Some(24),
+                    fov_x_degrees: Some(65.0),
+                    furnished,
+                },
+                ..Default::default()
+            };
+            let s = generate(&opts, &d.path().join(name)).unwrap();
+            assert_eq!(
+                (s.resolution, s.height, s.n_train, s.n_test),
+                (36, 24, 7, 1)
+            );
+            std::fs::read(d.path().join(name).join("images/0002.png")).unwrap()
+        };
+        let a = room(true, 3, "a");
+        assert_eq!(a, room(true, 3, "b"));
+        assert_ne!(a, room(true, 4, "c"), "the seed draws the furniture");
+        assert_ne!(a, room(false, 3, "bare"));
+        let data =
+            Dataset::load(&d.path().join("a"), Split::Train, &LoadOptions::default()).unwrap();
+        assert_eq!(data.frames.len(), 7);
+        let f = &data.frames[0];
+        assert_eq!((f.image.width, f.image.height), (36, 24));
+        assert!(!f.image.has_alpha(), "a room's views are opaque");
+        let want = 18.0 / (32.5f32.to_radians()).tan();
+        assert!(
+            (f.camera.fx - want).abs() < 1e-3,
+            "{} vs {want}",
+            f.camera.fx
+        );
+        // Sizes and lenses out of range are refused before anything is written.
+        for (height, fov) in [(Some(4), None), (None, Some(0.0)), (None, Some(200.0))] {
+            let opts = SynthOptions {
+                scene: SceneKind::Room,
+                resolution: 36,
+                aabb_scale: 16,
+                room: RoomOptions {
+                    height,
+                    fov_x_degrees: fov,
+                    furnished: true,
+                },
+                ..Default::default()
+            };
+            let out = d.path().join("bad");
+            assert!(generate(&opts, &out).is_err(), "{height:?} {fov:?}");
+            assert!(!out.join("transforms.json").exists());
+        }
     }
 
     #[test]

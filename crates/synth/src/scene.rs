@@ -50,6 +50,13 @@ pub enum Material {
     HueAlongX(f32, f32),
     /// Walls of a room: hue by the angle around z, a checkerboard of a cell size on top.
     Walls(f32),
+    /// The inside of a furnished room, as fine as a photographed one: brick walls (each
+    /// brick its own shade), a plank floor at `floor` (z) with grain, a tiled ceiling at
+    /// `ceiling`.
+    Interior {
+        floor: f32,
+        ceiling: f32,
+    },
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -316,8 +323,56 @@ impl Material {
                 let v = if k.rem_euclid(2) == 0 { 0.9 } else { 0.55 };
                 hsv(p[1].atan2(p[0]) / std::f32::consts::TAU, 0.45, v)
             }
+            Material::Interior { floor, ceiling } => interior(p, floor, ceiling),
         }
     }
+}
+
+/// A number in [0, 1) for an integer cell (a few rounds of an integer mix).
+fn cell_hash(i: i32, j: i32, salt: u32) -> f32 {
+    let mut h = (i as u32).wrapping_mul(0x8da6_b343) ^ (j as u32).wrapping_mul(0xd816_3841);
+    h ^= salt.wrapping_mul(0xcb1a_b31f);
+    h ^= h >> 13;
+    h = h.wrapping_mul(0x5bd1_e995);
+    h ^= h >> 15;
+    (h >> 8) as f32 / (1u32 << 24) as f32
+}
+
+/// [`Material::Interior`]'s albedo at a point of the room's box.
+fn interior(p: V3, floor: f32, ceiling: f32) -> V3 {
+    if p[2] <= floor + 1e-3 {
+        // Planks 0.3 m wide along x, each its own tone, with grain along its length.
+        let plank = (p[1] / 0.3).floor() as i32;
+        let piece = ((p[0] + 1.7 * cell_hash(plank, 0, 7)) / 2.1).floor() as i32;
+        let tone = 0.6 + 0.4 * cell_hash(plank, piece, 1);
+        let grain = 0.85 + 0.15 * (p[0] * 23.0 + 9.0 * cell_hash(plank, piece, 2)).sin();
+        let seam = ((p[1] / 0.3).rem_euclid(1.0) < 0.04) as i32 as f32;
+        return mul([0.62, 0.42, 0.26], tone * grain * (1.0 - 0.6 * seam));
+    }
+    if p[2] >= ceiling - 1e-3 {
+        let on = (p[0] / 0.6).rem_euclid(1.0) < 0.05 || (p[1] / 0.6).rem_euclid(1.0) < 0.05;
+        return if on {
+            [0.6, 0.6, 0.62]
+        } else {
+            [0.88, 0.88, 0.85]
+        };
+    }
+    // Bricks 0.6 × 0.25 m, every other row offset by half a brick, 3 cm of mortar; `u` runs
+    // along whichever wall the point is on (the other coordinate is that wall's constant).
+    let u = p[0] + p[1];
+    let row = (p[2] / 0.25).floor() as i32;
+    let shifted = u / 0.6 + 0.5 * (row & 1) as f32;
+    let col = shifted.floor() as i32;
+    let mortar = shifted.rem_euclid(1.0) < 0.05 || (p[2] / 0.25).rem_euclid(1.0) < 0.12;
+    if mortar {
+        return [0.7, 0.68, 0.64];
+    }
+    let h = cell_hash(col, row, 3);
+    hsv(
+        0.02 + 0.08 * h,
+        0.45 + 0.3 * cell_hash(col, row, 4),
+        0.45 + 0.4 * h,
+    )
 }
 
 impl Scene {
@@ -481,6 +536,80 @@ pub fn room_scene(half_size: f32) -> Scene {
         Material::Walls(half_size / 3.0),
     ));
     s
+}
+
+/// Furniture of a [`furnished_room`]: boxes (cupboards, chests, a sofa) and cylinders
+/// (lamps, pillars, bins) standing on the floor between the cameras' circle (`clear`) and
+/// the walls (`walls`), each with a fine texture of its own, drawn from `seed`.
+fn furniture(clear: f32, walls: f32, floor: f32, seed: u64) -> Vec<Object> {
+    let mut rng = ngp::rng::Pcg32::new(seed, 0xf0_7217);
+    let mut u = move |a: f32, b: f32| a + (b - a) * rng.next_f32();
+    (0..16)
+        .map(|i| {
+            let ang = (i as f32 + u(0.0, 0.6)) / 16.0 * std::f32::consts::TAU;
+            let r = u(clear, 0.8 * walls);
+            let (x, y) = (r * ang.cos(), r * ang.sin());
+            let colour =
+                |u: &mut dyn FnMut(f32, f32) -> f32| hsv(u(0.0, 1.0), u(0.2, 0.8), u(0.4, 0.95));
+            let material = match i % 4 {
+                0 => Material::Checker(colour(&mut u), colour(&mut u), u(0.08, 0.25)),
+                1 => Material::Grid(colour(&mut u), colour(&mut u), u(0.15, 0.4)),
+                2 => Material::HueStripes(u(2.0, 7.0)),
+                _ => Material::Solid(colour(&mut u)),
+            };
+            let shape = if i % 3 == 2 {
+                Shape::Cylinder {
+                    c: [x, y, 0.0],
+                    r: u(0.15, 0.7),
+                    z0: floor,
+                    z1: floor + u(0.8, 4.5),
+                }
+            } else {
+                let (hx, hy) = (u(0.4, 1.8), u(0.4, 1.8));
+                Shape::Box {
+                    lo: [x - hx, y - hy, floor],
+                    hi: [x + hx, y + hy, floor + u(0.5, 3.0)],
+                }
+            };
+            Object {
+                shape,
+                material,
+                specular: 0.0,
+            }
+        })
+        .collect()
+}
+
+/// The object scene on a pedestal in a furnished room, like an indoor 360° capture (an
+/// object on a table in the middle of a room): brick walls at `walls` around the origin,
+/// a plank floor 2.5 m below the object's platform, a ceiling, and furniture between the
+/// cameras' circle (`clear`) and the walls ([`furniture`]). Every surface has detail a few
+/// pixels across, which a model must resolve before its rays can end on it.
+pub fn furnished_room(walls: f32, clear: f32, seed: u64) -> Scene {
+    let mut s = object_scene();
+    let floor = -2.5;
+    let ceiling = floor + 0.6 * walls;
+    let mut objects = std::mem::take(&mut s.objects);
+    objects.push(Object {
+        shape: Shape::Cylinder {
+            c: [0.0, 0.0, 0.0],
+            r: 0.35,
+            z0: floor,
+            z1: -0.75,
+        },
+        material: Material::HueStripes(5.0),
+        specular: 0.0,
+    });
+    objects.extend(furniture(clear, walls, floor, seed));
+    let mut room = Scene::new(objects, s.light);
+    room.backdrop = Some((
+        Shape::Box {
+            lo: [-walls, -walls, floor],
+            hi: [walls, walls, ceiling],
+        },
+        Material::Interior { floor, ceiling },
+    ));
+    room
 }
 
 /// 3D text: each line of glyphs stands upright in the x–z plane (readable from −y), every

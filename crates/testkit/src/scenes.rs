@@ -42,6 +42,7 @@ pub fn generated(
             n_test,
             seed,
             aabb_scale: 1,
+            ..Default::default()
         },
         dir,
     )
