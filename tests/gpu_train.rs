@@ -374,3 +374,31 @@ fn recording_the_chunks_a_batch_needs_trains_what_all_chunks_train() {
     assert_same_step(&all.params().unwrap(), &some.params().unwrap());
     assert_same_step(&all.params().unwrap(), &one.params().unwrap());
 }
+
+/// The coarse march is the CPU's aid: a GPU trainer asked for it refuses, naming it, and
+/// keeps the reference's march (its default configuration has none).
+#[test]
+fn a_gpu_refuses_the_cpus_coarse_march() {
+    let Some(ctx) = test_context() else {
+        eprintln!("skipped: no GPU adapter");
+        return;
+    };
+    let d = tempfile::tempdir().unwrap();
+    let (train, _) = generated(d.path(), SceneKind::Object, 16, 4, 1, 3).pair();
+    let train = Arc::new(train);
+    let cfg = model_config();
+    let layout = NerfLayout::new(cfg).unwrap();
+    let spec = || SceneSpec {
+        dataset: train.clone(),
+        indices: reference_indices(&layout.grid),
+    };
+    let asked = TrainConfig {
+        coarse_march: Some(64),
+        ..config()
+    };
+    let err = GpuTrainer::new(ctx, cfg, vec![spec()], asked)
+        .err()
+        .expect("refused");
+    assert!(err.to_string().contains("coarse march"), "{err}");
+    assert!(GpuTrainer::new(ctx, cfg, vec![spec()], config()).is_ok());
+}

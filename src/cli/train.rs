@@ -10,10 +10,12 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
+use stegongp::ngp::occupancy::OccupancyGrid;
 use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::stego::options::choice;
 use stegongp::stego::recipe::{
     Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, SaveEvery, StepOptions, StoredLoss,
+    Totals,
 };
 
 #[derive(clap::Args, Debug)]
@@ -138,6 +140,18 @@ struct Checkpoint {
     samples: u64,
     marched: u64,
     network: u64,
+    /// Rays trained so far.
+    rays: u64,
+    /// Since the previous checkpoint (or the start): rays a step, and the samples a ray
+    /// that reached the loss and that were marched.
+    rays_per_step: f64,
+    samples_per_ray: f64,
+    marched_per_ray: f64,
+    /// The cover's occupancy grid: the share of each cascade's cells occupied (its bit set).
+    occupied_per_cascade: Vec<f64>,
+    /// The reference's steps a cover sample stands for at the next step (the coarse march;
+    /// 1: the reference's step).
+    march_stride: u32,
     /// The training so far: its phase times (cumulative), to split a run by step range.
     occupancy_seconds: f64,
     rays_seconds: f64,
@@ -192,12 +206,60 @@ struct Summary {
     /// The budget that sized the updates (evaluations per trained sample); null for the
     /// reference's schedule.
     occupancy_budget: Option<f32>,
+    /// The coarse march's aim (samples a ray), null for the reference's step throughout.
+    coarse_march: Option<u32>,
     /// Whether the training forwards read the grid's fp16 copy (--half-grid).
     half_grid: bool,
     checkpoints: Vec<Checkpoint>,
     /// With --profile-every: milliseconds per profiled step in each device phase.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     device_phases_ms: Vec<Phase>,
+}
+
+/// How the rays marched since the previous checkpoint, and how full the grid is now.
+struct MarchSince {
+    rays_per_step: f64,
+    samples_per_ray: f64,
+    marched_per_ray: f64,
+    occupied: Vec<f64>,
+    stride: u32,
+}
+
+impl MarchSince {
+    fn new(now: &Totals, before: Option<&Totals>, grid: &OccupancyGrid, stride: u32) -> Self {
+        let zero = Totals::default();
+        let b = before.unwrap_or(&zero);
+        let rays = now.rays.saturating_sub(b.rays).max(1) as f64;
+        MarchSince {
+            rays_per_step: rays / now.steps.saturating_sub(b.steps).max(1) as f64,
+            samples_per_ray: now.samples.saturating_sub(b.samples) as f64 / rays,
+            marched_per_ray: now.marched.saturating_sub(b.marched) as f64 / rays,
+            occupied: (0..grid.n_cascades)
+                .map(|c| grid.occupied_fraction_in(c))
+                .collect(),
+            stride,
+        }
+    }
+
+    fn note(&self) -> String {
+        let occ: Vec<String> = self
+            .occupied
+            .iter()
+            .map(|f| format!("{:.0}%", 100.0 * f))
+            .collect();
+        let stride = if self.stride > 1 {
+            format!(", marching {} steps a sample", self.stride)
+        } else {
+            String::new()
+        };
+        format!(
+            "{:.0} rays a step, {:.0} samples a ray ({:.0} marched), occupied {}{stride}",
+            self.rays_per_step,
+            self.samples_per_ray,
+            self.marched_per_ray,
+            occ.join("/")
+        )
+    }
 }
 
 #[derive(Serialize)]
@@ -343,6 +405,16 @@ pub fn run(a: Args) -> Result<()> {
                 (None, _) => "the reference's schedule".to_string(),
             }
         );
+        eprintln!(
+            "training march: {}",
+            match recipe.coarse_march(&device) {
+                Some(s) => format!(
+                    "coarser (2, 4 or 8 steps a sample) while rays reach the loss with ≥ {} samples at the reference's step (--coarse-march 0 for the reference's)",
+                    2 * s
+                ),
+                None => "the reference's step".to_string(),
+            }
+        );
         let trainer = training.trainer();
         for i in 0..trainer.n_scenes() {
             let d = trainer.dataset(i);
@@ -400,6 +472,7 @@ pub fn run(a: Args) -> Result<()> {
         Ok(())
     };
     let grid = NerfLayout::new(model)?.grid;
+    let mut last_checkpoint: Option<Totals> = None;
     while training.step()?.is_some() {
         let t = *training.totals();
         match budget {
@@ -445,15 +518,19 @@ pub fn run(a: Args) -> Result<()> {
             let eval_seconds = t_eval.elapsed().as_secs_f64();
             let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
             let lpips = r.lpips.map_or(String::new(), |l| format!(" LPIPS {l:.4}"));
+            let stride = training.trainer().march_stride(0);
+            let march = MarchSince::new(&t, last_checkpoint.as_ref(), &model.grid, stride);
             let line = format!(
-                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s a view); {}",
+                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s a view); {}; {}",
                 t.steps,
                 r.psnr,
                 r.ssim,
                 r.n_views,
                 seconds_per_view,
-                t.phase_split()
+                t.phase_split(),
+                march.note()
             );
+            last_checkpoint = Some(t);
             // A hidden bar (no terminal) swallows println: write the line ourselves.
             if pb.is_hidden() {
                 eprintln!("{line}");
@@ -470,6 +547,12 @@ pub fn run(a: Args) -> Result<()> {
                 samples: t.samples,
                 marched: t.marched,
                 network: t.network,
+                rays: t.rays,
+                rays_per_step: march.rays_per_step,
+                samples_per_ray: march.samples_per_ray,
+                marched_per_ray: march.marched_per_ray,
+                occupied_per_cascade: march.occupied,
+                march_stride: stride,
                 occupancy_seconds: t.occupancy_seconds,
                 rays_seconds: t.rays_seconds,
                 optimizer_seconds: t.optimizer_seconds,
@@ -537,6 +620,7 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_updates: t.occupancy_updates,
         occupancy_evaluations: t.occupancy_evaluations,
         occupancy_budget,
+        coarse_march: recipe.coarse_march(&device),
         half_grid: a.half_grid,
         checkpoints,
         device_phases_ms,

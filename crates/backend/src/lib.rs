@@ -81,6 +81,9 @@ impl std::fmt::Display for DeviceReport {
 /// Density evaluations per trained sample the CPU's occupancy updates spend by default.
 pub const CPU_OCCUPANCY_BUDGET: f32 = 1.0;
 
+/// The CPU's default coarse-march aim ([`Device::default_coarse_march`]).
+pub const CPU_COARSE_MARCH: u32 = 96;
+
 /// An opened device.
 pub enum Device {
     Cpu {
@@ -165,6 +168,19 @@ impl Device {
     pub fn default_occupancy_budget(&self) -> Option<f32> {
         match self {
             Device::Cpu { .. } => Some(CPU_OCCUPANCY_BUDGET),
+            #[cfg(feature = "gpu")]
+            Device::Gpu(_) => None,
+        }
+    }
+
+    /// The coarse march's aim a training on this device uses unless told otherwise
+    /// ([`ngp::train::coarse`]): on the CPU, rays of about 96 to 192 samples while a
+    /// capture's grid is full of fog, where a 360° room's rays of ~900 samples left a step
+    /// a few hundred rays (benchmarks/engine.md, "360° captures"). A GPU keeps the
+    /// reference's step, where a step costs milliseconds.
+    pub fn default_coarse_march(&self) -> Option<u32> {
+        match self {
+            Device::Cpu { .. } => Some(CPU_COARSE_MARCH),
             #[cfg(feature = "gpu")]
             Device::Gpu(_) => None,
         }

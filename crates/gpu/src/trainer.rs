@@ -402,6 +402,12 @@ impl<'c> GpuTrainer<'c> {
                     .to_string(),
             );
         }
+        if config.coarse_march.is_some_and(|s| s > 0) {
+            return input(
+                "a coarse march is for the CPU engine: a GPU marches the reference's step"
+                    .to_string(),
+            );
+        }
         Ok(GpuTrainer {
             ctx,
             config,
@@ -1459,7 +1465,8 @@ impl<'c> GpuTrainer<'c> {
         for s in &self.scenes {
             let grid = s.occupancy.download(ctx)?;
             let counters = (s.rays_per_batch, s.measured_samples, s.measured_marched);
-            scenes.push(state::scene_value(&grid, counters));
+            // The GPU marches the reference's step (no coarse march).
+            scenes.push(state::scene_value(&grid, counters, 1));
         }
         // Only a policy leaves anything between steps in these (read back only then).
         let (mechanisms, gradient, policy) = match &self.policy {
@@ -1557,7 +1564,13 @@ impl<'c> GpuTrainer<'c> {
         let mut restored = Vec::with_capacity(self.scenes.len());
         for (s, sf) in self.scenes.iter().zip(scene_fields) {
             let cells = N_CELLS * s.occupancy.n_cascades as usize;
-            let (grid, (rays, samples, marched)) = state::scene_from(&sf, cells)?;
+            let (grid, (rays, samples, marched), stride) = state::scene_from(&sf, cells)?;
+            if stride != 1 {
+                return Err(sf.err(
+                    "march_stride",
+                    format!("{stride}: a GPU marches the reference's step (1)"),
+                ));
+            }
             // The device's ray buffers hold MAX_RAYS rays.
             if rays == 0 || rays > MAX_RAYS {
                 return Err(sf.err(

@@ -251,6 +251,8 @@ pub(crate) fn train_scenes(
             occupancy_fraction: cfg.occupancy_fraction,
             // The experiments' recorded figures were made on the reference's schedule.
             occupancy_budget: Some(0.0),
+            // ...and on the reference's step.
+            coarse_march: Some(0),
             workers: 0,
         },
         options,

@@ -80,6 +80,14 @@ pub struct StepOptions {
     /// seconds; a GPU keeps the reference's.
     #[cfg_attr(feature = "clap", arg(long, value_name = "R"))]
     pub occupancy_budget: Option<f32>,
+    /// Samples a training ray should reach the loss with: while its rays, counted at the
+    /// reference's step, have at least twice as many, a step marches 2, 4 or 8 of the
+    /// reference's steps per sample, so that it trains that many times the rays while a
+    /// capture's grid is still full of fog (a 360° room); the stride falls back to 1 as the
+    /// rays shorten. The model and how it renders stay the reference's. 0: the reference's
+    /// step throughout. Default: 96 on the CPU; a GPU keeps the reference's.
+    #[cfg_attr(feature = "clap", arg(long, value_name = "S"))]
+    pub coarse_march: Option<u32>,
     /// Worker threads (gradient partitions, each a whole gradient buffer); 0 = one per core;
     /// at most 256, and no more than the memory available holds.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
@@ -93,6 +101,7 @@ impl Default for StepOptions {
             batch: 1 << 18,
             occupancy_fraction: 1.0,
             occupancy_budget: None,
+            coarse_march: None,
             workers: 0,
         }
     }
@@ -352,6 +361,7 @@ impl Recipe {
             batch_samples: self.steps.batch,
             occupancy_fraction: self.steps.occupancy_fraction,
             occupancy_budget: self.occupancy_budget(device),
+            coarse_march: self.coarse_march(device),
             schedule: self.options.schedule,
             others_weight: self.options.hidden_weight,
             solo_steps: self.options.hidden_from,
@@ -366,6 +376,15 @@ impl Recipe {
         match self.steps.occupancy_budget {
             Some(r) => Some(r).filter(|&r| r > 0.0),
             None => device.default_occupancy_budget(),
+        }
+    }
+
+    /// The coarse march's aim on `device` ([`ngp::train::coarse`]): the one asked for, else
+    /// the device's ([`Device::default_coarse_march`]); `None` for the reference's step.
+    pub fn coarse_march(&self, device: &Device) -> Option<u32> {
+        match self.steps.coarse_march {
+            Some(s) => Some(s).filter(|&s| s > 0),
+            None => device.default_coarse_march(),
         }
     }
 
@@ -414,6 +433,8 @@ pub struct Totals {
     pub samples: u64,
     /// Samples marched.
     pub marched: u64,
+    /// Rays that trained (that reached the loss).
+    pub rays: u64,
     /// Samples through the whole network, forward passes counted separately
     /// ([`StepStats::n_network`]).
     pub network: u64,
@@ -566,6 +587,7 @@ impl Training<'_> {
         t.seconds += st.seconds;
         t.samples += st.n_samples;
         t.marched += st.n_marched;
+        t.rays += st.n_rays;
         t.network += st.n_network;
         t.dropped_rays += st.dropped_rays;
         t.host_waits += st.host_waits as u64;
@@ -642,6 +664,7 @@ impl Training<'_> {
             ("seconds", Value::F64(t.seconds)),
             ("samples", Value::from(t.samples)),
             ("marched", Value::from(t.marched)),
+            ("rays", Value::from(t.rays)),
             ("network", Value::from(t.network)),
             ("dropped_rays", Value::from(t.dropped_rays)),
             ("host_waits", Value::from(t.host_waits)),
@@ -693,6 +716,8 @@ impl Training<'_> {
             seconds: tf.f64("seconds")?,
             samples: tf.u64("samples")?,
             marched: tf.u64("marched")?,
+            // Absent from states saved before the rays were counted.
+            rays: if tf.has("rays") { tf.u64("rays")? } else { 0 },
             network: tf.u64("network")?,
             dropped_rays: tf.u64("dropped_rays")?,
             host_waits: tf.u64("host_waits")?,

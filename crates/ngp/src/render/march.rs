@@ -120,8 +120,30 @@ impl Marcher {
         grid: &OccupancyGrid,
         o: [f32; 3],
         d: [f32; 3],
+        t: f32,
+        max_samples: usize,
+        pos: &mut Vec<[f32; 3]>,
+        dts: &mut Vec<f32>,
+        ts: &mut Vec<f32>,
+    ) -> Option<f32> {
+        self.march_strided(grid, o, d, t, max_samples, 1.0, pos, dts, ts)
+    }
+
+    /// [`Self::march`] taking `stride` of the reference's steps at a time where a sample is
+    /// taken (its `dt` that many steps long): training's coarse march while a grid is still
+    /// full of fog ([`next_stride`](crate::train::coarse::next_stride)). Occupancy is
+    /// read at the cascade the reference's step reads and empty cells are skipped as the
+    /// reference skips them, so a stride of 1 is [`Self::march`] to the bit.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    pub fn march_strided(
+        &self,
+        grid: &OccupancyGrid,
+        o: [f32; 3],
+        d: [f32; 3],
         mut t: f32,
         max_samples: usize,
+        stride: f32,
         pos: &mut Vec<[f32; 3]>,
         dts: &mut Vec<f32>,
         ts: &mut Vec<f32>,
@@ -141,6 +163,11 @@ impl Marcher {
             let dt = self.stepping.dt_from(t, st);
             let mip = mip_from_dt(dt, p, self.max_cascade);
             let next = if grid.is_occupied(p, mip) {
+                let dt = if stride == 1.0 {
+                    dt
+                } else {
+                    self.stepping.dt_over(t, st, stride)
+                };
                 pos.push(self.warp(p));
                 dts.push(dt);
                 ts.push(t);
@@ -237,6 +264,12 @@ impl Stepping {
         (self.distance_at(st + 1.0) - t).max(0.0)
     }
 
+    /// `n` steps from `t`, given `st = steps_at(t)`: `advance(t, n) - t`, never negative.
+    #[inline]
+    fn dt_over(&self, t: f32, st: f32, n: f32) -> f32 {
+        (self.distance_at(st + n) - t).max(0.0)
+    }
+
     /// Skips to the next voxel boundary of cascade `mip`, staying on the step lattice;
     /// `ts = steps_at(t)`.
     #[inline]
@@ -323,6 +356,80 @@ mod tests {
         );
         assert_eq!(p2.len(), 10);
         assert!((r.unwrap() - (t0 + 10.0 * MIN_CONE_STEPSIZE)).abs() < 1e-5);
+    }
+
+    /// A stride of k takes every k-th of the reference's samples with k steps of `dt`: the
+    /// same ray covered by a k-th of the samples, fixed steps (aabb 1) and cone steps alike;
+    /// empty space is still skipped.
+    #[test]
+    fn a_strided_march_takes_every_kth_step() {
+        for aabb in [1u32, 16] {
+            let m = Marcher::new(aabb);
+            let grid = OccupancyGrid::new(aabb); // all occupied
+            let (o, d) = ([0.5, 0.45, 0.52], [0.6f32, 0.64, 0.48]);
+            let march = |stride: f32| {
+                let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+                m.march_strided(&grid, o, d, 0.01, 4096, stride, &mut p, &mut dt, &mut ts);
+                (dt, ts)
+            };
+            let (fine_dt, fine_t) = march(1.0);
+            for k in [2usize, 4, 8] {
+                let (dt, ts) = march(k as f32);
+                assert_eq!(
+                    ts.len(),
+                    fine_t.len().div_ceil(k),
+                    "aabb {aabb}, stride {k}"
+                );
+                for (j, (&t, &step)) in ts.iter().zip(&dt).enumerate() {
+                    let (want_t, want_dt): (f32, f32) = (
+                        fine_t[j * k],
+                        fine_dt[j * k..(j * k + k).min(fine_dt.len())].iter().sum(),
+                    );
+                    assert!(
+                        (t - want_t).abs() <= 1e-4 * want_t.max(1.0),
+                        "t {t} vs {want_t}"
+                    );
+                    if j * k + k <= fine_dt.len() {
+                        assert!(
+                            (step - want_dt).abs() <= 1e-3 * want_dt,
+                            "dt {step} vs {want_dt}"
+                        );
+                    }
+                }
+            }
+            // A stride of 1 is the reference's march.
+            let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+            m.march(&grid, o, d, 0.01, 4096, &mut p, &mut dt, &mut ts);
+            assert_eq!(
+                ts.iter().map(|t| t.to_bits()).collect::<Vec<_>>(),
+                fine_t.iter().map(|t| t.to_bits()).collect::<Vec<_>>()
+            );
+        }
+        // Empty cells are skipped at any stride: no sample lands in one.
+        let m = Marcher::new(1);
+        let mut grid = OccupancyGrid::new(1);
+        grid.density.iter_mut().for_each(|d| *d = 0.0);
+        let cell = crate::occupancy::morton3d(64, 64, 64) as usize;
+        grid.density[cell] = 1.0;
+        grid.update_bitfield();
+        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+        m.march_strided(
+            &grid,
+            [-1.0, 0.502, 0.502],
+            [1.0, 0.0, 0.0],
+            1.0,
+            2000,
+            2.0,
+            &mut p,
+            &mut dt,
+            &mut ts,
+        );
+        assert!(!p.is_empty());
+        assert!(
+            p.iter()
+                .all(|q| (64.0 / 128.0..65.0 / 128.0).contains(&q[0])),
+            "{p:?}"
+        );
     }
 
     #[test]

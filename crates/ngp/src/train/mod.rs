@@ -2,6 +2,7 @@
 //! training policy acts through, and the trainer that ties rays, marching, the network and
 //! compositing together for one or more scenes sharing one set of weights.
 
+pub mod coarse;
 pub mod grid_updates;
 mod held;
 pub mod hooks;
@@ -69,6 +70,11 @@ pub trait TrainBackend {
             "an fp16 copy of the grid is a GPU option (the CPU reads the f32 table)".into(),
         ))
     }
+    /// The reference's steps a training sample of scene `i` stands for at the next step
+    /// ([`coarse`]); 1 where this backend marches the reference's step.
+    fn march_stride(&self, _i: usize) -> u32 {
+        1
+    }
     /// Milliseconds per profiled step by phase, in the order they ran (empty unless
     /// profiling).
     fn device_profile(&self) -> Vec<(String, f64)> {
@@ -97,6 +103,9 @@ impl TrainBackend for Trainer {
     }
     fn save_state(&self) -> Result<state::Value> {
         Trainer::save_state_doc(self)
+    }
+    fn march_stride(&self, i: usize) -> u32 {
+        Trainer::march_stride(self, i)
     }
     fn restore_state(&mut self, doc: &state::Value, origin: &std::path::Path) -> Result<()> {
         Trainer::restore_state_doc(self, doc, origin)

@@ -67,7 +67,11 @@ pub fn put(doc: &mut Value, key: &str, value: Value) {
 
 /// One scene's part of a trainer's state: its occupancy grid and the batch counters
 /// (rays per batch, trained and marched samples of its last step).
-pub fn scene_value(grid: &crate::occupancy::OccupancyGrid, counters: (u32, u32, u32)) -> Value {
+pub fn scene_value(
+    grid: &crate::occupancy::OccupancyGrid,
+    counters: (u32, u32, u32),
+    stride: u32,
+) -> Value {
     map(vec![
         ("density", f32s(&grid.density)),
         ("bitfield", Value::Binary(grid.bitfield().to_vec())),
@@ -76,6 +80,7 @@ pub fn scene_value(grid: &crate::occupancy::OccupancyGrid, counters: (u32, u32, 
         ("rays_per_batch", Value::from(counters.0)),
         ("measured_samples", Value::from(counters.1)),
         ("measured_marched", Value::from(counters.2)),
+        ("march_stride", Value::from(stride)),
     ])
 }
 
@@ -83,7 +88,7 @@ pub fn scene_value(grid: &crate::occupancy::OccupancyGrid, counters: (u32, u32, 
 pub fn scene_from(
     f: &Fields,
     cells: usize,
-) -> Result<(crate::occupancy::OccupancyGrid, (u32, u32, u32))> {
+) -> Result<(crate::occupancy::OccupancyGrid, (u32, u32, u32), u32)> {
     let mut density = crate::pages::zeroed::<f32>(cells);
     f.f32s_into("density", &mut density)?;
     let mut bitfield = vec![0u8; cells / 8];
@@ -100,7 +105,22 @@ pub fn scene_from(
         f.u32("measured_samples")?,
         f.u32("measured_marched")?,
     );
-    Ok((grid, counters))
+    // Absent from states saved before the coarse march: they marched the reference's step.
+    let stride = if f.has("march_stride") {
+        f.u32("march_stride")?
+    } else {
+        1
+    };
+    if !stride.is_power_of_two() || stride > 1 << crate::train::coarse::MAX_STRIDE_LOG2 {
+        return Err(f.err(
+            "march_stride",
+            format!(
+                "{stride}: not a power of two up to {}",
+                1 << crate::train::coarse::MAX_STRIDE_LOG2
+            ),
+        ));
+    }
+    Ok((grid, counters, stride))
 }
 
 /// Held-back gradients ([`sparse`], one per parameter; field `key` of `f`) for `n`

@@ -9,6 +9,7 @@
 //! split into one fixed range per worker, each with its own gradient buffer, summed in a
 //! fixed order: the result is deterministic for a seed and worker count.
 
+use super::coarse;
 use super::grid_updates::GridUpdates;
 use super::held::{HoldBack, KeptMlp};
 use super::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
@@ -41,6 +42,9 @@ pub struct TrainConfig {
     /// Density evaluations per trained sample the occupancy updates may spend, which spaces
     /// them out ([`GridUpdates`]); `None` for the reference's schedule.
     pub occupancy_budget: Option<f32>,
+    /// The samples a ray should reach the loss with, at most twice over, before a step
+    /// marches coarser ([`super::coarse`]); `None` for the reference's step throughout.
+    pub coarse_march: Option<u32>,
     /// How the scenes share the steps.
     pub schedule: Schedule,
     /// Loss weight of every scene after the first, relative to scene 0's 1. Shared table
@@ -68,6 +72,7 @@ impl Default for TrainConfig {
             batch_samples: 1 << 18,
             occupancy_fraction: 1.0,
             occupancy_budget: None,
+            coarse_march: None,
             schedule: Schedule::Mixed,
             others_weight: 1.0,
             solo_steps: 0,
@@ -92,6 +97,8 @@ pub(super) struct SceneState {
     rays_per_batch: u32,
     measured_samples: u32,
     measured_marched: u32,
+    /// The reference's steps a training sample stands for ([`super::coarse`]).
+    stride: u32,
 }
 
 /// What one step did.
@@ -210,6 +217,7 @@ impl Trainer {
                 rays_per_batch: rays,
                 measured_samples: 0,
                 measured_marched: 0,
+                stride: 1,
             });
         }
         let n_workers = if config.workers == 0 {
@@ -262,6 +270,12 @@ impl Trainer {
     }
 
     /// The table's bounds, once a policy has set them ([`PolicyOps::update_bounds`]).
+    /// The reference's steps a training sample of scene `i` stands for at the next step
+    /// ([`super::coarse`]).
+    pub fn march_stride(&self, i: usize) -> u32 {
+        self.scenes[i].stride
+    }
+
     pub fn table_bounds(&self) -> Option<&TableBounds> {
         self.mech.bounds.as_ref()
     }
@@ -371,7 +385,7 @@ impl Trainer {
             .iter()
             .map(|s| {
                 let counters = (s.rays_per_batch, s.measured_samples, s.measured_marched);
-                scene_value(&s.grid, counters)
+                scene_value(&s.grid, counters, s.stride)
             })
             .collect();
         let (since, updates) = self.grid_updates.clock();
@@ -458,9 +472,10 @@ impl Trainer {
             .set_clock(clock.u64("since")?, clock.u32("updates")?);
         let scene_fields = f.maps("scenes", self.scenes.len())?;
         for (s, sf) in self.scenes.iter_mut().zip(scene_fields) {
-            let (grid, counters) = super::state::scene_from(&sf, s.grid.density.len())?;
+            let (grid, counters, stride) = super::state::scene_from(&sf, s.grid.density.len())?;
             s.grid = grid;
             (s.rays_per_batch, s.measured_samples, s.measured_marched) = counters;
+            s.stride = stride;
         }
         self.restore_mechanisms(&f.map("mechanisms")?)?;
         let worker_fields = f.maps("workers", self.workers.len())?;
@@ -637,13 +652,14 @@ impl Trainer {
                     train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
                 });
             let mut loss = 0.0;
-            let (mut used, mut marched) = (0, 0);
+            let (mut used, mut marched, mut rays) = (0, 0, 0);
             for w in &self.workers {
                 loss += w.loss;
                 used += w.n_samples;
                 marched += w.n_marched;
-                stats.n_rays += w.n_rays;
+                rays += w.n_rays;
             }
+            stats.n_rays += rays;
             stats.n_marched += marched;
             let scene_loss = (loss / n_rays as f64) as f32;
             stats.loss += scene_loss;
@@ -655,11 +671,14 @@ impl Trainer {
             let scene = &mut self.scenes[si];
             scene.measured_samples = used as u32;
             scene.measured_marched = marched as u32;
+            let stride = coarse::next_stride(self.config.coarse_march, scene.stride, rays, used);
             // The reference keeps its ray count when nothing was trained.
             if used > 0 {
+                let expected = coarse::at_stride(used, scene.stride, stride);
                 scene.rays_per_batch =
-                    next_rays_per_batch(n_rays as u32, self.config.batch_samples, used);
+                    next_rays_per_batch(n_rays as u32, self.config.batch_samples, expected);
             }
+            scene.stride = stride;
             stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops));
         }
         stats.penalised += self.with_policy(|p, ops| p.before_update(info, ops));
@@ -979,6 +998,7 @@ fn train_rays(
     } else {
         0.0
     };
+    let stride = scene.stride as f32;
     let mut next = range.start;
     while next < range.end {
         w.pos.clear();
@@ -1003,14 +1023,17 @@ fn train_rays(
             let Some((tmin, _)) = scene.marcher.intersect(ray.o, ray.d) else {
                 continue;
             };
-            let t = scene.marcher.advance(tmin, rng.next_f32());
+            // The start is jittered over the whole stride, so that coarse samples cover
+            // the ray as densely as the reference's do.
+            let t = scene.marcher.advance(tmin, stride * rng.next_f32());
             let start = w.pos.len();
-            scene.marcher.march(
+            scene.marcher.march_strided(
                 &scene.grid,
                 ray.o,
                 ray.d,
                 t,
                 MAX_SAMPLES_PER_RAY,
+                stride,
                 &mut w.pos,
                 &mut w.dt,
                 &mut w.dist,
@@ -1149,9 +1172,19 @@ mod tests {
     fn two_scene_trainer(dir: &std::path::Path, seed: u64) -> Trainer {
         let a = tiny_scene(&dir.join("a"), 6);
         let b = tiny_scene(&dir.join("b"), 5);
+        // A coarse march, so that the state's strides are restored too.
+        tiny_trainer(vec![a, b], seed, Some(16), 1 << 11)
+    }
+
+    fn tiny_trainer(
+        datasets: Vec<Arc<Dataset>>,
+        seed: u64,
+        coarse_march: Option<u32>,
+        batch_samples: u32,
+    ) -> Trainer {
         let model = tiny_model();
         let layout = NerfLayout::new(model).unwrap();
-        let scenes = [a, b]
+        let scenes = datasets
             .into_iter()
             .map(|dataset| SceneSpec {
                 dataset,
@@ -1160,12 +1193,52 @@ mod tests {
             .collect();
         let tc = TrainConfig {
             seed,
-            batch_samples: 1 << 11,
+            batch_samples,
             occupancy_fraction: 0.05,
+            coarse_march,
             workers: 2,
             ..Default::default()
         };
         Trainer::new(model, scenes, tc).unwrap()
+    }
+
+    /// While rays are long (the noise views of the tiny scene are fog at first) the coarse
+    /// march strides over them and trains several times the rays a step, and it steps back
+    /// towards the reference's step as they shorten; without it the stride stays 1.
+    #[test]
+    fn a_coarse_march_trains_more_rays_while_rays_are_long() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = tiny_scene(&dir.path().join("a"), 6);
+        // A batch of many rays (not the floor of 256 a tiny batch stays at).
+        let mut reference = tiny_trainer(vec![data.clone()], 5, None, 1 << 15);
+        let mut coarse = tiny_trainer(vec![data], 5, Some(16), 1 << 15);
+        let (mut rays_ref, mut rays_coarse, mut strides) = (0, 0, Vec::new());
+        for step in 0..30 {
+            let (a, b) = (reference.train_step(), coarse.train_step());
+            assert_eq!(reference.march_stride(0), 1);
+            strides.push(coarse.march_stride(0));
+            if (3..20).contains(&step) {
+                rays_ref += a.n_rays;
+                rays_coarse += b.n_rays;
+            }
+        }
+        assert_eq!(
+            strides[0], 1,
+            "the first step's rays are short: {strides:?}"
+        );
+        assert_eq!(
+            *strides.iter().max().unwrap(),
+            8,
+            "long rays, the coarsest stride: {strides:?}"
+        );
+        assert!(
+            rays_coarse as f64 > 2.5 * rays_ref as f64,
+            "rays in steps 3..20: {rays_coarse} coarse, {rays_ref} at the reference's step"
+        );
+        assert!(
+            strides.windows(2).any(|w| w[1] < w[0]),
+            "the stride falls as the grid empties: {strides:?}"
+        );
     }
 
     fn bits(v: &[f32]) -> Vec<u32> {
@@ -1210,6 +1283,7 @@ mod tests {
                 );
                 assert_eq!(t.grid(i).bitfield(), whole.grid(i).bitfield());
                 assert_eq!(t.batch_counters(i), whole.batch_counters(i));
+                assert_eq!(t.march_stride(i), whole.march_stride(i));
             }
         }
         // The state really moves the run: a fresh trainer without it differs.
