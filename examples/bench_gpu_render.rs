@@ -54,6 +54,7 @@ fn trained(res: u32) -> (Model, Camera) {
             n_test: 1,
             seed: 3,
             aabb_scale: 1,
+            ..Default::default()
         },
         dir.path(),
     )
@@ -72,6 +73,7 @@ fn trained(res: u32) -> (Model, Camera) {
         batch: 1 << 13,
         occupancy_fraction: 1.0 / 16.0,
         occupancy_budget: None,
+        coarse_march: None,
         workers: 0,
     };
     let mut recipe = Recipe::plain(cfg, Arc::new(train), steps, Budget::Steps(100));

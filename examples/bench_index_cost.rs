@@ -32,6 +32,7 @@ fn main() {
                     n_test: 2,
                     seed: 1,
                     aabb_scale: 1,
+                    ..Default::default()
                 };
                 generate(&opts, &tmp).expect("generate scene");
             }

@@ -57,6 +57,7 @@ fn main() -> anyhow::Result<()> {
                 n_test: 8,
                 seed: 1,
                 aabb_scale: 1,
+                ..Default::default()
             },
             &dir,
         )?;

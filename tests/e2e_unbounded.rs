@@ -36,6 +36,7 @@ fn room(dir: &std::path::Path, aabb_scale: u32) -> (Dataset, Dataset) {
             n_test: 8,
             seed: 5,
             aabb_scale,
+            ..Default::default()
         },
         dir,
     )
@@ -325,6 +326,7 @@ fn key_holder_rebuild_and_training_steps_at_aabb_scale_16() {
             n_test: 1,
             seed: 1,
             aabb_scale: 16,
+            ..Default::default()
         },
         dir.path(),
     )
@@ -381,6 +383,7 @@ fn hidden_scene_confined_to_its_box_in_a_large_cover() {
             n_test: 3,
             seed: 3,
             aabb_scale: 1,
+            ..Default::default()
         },
         &hdir,
     )

@@ -67,8 +67,9 @@ fn fixture() -> Option<&'static Fixture> {
             seed: 7,
             batch: 1 << 12,
             occupancy_fraction: 1.0 / 128.0,
-            // The fixture is built by hand on the reference's schedule.
+            // The fixture is built by hand on the reference's schedule and step.
             occupancy_budget: Some(0.0),
+            coarse_march: Some(0),
             workers: 0,
         };
         let hidden = vec![(Arc::new(hidden_train), key.clone())];

@@ -466,6 +466,7 @@ mod tests {
                     n_test: 1,
                     seed: 1,
                     aabb_scale,
+                    ..Default::default()
                 },
                 &d.path().join(name),
             )

@@ -359,8 +359,7 @@ mod tests {
     }
 
     /// A stride of k takes every k-th of the reference's samples with k steps of `dt`: the
-    /// same ray covered by a k-th of the samples, fixed steps (aabb 1) and cone steps alike;
-    /// empty space is still skipped.
+    /// same ray covered by a k-th of the samples, fixed steps (aabb 1) and cone steps alike.
     #[test]
     fn a_strided_march_takes_every_kth_step() {
         for aabb in [1u32, 16] {
@@ -405,33 +404,10 @@ mod tests {
                 fine_t.iter().map(|t| t.to_bits()).collect::<Vec<_>>()
             );
         }
-        // Empty cells are skipped at any stride: no sample lands in one.
-        let m = Marcher::new(1);
-        let mut grid = OccupancyGrid::new(1);
-        grid.density.iter_mut().for_each(|d| *d = 0.0);
-        let cell = crate::occupancy::morton3d(64, 64, 64) as usize;
-        grid.density[cell] = 1.0;
-        grid.update_bitfield();
-        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
-        m.march_strided(
-            &grid,
-            [-1.0, 0.502, 0.502],
-            [1.0, 0.0, 0.0],
-            1.0,
-            2000,
-            2.0,
-            &mut p,
-            &mut dt,
-            &mut ts,
-        );
-        assert!(!p.is_empty());
-        assert!(
-            p.iter()
-                .all(|q| (64.0 / 128.0..65.0 / 128.0).contains(&q[0])),
-            "{p:?}"
-        );
     }
 
+    /// Empty space is skipped, at the reference's step and at a coarse training stride: every
+    /// sample lands in the one occupied cell.
     #[test]
     fn empty_space_is_skipped() {
         let m = Marcher::new(1);
@@ -441,20 +417,23 @@ mod tests {
         let cell = crate::occupancy::morton3d(64, 64, 64) as usize;
         grid.density[cell] = 1.0;
         grid.update_bitfield();
-        let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
-        m.march(
-            &grid,
-            [-1.0, 0.502, 0.502],
-            [1.0, 0.0, 0.0],
-            1.0,
-            2000,
-            &mut p,
-            &mut dt,
-            &mut ts,
-        );
-        // 1/128 / step = 4.6 → 4 or 5 samples, all inside the cell.
-        assert!((4..=5).contains(&p.len()), "{} samples", p.len());
-        assert!(p.iter().all(|q| q[0] >= 0.5 && q[0] < 65.0 / 128.0));
+        // 1/128 / step = 4.6 → 4 or 5 samples, all inside the cell; at a stride of 2, 2 or 3.
+        for (stride, n) in [(1.0, 4..=5), (2.0, 2..=3)] {
+            let (mut p, mut dt, mut ts) = (vec![], vec![], vec![]);
+            m.march_strided(
+                &grid,
+                [-1.0, 0.502, 0.502],
+                [1.0, 0.0, 0.0],
+                1.0,
+                2000,
+                stride,
+                &mut p,
+                &mut dt,
+                &mut ts,
+            );
+            assert!(n.contains(&p.len()), "stride {stride}: {} samples", p.len());
+            assert!(p.iter().all(|q| q[0] >= 0.5 && q[0] < 65.0 / 128.0));
+        }
     }
 
     #[test]

@@ -23,6 +23,7 @@ fn cover_and_hidden(dir: &std::path::Path) -> (Arc<Dataset>, Arc<Dataset>, Model
             n_test: 1,
             seed,
             aabb_scale: 1,
+            ..Default::default()
         };
         generate(&opts, &d).unwrap();
         Arc::new(Dataset::load(&d, Split::Train, &LoadOptions::default()).unwrap())
@@ -124,6 +125,7 @@ fn cap_trainer(cap: Option<DensityCap>, dir: &std::path::Path) -> Trainer {
         n_test: 1,
         seed: 5,
         aabb_scale: 1,
+        ..Default::default()
     };
     generate(&opts, dir).unwrap();
     let data = Arc::new(Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap());
