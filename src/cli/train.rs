@@ -147,8 +147,12 @@ struct Checkpoint {
     rays_per_step: f64,
     samples_per_ray: f64,
     marched_per_ray: f64,
-    /// The cover's occupancy grid: the share of each cascade's cells occupied (its bit set).
+    /// The cover's occupancy grid: the share of each cascade's cells occupied (its bit set),
+    /// and the optical thickness above which a cell is occupied (`min(0.01, cascade 0's
+    /// mean)`: below 0.01 while the middle of the box is still nearly empty, when faint fog
+    /// counts as occupied).
     occupied_per_cascade: Vec<f64>,
+    occupancy_threshold: f32,
     /// The reference's steps a cover sample stands for at the next step (the coarse march;
     /// 1: the reference's step).
     march_stride: u32,
@@ -162,8 +166,10 @@ struct Checkpoint {
     occupancy_evaluations: u64,
     /// How long this checkpoint's evaluation took (not counted in the training's time).
     eval_seconds: f64,
-    /// Seconds per evaluated view.
+    /// Seconds per evaluated view, and the network samples a ray its views took (0 where
+    /// the renderer does not count them: a GPU's).
     seconds_per_view: f64,
+    eval_samples_per_ray: f64,
 }
 
 #[derive(Serialize)]
@@ -222,6 +228,7 @@ struct MarchSince {
     samples_per_ray: f64,
     marched_per_ray: f64,
     occupied: Vec<f64>,
+    threshold: f32,
     stride: u32,
 }
 
@@ -237,6 +244,7 @@ impl MarchSince {
             occupied: (0..grid.n_cascades)
                 .map(|c| grid.occupied_fraction_in(c))
                 .collect(),
+            threshold: grid.threshold(),
             stride,
         }
     }
@@ -253,11 +261,12 @@ impl MarchSince {
             String::new()
         };
         format!(
-            "{:.0} rays a step, {:.0} samples a ray ({:.0} marched), occupied {}{stride}",
+            "{:.0} rays a step, {:.0} samples a ray ({:.0} marched), occupied {} above {:.4}{stride}",
             self.rays_per_step,
             self.samples_per_ray,
             self.marched_per_ray,
-            occ.join("/")
+            occ.join("/"),
+            self.threshold
         )
     }
 }
@@ -517,16 +526,19 @@ pub fn run(a: Args) -> Result<()> {
             )?;
             let eval_seconds = t_eval.elapsed().as_secs_f64();
             let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
+            let eval_samples_per_ray =
+                r.views.iter().map(|v| v.samples_per_ray).sum::<f64>() / r.n_views.max(1) as f64;
             let lpips = r.lpips.map_or(String::new(), |l| format!(" LPIPS {l:.4}"));
             let stride = training.trainer().march_stride(0);
             let march = MarchSince::new(&t, last_checkpoint.as_ref(), &model.grid, stride);
             let line = format!(
-                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s a view); {}; {}",
+                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s and {:.0} samples a ray a view); {}; {}",
                 t.steps,
                 r.psnr,
                 r.ssim,
                 r.n_views,
                 seconds_per_view,
+                eval_samples_per_ray,
                 t.phase_split(),
                 march.note()
             );
@@ -552,6 +564,7 @@ pub fn run(a: Args) -> Result<()> {
                 samples_per_ray: march.samples_per_ray,
                 marched_per_ray: march.marched_per_ray,
                 occupied_per_cascade: march.occupied,
+                occupancy_threshold: march.threshold,
                 march_stride: stride,
                 occupancy_seconds: t.occupancy_seconds,
                 rays_seconds: t.rays_seconds,
@@ -561,6 +574,7 @@ pub fn run(a: Args) -> Result<()> {
                 occupancy_evaluations: t.occupancy_evaluations,
                 eval_seconds,
                 seconds_per_view,
+                eval_samples_per_ray,
             });
         }
     }

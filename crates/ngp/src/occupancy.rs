@@ -106,6 +106,46 @@ pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
     Some(morton3d(i[0] as u32, i[1] as u32, i[2] as u32))
 }
 
+/// The distance along `d` (`idir` its reciprocal) from `pos` to the far side of its cell of
+/// level `mip` when that cell's bit is clear, or `None` when it is set or `pos` is outside
+/// the level. The cell is found as [`cell_at`] finds it, so a point that rounding puts on
+/// the other side of a face gets the far side of the cell that was read (a distance ≤ 0 if
+/// the ray is leaving it).
+#[inline]
+pub fn empty_cell_exit(
+    grid: &OccupancyGrid,
+    pos: [f32; 3],
+    d: [f32; 3],
+    idir: [f32; 3],
+    mip: u32,
+) -> Option<f32> {
+    let s = pow2(-(mip as i32));
+    let g = GRID_SIZE as f32;
+    let mut i = [0u32; 3];
+    for k in 0..3 {
+        let u = ((pos[k] - 0.5) * s + 0.5) * g;
+        if !(0.0..g).contains(&u) {
+            return None;
+        }
+        i[k] = u as u32;
+    }
+    let bit = morton3d(i[0], i[1], i[2]) as usize + mip as usize * N_CELLS;
+    if grid.bitfield[bit / 8] & (1 << (bit % 8)) != 0 {
+        return None;
+    }
+    let mut far = f32::INFINITY;
+    for k in 0..3 {
+        if d[k] == 0.0 {
+            continue;
+        }
+        let face = i[k] as f32 + if d[k] > 0.0 { 1.0 } else { 0.0 };
+        // The face in world units: the inverse of the cell's index map.
+        let w = (face / g - 0.5) / s + 0.5;
+        far = far.min((w - pos[k]) * idir[k]);
+    }
+    far.is_finite().then_some(far)
+}
+
 /// Most passes of [`OccupancyGrid::refine_near_occupied`]: each reaches one cell further
 /// along a surface the first rounds missed.
 pub const REFINE_PASSES: usize = 16;
@@ -527,7 +567,7 @@ impl OccupancyGrid {
 
     /// The occupancy threshold `min(0.01, mean of cascade 0)`, as [`Self::update_bitfield`]
     /// computes it.
-    fn threshold(&self) -> f32 {
+    pub fn threshold(&self) -> f32 {
         MIN_OPTICAL_THICKNESS.min(self.cascade0_mean())
     }
 
