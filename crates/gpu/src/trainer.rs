@@ -306,6 +306,12 @@ impl<'c> GpuTrainer<'c> {
         if config.batch_samples == 0 {
             return input("a batch of 0 samples".into());
         }
+        if !(config.others_batch > 0.0 && config.others_batch <= 1.0) {
+            return input(format!(
+                "the other scenes' batch fraction must be in (0, 1], not {}",
+                config.others_batch
+            ));
+        }
         let limits = ctx.device.limits();
         let max = limits
             .max_storage_buffer_binding_size
@@ -352,7 +358,7 @@ impl<'c> GpuTrainer<'c> {
                 dataset: s.dataset,
                 indices: s.indices,
                 loss_weight,
-                rays_per_batch: initial_rays_per_batch(config.batch_samples),
+                rays_per_batch: initial_rays_per_batch(config.scene_batch(states.len())),
                 measured_samples: 0,
                 measured_marched: 0,
                 recent_asked: None,
@@ -927,7 +933,7 @@ impl<'c> GpuTrainer<'c> {
             if sm.used > 0 {
                 scene.rays_per_batch = next_rays_per_batch(
                     sm.n_rays.saturating_sub(dropped),
-                    self.config.batch_samples,
+                    self.config.scene_batch(sm.scene),
                     sm.used as u64,
                 );
             }

@@ -147,7 +147,7 @@ impl ExpConfig {
     }
 
     /// Adds to a model-with-hidden-scenes sidecar config the training options that are not
-    /// at their defaults (warm-up, hidden weight), and nothing else: a model trained before
+    /// at their defaults (warm-up, hidden weight, hidden batch), and nothing else: a model trained before
     /// an option existed keeps a sidecar that still matches, and is reused.
     pub(crate) fn record_hidden_options(&self, config: &mut serde_json::Value) {
         if self.training.hidden_from > 0 {
@@ -156,6 +156,9 @@ impl ExpConfig {
         if self.training.hidden_weight != 1.0 {
             // A string: serde_json's float parsing does not round-trip every f64 exactly.
             config["hidden_loss_weight"] = json!(self.training.hidden_weight.to_string());
+        }
+        if self.training.hidden_batch != 1.0 {
+            config["hidden_batch"] = json!(self.training.hidden_batch.to_string());
         }
     }
 

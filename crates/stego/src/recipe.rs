@@ -128,6 +128,13 @@ pub struct HiddenOptions {
     /// "A cover warm-up").
     #[cfg_attr(feature = "clap", arg(long, value_name = "N", default_value_t = 0))]
     pub hidden_from: u32,
+    /// The samples a step trains of each hidden scene, as a fraction of `--batch` (the
+    /// cover trains all of them; at least 1/16). Every hidden scene otherwise costs a step as
+    /// much as the cover: a hidden text needs far fewer, and at a fixed time the cover keeps
+    /// the steps it would lose (a 360° capture with a room and a text, benchmarks/engine.md,
+    /// "Stego on a 360° cover").
+    #[cfg_attr(feature = "clap", arg(long, value_name = "F", default_value_t = 1.0))]
+    pub hidden_batch: f32,
     #[cfg_attr(feature = "clap", command(flatten))]
     pub stealth: StealthOptions,
 }
@@ -138,6 +145,7 @@ impl Default for HiddenOptions {
             schedule: Schedule::Mixed,
             hidden_weight: 1.0,
             hidden_from: 0,
+            hidden_batch: 1.0,
             stealth: StealthOptions::default(),
         }
     }
@@ -150,6 +158,12 @@ impl HiddenOptions {
             return Err(Error::Config(
                 "--hidden-weight must be a positive number".into(),
             ));
+        }
+        if !(self.hidden_batch >= 1.0 / 16.0 && self.hidden_batch <= 1.0) {
+            return Err(Error::Config(format!(
+                "--hidden-batch must be between 1/16 and 1, not {}",
+                self.hidden_batch
+            )));
         }
         self.stealth.check(self.stealth.enabled)
     }
@@ -364,6 +378,7 @@ impl Recipe {
             coarse_march: self.coarse_march(device),
             schedule: self.options.schedule,
             others_weight: self.options.hidden_weight,
+            others_batch: self.options.hidden_batch,
             solo_steps: self.options.hidden_from,
             workers: self.steps.workers,
             ..Default::default()

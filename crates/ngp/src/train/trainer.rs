@@ -32,6 +32,10 @@ use crate::rng::Pcg32;
 use rayon::prelude::*;
 use std::sync::Arc;
 
+/// The fewest samples a step aims to train of a scene after the first (1/16 of the
+/// reference's batch), so that a small [`TrainConfig::others_batch`] still trains rays.
+pub const MIN_SCENE_BATCH: u32 = 1 << 14;
+
 #[derive(Clone, Debug)]
 pub struct TrainConfig {
     pub seed: u64,
@@ -50,6 +54,10 @@ pub struct TrainConfig {
     /// Loss weight of every scene after the first, relative to scene 0's 1. Shared table
     /// entries settle where the scenes' gradients balance.
     pub others_weight: f32,
+    /// The samples a step trains of every scene after the first, as a fraction of
+    /// `batch_samples` (scene 0 trains all of them). A scene that needs less than the first
+    /// (a hidden text beside a 360° capture) then costs the step less of its time.
+    pub others_batch: f32,
     /// Steps scene 0 trains alone before the others join (0: all from the start).
     pub solo_steps: u32,
     pub optimizer: OptimizerConfig,
@@ -59,6 +67,15 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
+    /// The samples a step aims to train of scene `si` (at least one granule of rays' worth).
+    pub fn scene_batch(&self, si: usize) -> u32 {
+        if si == 0 || self.others_batch >= 1.0 {
+            return self.batch_samples;
+        }
+        let b = (self.batch_samples as f64 * self.others_batch.max(0.0) as f64).round() as u32;
+        b.clamp(self.batch_samples.min(MIN_SCENE_BATCH), self.batch_samples)
+    }
+
     /// The scenes step `step` trains ([`step_scenes`]).
     pub fn step_scenes(&self, step: u32, n_scenes: usize) -> Vec<usize> {
         step_scenes(self.schedule, self.solo_steps, self.seed, step, n_scenes)
@@ -75,6 +92,7 @@ impl Default for TrainConfig {
             coarse_march: None,
             schedule: Schedule::Mixed,
             others_weight: 1.0,
+            others_batch: 1.0,
             solo_steps: 0,
             optimizer: OptimizerConfig::default(),
             workers: 0,
@@ -179,6 +197,12 @@ impl Trainer {
         if scenes.is_empty() {
             return Err(Error::Config("no scene to train".into()));
         }
+        if !(config.others_batch > 0.0 && config.others_batch <= 1.0) {
+            return Err(Error::Config(format!(
+                "the other scenes' batch fraction must be in (0, 1], not {}",
+                config.others_batch
+            )));
+        }
         let net = NerfNetwork::new(model)?;
         let n_levels = net.layout.grid.levels.len();
         let mut states = Vec::new();
@@ -203,7 +227,7 @@ impl Trainer {
                 )));
             }
             let grid = starting_grid(model.aabb_scale, &s.dataset);
-            let rays = initial_rays_per_batch(config.batch_samples);
+            let rays = initial_rays_per_batch(config.scene_batch(states.len()));
             states.push(SceneState {
                 data: s.dataset,
                 indices: s.indices,
@@ -233,7 +257,7 @@ impl Trainer {
         let params = net.init_params(config.seed);
         let workers = (0..n_workers).map(|_| Worker::new(params.len())).collect();
         let optimizer = Optimizer::new(config.optimizer, params.len(), net.layout.n_mlp_params());
-        let grid_updates = GridUpdates::new(config.occupancy_budget);
+        let grid_updates = GridUpdates::new(config.occupancy_budget, states.len());
         Ok(Trainer {
             net,
             params,
@@ -420,7 +444,7 @@ impl Trainer {
             (
                 "occupancy_clock",
                 map(vec![
-                    ("since", Value::from(since)),
+                    ("since", u64s(since)),
                     ("updates", Value::from(updates)),
                 ]),
             ),
@@ -468,8 +492,16 @@ impl Trainer {
             ));
         }
         let clock = f.map("occupancy_clock")?;
-        self.grid_updates
-            .set_clock(clock.u64("since")?, clock.u32("updates")?);
+        // A single count: a state saved before each scene kept its own.
+        let since = match clock.u64("since") {
+            Ok(one) => vec![one],
+            Err(_) => {
+                let mut v = vec![0; self.scenes.len()];
+                clock.u64s_into("since", &mut v)?;
+                v
+            }
+        };
+        self.grid_updates.set_clock(&since, clock.u32("updates")?);
         let scene_fields = f.maps("scenes", self.scenes.len())?;
         for (s, sf) in self.scenes.iter_mut().zip(scene_fields) {
             let (grid, counters, stride) = super::state::scene_from(&sf, s.grid.density.len())?;
@@ -515,22 +547,34 @@ impl Trainer {
     }
 
     /// Refreshes every scene's occupancy grid when an update is due ([`GridUpdates`]);
-    /// `n_trained` scenes train this step. Returns the densities evaluated, `None` when no
-    /// update was due.
-    fn update_occupancy(&mut self, n_trained: usize) -> Option<u64> {
+    /// `trained` are the scenes this step trains. Returns the densities evaluated, `None`
+    /// when no update was due.
+    fn update_occupancy(&mut self, trained: &[usize]) -> Option<u64> {
         let step = self.weight_steps;
         let fraction = self.config.occupancy_fraction;
-        let step_samples = self.config.batch_samples as u64 * n_trained as u64;
+        let n = self.scenes.len();
+        let mut samples = vec![0u64; n];
+        for &si in trained {
+            samples[si] = self.config.scene_batch(si) as u64;
+        }
+        let mut shares = vec![0f32; n];
         let scenes = &self.scenes;
-        let share = self.grid_updates.due(step, step_samples, || {
-            scenes
-                .iter()
-                .map(|s| s.grid.expected_update_cost(step, fraction))
-                .sum()
-        })?;
+        let due = self.grid_updates.due(
+            step,
+            &samples,
+            &mut shares,
+            |si| scenes[si].grid.ema_step == 0,
+            |si| scenes[si].grid.expected_update_cost(step, fraction),
+        );
+        if !due {
+            return None;
+        }
         let seed = self.config.seed;
         let mut evaluated = 0;
-        for si in 0..self.scenes.len() {
+        for (si, &share) in shares.iter().enumerate() {
+            if share == 0.0 {
+                continue;
+            }
             let SceneState {
                 grid,
                 marcher,
@@ -539,7 +583,10 @@ impl Trainer {
             } = &mut self.scenes[si];
             let (net, params) = (&self.net, &self.params);
             let seed = mix(seed, 0x6772_6964 + si as u64);
-            evaluated += grid.update_share(step, fraction, share, seed, |pos| {
+            // A grid's first update draws every cell, as the reference's first steps do,
+            // even for a scene that joins late (a hidden scene after the cover's warm-up).
+            let at = if grid.ema_step == 0 { 0 } else { step };
+            evaluated += grid.update_share(at, fraction, share, seed, |pos| {
                 let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
                 net.density_batch(params, indices, &warped)
             });
@@ -621,7 +668,7 @@ impl Trainer {
             .as_ref()
             .is_none_or(|p| p.updates_weights(&scene_ids));
         let occupancy = if update {
-            self.update_occupancy(scene_ids.len())
+            self.update_occupancy(&scene_ids)
         } else {
             None
         };
@@ -676,7 +723,7 @@ impl Trainer {
             if used > 0 {
                 let expected = coarse::at_stride(used, scene.stride, stride);
                 scene.rays_per_batch =
-                    next_rays_per_batch(n_rays as u32, self.config.batch_samples, expected);
+                    next_rays_per_batch(n_rays as u32, self.config.scene_batch(si), expected);
             }
             scene.stride = stride;
             stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops));
@@ -1200,6 +1247,83 @@ mod tests {
             ..Default::default()
         };
         Trainer::new(model, scenes, tc).unwrap()
+    }
+
+    #[test]
+    fn the_other_scenes_batch_is_a_fraction_of_the_first_scenes() {
+        let tc = |f| TrainConfig {
+            others_batch: f,
+            ..Default::default()
+        };
+        assert_eq!(tc(0.25).scene_batch(0), 1 << 18);
+        assert_eq!(tc(0.25).scene_batch(1), 1 << 16);
+        assert_eq!(tc(1.0).scene_batch(2), 1 << 18);
+        assert_eq!(
+            tc(0.001).scene_batch(1),
+            MIN_SCENE_BATCH,
+            "at least the floor"
+        );
+        let small = TrainConfig {
+            batch_samples: 1000,
+            others_batch: 0.5,
+            ..Default::default()
+        };
+        assert_eq!(
+            small.scene_batch(1),
+            1000,
+            "never above the first scene's batch"
+        );
+    }
+
+    /// The same scene twice, the second at a quarter of the batch and from the third step:
+    /// it trains about a quarter of the samples a step (its rays adapt to its own target),
+    /// its grid is first updated when it joins, and a fraction outside (0, 1] is refused.
+    #[test]
+    fn a_smaller_batch_for_the_other_scenes_trains_fewer_of_their_samples() {
+        let dir = tempfile::tempdir().unwrap();
+        let data = tiny_scene(&dir.path().join("a"), 6);
+        let model = tiny_model();
+        let layout = NerfLayout::new(model).unwrap();
+        let specs = || {
+            (0..2)
+                .map(|_| SceneSpec {
+                    dataset: data.clone(),
+                    indices: reference_indices(&layout.grid),
+                })
+                .collect::<Vec<_>>()
+        };
+        let tc = |f| TrainConfig {
+            seed: 3,
+            // Enough samples that neither scene's rays sit at the floor of 256.
+            batch_samples: 1 << 17,
+            occupancy_fraction: 0.05,
+            occupancy_budget: Some(1.0),
+            others_batch: f,
+            solo_steps: 2,
+            workers: 2,
+            ..Default::default()
+        };
+        for bad in [0.0, -1.0, 1.5, f32::NAN] {
+            assert!(Trainer::new(model, specs(), tc(bad)).is_err(), "{bad}");
+        }
+        let mut t = Trainer::new(model, specs(), tc(0.25)).unwrap();
+        let (mut first, mut other) = (0u64, 0u64);
+        for step in 0..8 {
+            t.train_step();
+            // A grid is paid for by its own scene's samples: none while the first trains
+            // alone.
+            let updates = t.scenes[1].grid.ema_step;
+            assert_eq!(updates == 0, step < 2, "step {step}: {updates} updates");
+            if step >= 3 {
+                first += t.scenes[0].measured_samples as u64;
+                other += t.scenes[1].measured_samples as u64;
+            }
+        }
+        let ratio = other as f64 / first as f64;
+        assert!(
+            (0.18..0.4).contains(&ratio),
+            "samples: {other} of the second scene against {first} ({ratio:.3})"
+        );
     }
 
     /// While rays are long (the noise views of the tiny scene are fog at first) the coarse
