@@ -224,8 +224,10 @@ fn gather(a: &Args, work: &Path) -> Result<Gathered> {
         tools::major_minor(&version),
         &a.input,
         &probe,
-        a.frames,
-        a.max_size,
+        &video::Wanted {
+            frames: a.frames,
+            max_side: a.max_size,
+        },
         &images,
         &pb,
     )?;

@@ -153,7 +153,7 @@ mod tests {
     fn checker(w: usize, h: usize, cell: usize) -> Vec<u8> {
         (0..w * h)
             .flat_map(|i| {
-                let v = if ((i % w) / cell + (i / w) / cell) % 2 == 0 {
+                let v = if ((i % w) / cell + (i / w) / cell).is_multiple_of(2) {
                     30
                 } else {
                     220

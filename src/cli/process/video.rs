@@ -193,21 +193,27 @@ fn ffmpeg_args(
     a
 }
 
-/// Decodes `input` once and writes the sharpest frame of each of `target` equal stretches
-/// (by frame count) into `images`.
+/// The frames asked for: about `frames` of them, the long side at most `max_side` (0: as
+/// decoded).
+pub struct Wanted {
+    pub frames: usize,
+    pub max_side: u32,
+}
+
+/// Decodes `input` once and writes the sharpest frame of each of `want.frames` equal
+/// stretches (by frame count) into `images`.
 pub fn extract(
     ffmpeg: &Tool,
     ffmpeg_version: Option<(u32, u32)>,
     input: &Path,
     probe: &Probe,
-    target: usize,
-    max_side: u32,
+    want: &Wanted,
     images: &Path,
     pb: &ProgressBar,
 ) -> Result<Extracted> {
     let mut child = ffmpeg
         .command()
-        .args(ffmpeg_args(input, max_side, ffmpeg_version))
+        .args(ffmpeg_args(input, want.max_side, ffmpeg_version))
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -219,7 +225,7 @@ pub fn extract(
         s
     });
     let mut r = BufReader::with_capacity(1 << 20, child.stdout.take().expect("piped stdout"));
-    let windows = (target as u64).min(probe.frames).max(1);
+    let windows = (want.frames as u64).min(probe.frames).max(1);
     let mut out = Extracted {
         names: Vec::new(),
         decoded: 0,
