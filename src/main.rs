@@ -35,6 +35,9 @@ enum Cmd {
     Experiment(cli::experiment::Args),
     /// Write a COLMAP or LLFF capture as an instant-ngp transforms.json.
     Convert(cli::convert::Args),
+    /// A phone video or a folder of photos to a posed capture that `train` reads (ffmpeg,
+    /// then COLMAP's features, matching and mapper).
+    Process(cli::process::Args),
     /// Steganalysis: statistics of a model file that could betray a hidden scene, and a score.
     Detect(cli::detect::Args),
     /// Render a camera path (orbit, spiral, or a nerfstudio / instant-ngp path file) to an
@@ -81,6 +84,7 @@ fn main() {
         Cmd::Demo(a) => cli::demo::run(a),
         Cmd::Experiment(a) => cli::experiment::run(a),
         Cmd::Convert(a) => cli::convert::run(a),
+        Cmd::Process(a) => cli::process::run(a),
         Cmd::Detect(a) => cli::detect::run(a),
         Cmd::Video(a) => cli::video::run(a),
         Cmd::View(a) => cli::view::run(a),

@@ -311,8 +311,9 @@ pub fn render_view(scene: &Scene, c2w: &[[f32; 4]; 4], res: u32) -> Vec<u8> {
     render_pinhole(scene, c2w, res, res, focal)
 }
 
-/// [`render_view`] of a `w×h` pinhole camera of focal length `focal` pixels, centred.
-fn render_pinhole(scene: &Scene, c2w: &[[f32; 4]; 4], w: u32, h: u32, focal: f32) -> Vec<u8> {
+/// [`render_view`] of a `w×h` pinhole camera of focal length `focal` pixels, centred
+/// (camera-to-world `c2w` with OpenGL axes: the camera looks down −z, +y up).
+pub fn render_pinhole(scene: &Scene, c2w: &[[f32; 4]; 4], w: u32, h: u32, focal: f32) -> Vec<u8> {
     let o = [c2w[0][3], c2w[1][3], c2w[2][3]];
     let (half_w, half_h) = (0.5 * w as f32, 0.5 * h as f32);
     render_rgba(scene, w as usize, h as usize, |x, y| {
@@ -470,19 +471,15 @@ fn room_camera(opts: &SynthOptions) -> Result<(u32, u32, f32)> {
     Ok((w, h, 0.5 * w as f32 / (0.5 * fov).tan()))
 }
 
-/// The room scene in the instant-ngp format: `n_train + n_test` views in one list (the
-/// loader holds out every 8th), opaque RGB PNGs in `images/`, pixel intrinsics.
-fn generate_room(
-    opts: &SynthOptions,
-    out_dir: &Path,
-    t0: std::time::Instant,
-) -> Result<SynthSummary> {
+/// The room scene `opts` asks for (bare or furnished, its walls inside the box of its
+/// `aabb_scale`), and the distance from the object at which its cameras are placed: for
+/// views other than `generate`'s own, rendered with [`render_pinhole`].
+pub fn room(opts: &SynthOptions) -> Result<(Scene, f32)> {
     if opts.aabb_scale < 2 {
         return Err(Error::Config(
             "a room scene needs aabb_scale ≥ 2: its walls lie outside the unit box".into(),
         ));
     }
-    let (res, height, focal) = room_camera(opts)?;
     let half = room_half_size(opts.aabb_scale);
     let radius = room_camera_radius(opts.aabb_scale);
     let scene = if opts.room.furnished {
@@ -490,6 +487,18 @@ fn generate_room(
     } else {
         scene::room_scene(half)
     };
+    Ok((scene, radius))
+}
+
+/// The room scene in the instant-ngp format: `n_train + n_test` views in one list (the
+/// loader holds out every 8th), opaque RGB PNGs in `images/`, pixel intrinsics.
+fn generate_room(
+    opts: &SynthOptions,
+    out_dir: &Path,
+    t0: std::time::Instant,
+) -> Result<SynthSummary> {
+    let (scene, radius) = room(opts)?;
+    let (res, height, focal) = room_camera(opts)?;
     let n = opts.n_train + opts.n_val + opts.n_test;
     let images = out_dir.join("images");
     std::fs::create_dir_all(&images).map_err(|e| Error::io(&images, e))?;

@@ -2,13 +2,15 @@
 //! generated scenes loaded as datasets ([`scenes`]), keys drawn from a seed ([`keys`]), the
 //! `stegongp` program run as a user runs it ([`cli`]), small models trained through the
 //! recipe ([`models`]), comparisons of two backends' weights ([`compare`]), and the geometry
-//! that writing a COLMAP capture needs ([`geometry`]), and a headless Chromium driven over
+//! that writing a COLMAP capture and comparing poses need ([`geometry`]), a capture
+//! photographed from known cameras for `process` ([`capture`]), and a headless Chromium driven over
 //! the DevTools protocol ([`browser`]).
 //!
 //! A dev-dependency of the workspace's root package (its integration tests); it sits above
 //! every library crate, so their own unit tests cannot use it.
 
 pub mod browser;
+pub mod capture;
 pub mod cli;
 pub mod compare;
 pub mod geometry;
