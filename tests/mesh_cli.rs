@@ -252,7 +252,7 @@ fn the_hidden_scene_with_its_key_is_its_shapes_closed_and_outward() {
     let m = read_ply(out);
     assert_eq!(m.positions.len() as u64, r["vertices"].as_u64().unwrap());
     assert_eq!(m.triangles.len() as u64, r["triangles"].as_u64().unwrap());
-    let cell = cell(&r);
+    let cell = cell(r);
     let f = fit(&m, &shapes_scene(), cell, |_| true);
     let miss = completeness(&m, cell);
     let chamfer = 0.5 * (f.mean + miss);
@@ -265,7 +265,9 @@ fn the_hidden_scene_with_its_key_is_its_shapes_closed_and_outward() {
     );
     assert!(e.closed_and_oriented(), "{e:?}");
     assert!(signed_volume(&m) > 0.0);
-    assert!(f.median < 0.5 && f.p90 < 1.5, "{f:?}");
+    assert!(f.median < 0.5 && f.p90 < 1.5 && f.p99 < 3.0, "{f:?}");
+    // Cavities a young model leaves inside the ball and the box (39 % measured): bounded.
+    assert!(f.inside < 0.6, "{f:?}");
     assert!(miss < 1.0, "surface to mesh {miss}");
     assert!(chamfer < 0.75, "Chamfer {chamfer}");
     assert!(f.outward > 0.95, "{f:?}");
@@ -378,7 +380,6 @@ fn number_after(text: &str, label: &str) -> Option<u64> {
     let line = text.lines().find(|l| l.trim_start().starts_with(label))?;
     line.split(':')
         .nth(1)?
-        .trim()
         .split_whitespace()
         .next()?
         .parse()
@@ -455,6 +456,41 @@ fn assimp_and_trimesh_read_the_files_with_the_same_counts() {
 }
 
 #[test]
+fn the_gpu_meshes_what_the_cpu_meshes() {
+    if stegongp::gpu::test_context().is_none() {
+        return;
+    }
+    let f = fixture();
+    let (c, g) = (
+        f.dir.path().join("on_cpu.ply"),
+        f.dir.path().join("on_gpu.ply"),
+    );
+    let rc = mesh(&c, &["--device", "cpu"]);
+    let rg = mesh(&g, &["--device", "gpu"]);
+    assert_eq!(rg["device"]["kind"], "gpu");
+    let (mc, mg) = (read_ply(&c), read_ply(&g));
+    // The device sums in another order: a lattice point within rounding of the threshold
+    // may fall on the other side, nothing more.
+    let (nc, ng) = (mc.triangles.len() as f64, mg.triangles.len() as f64);
+    eprintln!("cpu {nc} triangles, gpu {ng}; {rc} {rg}");
+    assert!(
+        (nc - ng).abs() <= 0.002 * nc,
+        "cpu {nc}, gpu {ng} triangles"
+    );
+    let mean = |m: &Mesh| {
+        let n = m.positions.len() as f64;
+        [0, 1, 2].map(|d| m.positions.iter().map(|p| p[d] as f64).sum::<f64>() / n)
+    };
+    let (a, b) = (mean(&mc), mean(&mg));
+    let cell = cell(&rc) as f64;
+    assert!(
+        (0..3).all(|d| (a[d] - b[d]).abs() < 0.01 * cell),
+        "{a:?} vs {b:?}"
+    );
+    assert!(edges(&mg).closed_and_oriented());
+}
+
+#[test]
 fn a_threshold_above_everything_gives_an_empty_mesh_and_says_so() {
     let f = fixture();
     let out = f.dir.path().join("empty.ply");
@@ -518,6 +554,20 @@ fn bad_input_is_refused_and_nothing_is_written() {
             &["m.ply"],
         );
     }
+    // A folder in the output's place: the rename fails, naming it.
+    let taken = d.path().join("taken.ply");
+    std::fs::create_dir(&taken).unwrap();
+    fails_naming(
+        &stegongp(&[
+            "mesh",
+            model,
+            "--out",
+            path_str(&taken),
+            "--resolution",
+            "32",
+        ]),
+        &["taken.ply"],
+    );
     // A lattice beyond the memory: refused at once, with the estimate.
     let t = std::time::Instant::now();
     fails_naming(

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 use stegongp::backend::DeviceReport;
 use stegongp::ngp::mesh::frame::{Axes, Frame};
-use stegongp::ngp::mesh::lattice::occupied_box;
+use stegongp::ngp::mesh::lattice::{occupied_box, occupied_box_within};
 use stegongp::ngp::mesh::{Lattice, Mesh, colour, march, obj, ply};
 use stegongp::ngp::model::Model;
 use stegongp::stego::options::choice;
@@ -32,10 +32,16 @@ pub struct Args {
     /// (instant-ngp's --marching_cubes_density_thresh).
     #[arg(long, default_value_t = 2.5, allow_negative_numbers = true)]
     pub threshold: f32,
-    /// Crop to X0,Y0,Z0,X1,Y1,Z1, in the coordinates the mesh is written in (--axes).
-    /// Default: the occupied part of the model's box, as its occupancy grid says (with
-    /// --key, the hidden scene's grid rebuilt from the network).
-    #[arg(long, value_name = "X0,Y0,Z0,X1,Y1,Z1", allow_hyphen_values = true)]
+    /// Crop to X0,Y0,Z0,X1,Y1,Z1, in the coordinates the mesh is written in (--axes), or
+    /// to `cascade:K`, the occupied part of the occupancy grid's cascade K (0: the unit
+    /// cube of ngp space, where a capture's object sits; its background fills the outer
+    /// ones). Default: the occupied part of the model's box, as its occupancy grid says
+    /// (with --key, the hidden scene's grid rebuilt from the network).
+    #[arg(
+        long,
+        value_name = "X0,Y0,Z0,X1,Y1,Z1|cascade:K",
+        allow_hyphen_values = true
+    )]
     pub r#box: Option<String>,
     /// The frame of the written coordinates.
     #[arg(long, value_parser = choice::<Axes>(), default_value_t = Axes::InstantNgp)]
@@ -167,8 +173,22 @@ pub fn run(a: Args) -> Result<()> {
     }
     let scene = a.key.scene(&device, &model)?;
     let grid = scene.grid(&model);
-    let bounds = match &a.r#box {
-        Some(s) => Some(parse_box(s, &frame)?),
+    let bounds = match a.r#box.as_deref() {
+        Some(s) => match s.strip_prefix("cascade:") {
+            Some(k) => {
+                let k: u32 = k
+                    .parse()
+                    .with_context(|| format!("--box {s}: cascade:K with K a cascade number"))?;
+                if k > grid.max_cascade() {
+                    bail!(
+                        "--box {s}: the model has cascades 0 to {}",
+                        grid.max_cascade()
+                    );
+                }
+                occupied_box_within(grid, k)
+            }
+            None => Some(parse_box(s, &frame)?),
+        },
         None => occupied_box(grid),
     };
     let mut report = Report {

@@ -736,3 +736,41 @@ pub fn text_scene(lines: &[Vec<char>]) -> Scene {
     }
     Scene::new(objs, [0.3, -0.6, 0.75])
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn signed_distances_are_exact_on_simple_points() {
+        let close = |a: f32, b: f32| (a - b).abs() < 1e-5;
+        let ball = Shape::Sphere {
+            c: [1.0, 0.0, 0.0],
+            r: 0.5,
+        };
+        assert!(close(ball.signed_distance([1.0, 0.0, 0.0]), -0.5));
+        assert!(close(ball.signed_distance([1.0, 2.0, 0.0]), 1.5));
+        let cube = Shape::Box {
+            lo: [0.0; 3],
+            hi: [1.0; 3],
+        };
+        assert!(close(cube.signed_distance([0.5, 0.5, 0.9]), -0.1));
+        assert!(close(cube.signed_distance([2.0, 2.0, 0.5]), 2f32.sqrt()));
+        let can = Shape::Cylinder {
+            c: [0.0; 3],
+            r: 1.0,
+            z0: 0.0,
+            z1: 2.0,
+        };
+        assert!(close(can.signed_distance([0.0, 0.0, 1.8]), -0.2));
+        assert!(close(can.signed_distance([3.0, 0.0, 3.0]), 5f32.sqrt()));
+        // A unit square prism along y from 0 to 1.
+        let p = prism([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], 0.0, 1.0);
+        assert!(close(p.signed_distance([0.5, 0.5, 0.8]), -0.2));
+        assert!(close(p.signed_distance([2.0, 0.5, 0.5]), 1.0));
+        assert!(close(p.signed_distance([2.0, 2.0, 2.0]), 3f32.sqrt()));
+        let s = shapes_scene();
+        assert!(close(s.signed_distance([-0.5, 0.15, 0.05]), -0.5));
+        assert!(s.signed_distance([0.0, 0.0, 1.5]) > 0.5);
+    }
+}

@@ -89,10 +89,17 @@ impl Lattice {
 /// `None` when no cell does. Each cascade counts only where it is the one read (outside
 /// the next finer one).
 pub fn occupied_box(grid: &OccupancyGrid) -> Option<([f32; 3], [f32; 3])> {
+    occupied_box_within(grid, grid.max_cascade())
+}
+
+/// [`occupied_box`] of cascades `0..=cascade` only, within cascade `cascade`'s cube (a
+/// capture's object without the background that fills the outer cascades).
+pub fn occupied_box_within(grid: &OccupancyGrid, cascade: u32) -> Option<([f32; 3], [f32; 3])> {
     let max_cascade = grid.max_cascade();
+    let last = cascade.min(max_cascade) as usize;
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
-    for c in 0..grid.n_cascades {
+    for c in 0..=last {
         let s = (c as f32).exp2();
         let cell = s / GRID_SIZE as f32;
         let cells = &grid.density[c * N_CELLS..(c + 1) * N_CELLS];
@@ -121,8 +128,8 @@ pub fn occupied_box(grid: &OccupancyGrid) -> Option<([f32; 3], [f32; 3])> {
     if lo[0] > hi[0] {
         return None;
     }
-    // Not past the model's box.
-    let h = 0.5 * (grid.n_cascades as f32 - 1.0).exp2();
+    // Not past the cascade's cube (the model's box for the last).
+    let h = 0.5 * (last as f32).exp2();
     Some((lo.map(|v| v.max(0.5 - h)), hi.map(|v| v.min(0.5 + h))))
 }
 
@@ -410,6 +417,7 @@ mod tests {
         assert!(out.evaluated < l.points() * 9 / 10 && out.evaluated > l.points() / 2);
         assert!(edges(&out.mesh).closed_and_oriented());
         assert_eq!(euler_characteristic(&out.mesh), 2);
+        assert_eq!(occupied_box_within(&grid, 0), Some((lo, hi)));
         // An empty grid: no box.
         grid.density.fill(0.0);
         assert!(occupied_box(&grid).is_none());
