@@ -615,8 +615,10 @@ fn bad_input_is_refused_and_nothing_is_written() {
         .map(|e| e.unwrap().file_name())
         .collect();
     assert!(
-        left.iter().all(|n| n == "junk.ingp" || n == "ro"),
+        left.iter()
+            .all(|n| n == "junk.ingp" || n == "ro" || n == "taken.ply"),
         "left behind: {left:?}"
     );
     assert!(std::fs::read_dir(&ro).unwrap().next().is_none());
+    assert!(std::fs::read_dir(&taken).unwrap().next().is_none());
 }
