@@ -353,7 +353,9 @@ mod tests {
             )
             .unwrap()
             .mesh;
-            assert_eq!(calls, 64usize.div_ceil(per));
+            // A slab of the outermost layers only (z 0 or 63) has nothing to evaluate and
+            // asks for no densities.
+            assert_eq!(calls, if per == 1 { 62 } else { 64usize.div_ceil(per) });
             assert_eq!(sliced, whole, "slabs of {per} layers");
         }
     }
