@@ -48,6 +48,9 @@ enum Cmd {
     View(cli::view::Args),
     /// The GPU adapters found, the one `--device gpu` opens and its limits.
     Devices(cli::devices::Args),
+    /// The surface of the cover (or with --key of a hidden scene) as a coloured PLY or OBJ
+    /// mesh, by marching cubes on the network's density.
+    Mesh(cli::mesh::Args),
 }
 
 /// Mesa's device-select Vulkan layer, which the loader runs in every program that opens
@@ -89,6 +92,7 @@ fn main() {
         Cmd::Video(a) => cli::video::run(a),
         Cmd::View(a) => cli::view::run(a),
         Cmd::Devices(a) => cli::devices::run(a),
+        Cmd::Mesh(a) => cli::mesh::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

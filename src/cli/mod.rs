@@ -9,6 +9,7 @@ pub mod eval;
 pub mod experiment;
 pub mod inspect;
 pub mod keygen;
+pub mod mesh;
 pub mod process;
 pub mod render;
 pub mod synth;

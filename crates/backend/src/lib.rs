@@ -293,6 +293,37 @@ impl Device {
     }
 }
 
+/// The raw density output (log-density) of a model's field at ngp-space positions, on the
+/// device that made it: what a mesh's lattice asks for, slab after slab.
+pub type DensityFn<'a> = Box<dyn FnMut(&[[f32; 3]]) -> Result<Vec<f32>> + 'a>;
+
+impl Device {
+    /// `model`'s density field under `indices` on this device (the GPU uploads the weights
+    /// once, here).
+    pub fn density_field<'a>(
+        &'a self,
+        model: &'a Model,
+        indices: &'a LevelIndices,
+    ) -> Result<DensityFn<'a>> {
+        match self {
+            Device::Cpu { .. } => {
+                let marcher = model.marcher();
+                Ok(Box::new(move |pos: &[[f32; 3]]| {
+                    let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
+                    Ok(model.net.density_batch(model.params(), indices, &warped))
+                }))
+            }
+            #[cfg(feature = "gpu")]
+            Device::Gpu(ctx) => {
+                let mut probe = gpu::DensityProbe::new(ctx, model, indices).map_err(gpu_error)?;
+                Ok(Box::new(move |pos: &[[f32; 3]]| {
+                    probe.log_densities(ctx, pos).map_err(gpu_error)
+                }))
+            }
+        }
+    }
+}
+
 #[cfg(feature = "gpu")]
 fn gpu_error(e: gpu::GpuError) -> Error {
     e.into()

@@ -34,7 +34,9 @@ pub use occupancy::GpuOccupancy;
 pub use optimizer::GpuOptimizer;
 pub use rays::{GenRay, MarchedHost, RAYS_WGSL, RayBatch, RayKernels};
 pub use render::{CompositeKernel, RayState, WaveSamples};
-pub use renderer::{GpuRenderer, RenderWaits, rebuild_occupancy_gpu, refine_occupancy_gpu};
+pub use renderer::{
+    DensityProbe, GpuRenderer, RenderWaits, rebuild_occupancy_gpu, refine_occupancy_gpu,
+};
 pub use trainer::GpuTrainer;
 
 use std::sync::OnceLock;

@@ -778,6 +778,46 @@ pub fn refine_occupancy_gpu(
     }
 }
 
+/// A model's density field on the device under one index, asked for many batches of
+/// positions (a mesh's lattice, slab after slab) with the weights uploaded once.
+pub struct DensityProbe {
+    field: GpuField,
+    marcher: Marcher,
+    points: wgpu::Buffer,
+    scratch: DensityScratch,
+}
+
+impl DensityProbe {
+    pub fn new(ctx: &GpuContext, model: &Model, indices: &LevelIndices) -> GpuResult<Self> {
+        let field = GpuField::new(ctx, &model.net.layout, model.params(), indices)?;
+        let points = ctx.scoped("probe positions", || {
+            device_buffer(ctx, "probe positions", 12 * u64::from(REBUILD_CHUNK))
+        })?;
+        Ok(DensityProbe {
+            field,
+            marcher: model.marcher(),
+            points,
+            scratch: DensityScratch::default(),
+        })
+    }
+
+    /// The raw density output (log-density) at ngp-space `positions`.
+    pub fn log_densities(
+        &mut self,
+        ctx: &GpuContext,
+        positions: &[[f32; 3]],
+    ) -> GpuResult<Vec<f32>> {
+        densities_on_device(
+            ctx,
+            &self.field,
+            &self.marcher,
+            positions,
+            &self.points,
+            &mut self.scratch,
+        )
+    }
+}
+
 /// Log-densities of `field` at ngp-space `positions`, in chunks of [`REBUILD_CHUNK`] warped
 /// into `buf`.
 fn densities_on_device(

@@ -10,6 +10,7 @@ pub mod encoding;
 pub mod error;
 pub mod eval;
 pub mod lpips;
+pub mod mesh;
 pub mod metrics;
 pub mod model;
 pub mod network;

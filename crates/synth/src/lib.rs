@@ -25,7 +25,7 @@ use ngp::error::{Error, Result};
 use ngp::rng::Pcg32;
 use ngp::util::{write_atomic, write_atomic_with};
 use rayon::prelude::*;
-use scene::{Scene, V3, cross, normalize, object_scene, text_scene};
+use scene::{Scene, V3, cross, normalize, object_scene, shapes_scene, text_scene};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -49,6 +49,9 @@ pub enum SceneKind {
     Room,
     /// A generated 3-D logo ([`logo::Logo`]), drawn from [`SynthOptions::seed`].
     Logo,
+    /// A ball and a box of known surfaces ([`scene::shapes_scene`]), seen from all round
+    /// (training views below the horizon too): what a mesh is measured against.
+    Shapes,
 }
 
 impl SceneKind {
@@ -59,6 +62,7 @@ impl SceneKind {
             SceneKind::Text(_) => "text",
             SceneKind::Logo => "logo",
             SceneKind::Room => "room",
+            SceneKind::Shapes => "shapes",
         }
     }
 
@@ -81,6 +85,7 @@ impl clap::ValueEnum for SceneKind {
             SceneKind::Text(String::new()),
             SceneKind::Logo,
             SceneKind::Room,
+            SceneKind::Shapes,
         ];
         KINDS
     }
@@ -97,6 +102,9 @@ impl clap::ValueEnum for SceneKind {
                 "The object inside a room, cameras inside the room: a capture-like unbounded \
                  scene in the instant-ngp format (needs --aabb-scale ≥ 2)"
             }
+            SceneKind::Shapes => {
+                "A ball and a box of known surfaces, seen from all round (for measuring meshes)"
+            }
         };
         Some(clap::builder::PossibleValue::new(self.name()).help(help))
     }
@@ -107,6 +115,7 @@ impl clap::ValueEnum for SceneKind {
 pub fn bounded_scene(kind: &SceneKind, seed: u64) -> Result<(Scene, String)> {
     Ok(match kind {
         SceneKind::Object => (object_scene(), "object".to_string()),
+        SceneKind::Shapes => (shapes_scene(), "shapes".to_string()),
         SceneKind::Text(t) => (text_scene(&layout_text(t)?), format!("text {t:?}")),
         SceneKind::Logo => {
             let l = logo::Logo::from_seed(seed);
@@ -282,15 +291,17 @@ fn hemisphere(azimuth: f32, elevation: f32) -> V3 {
     ]
 }
 
-/// Poses of a split: random on the upper hemisphere (train) or rings at a few elevations.
-fn poses(n: usize, random: bool, seed: u64, stream: u64) -> Vec<[[f32; 4]; 4]> {
+/// Poses of a split: random on the upper hemisphere (train; the whole sphere but the poles
+/// when `all_round`) or rings at a few elevations.
+fn poses(n: usize, random: bool, all_round: bool, seed: u64, stream: u64) -> Vec<[[f32; 4]; 4]> {
     let mut rng = Pcg32::new(seed, stream);
+    let lowest: f32 = if all_round { -80.0 } else { 8.0 };
     (0..n)
         .map(|i| {
             let pos = if random {
-                // Uniform over the cap between 8° and 80° of elevation.
-                let z = (8f32.to_radians().sin())
-                    + rng.next_f32() * (80f32.to_radians().sin() - 8f32.to_radians().sin());
+                // Uniform over the band between `lowest` and 80° of elevation.
+                let z = (lowest.to_radians().sin())
+                    + rng.next_f32() * (80f32.to_radians().sin() - lowest.to_radians().sin());
                 hemisphere(rng.next_f32() * std::f32::consts::TAU, z.asin())
             } else {
                 let elev = [30.0f32, 15.0, 50.0][i % 3].to_radians();
@@ -411,7 +422,13 @@ pub fn generate(opts: &SynthOptions, out_dir: &Path) -> Result<SynthSummary> {
         }
         let dir = out_dir.join(split);
         std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-        let ps = poses(n, random, opts.seed, stream);
+        let ps = poses(
+            n,
+            random,
+            opts.scene == SceneKind::Shapes,
+            opts.seed,
+            stream,
+        );
         for (i, p) in ps.iter().enumerate() {
             let rgba = render_view(&scene, p, opts.resolution);
             let path = dir.join(format!("r_{i}.png"));
@@ -568,7 +585,7 @@ mod tests {
 
     #[test]
     fn cameras_look_at_the_origin() {
-        for p in poses(20, true, 5, 1) {
+        for p in poses(20, true, false, 5, 1) {
             let pos = [p[0][3], p[1][3], p[2][3]];
             let r = scene::dot(pos, pos).sqrt();
             assert!((r - CAMERA_RADIUS).abs() < 1e-4);
@@ -650,8 +667,8 @@ mod tests {
         assert_eq!(json["frames"].as_array().unwrap().len(), 3);
         assert_eq!(json["frames"][0]["file_path"], "./train/r_0");
         assert!(!d.path().join("a/transforms_val.json").exists());
-        let other = poses(3, true, 5, 1);
-        assert_ne!(other, poses(3, true, 4, 1));
+        let other = poses(3, true, false, 5, 1);
+        assert_ne!(other, poses(3, true, false, 4, 1));
     }
 
     /// A furnished room photographed as a phone does (3:2, 65°) loads as a capture: the

@@ -300,6 +300,62 @@ impl Shape {
     }
 }
 
+impl Shape {
+    /// The distance from `p` to the shape's surface, negative inside: what a test measures
+    /// a mesh against.
+    pub fn signed_distance(&self, p: V3) -> f32 {
+        // Signed distances along each direction of a box-like extent, combined as a box's.
+        let boxed = |out: &[f32]| {
+            let inner = out.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+            if inner <= 0.0 {
+                inner
+            } else {
+                out.iter().map(|v| v.max(0.0).powi(2)).sum::<f32>().sqrt()
+            }
+        };
+        match *self {
+            Shape::Sphere { c, r } => dot(sub(p, c), sub(p, c)).sqrt() - r,
+            Shape::Box { lo, hi } => boxed(&[0, 1, 2].map(|k| (lo[k] - p[k]).max(p[k] - hi[k]))),
+            Shape::Cylinder { c, r, z0, z1 } => {
+                let radial = ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2)).sqrt() - r;
+                boxed(&[radial, (z0 - p[2]).max(p[2] - z1)])
+            }
+            Shape::Prism { pts, y0, y1 } => {
+                let q = [p[0], p[2]];
+                // Signed distance to the convex polygon: the largest edge-plane distance
+                // inside; the nearest edge segment outside.
+                let (mut plane, mut seg) = (f32::NEG_INFINITY, f32::INFINITY);
+                for i in 0..4 {
+                    let (a, b) = (pts[i], pts[(i + 1) % 4]);
+                    let e = [b[0] - a[0], b[1] - a[1]];
+                    let len2 = e[0] * e[0] + e[1] * e[1];
+                    if len2 < 1e-18 {
+                        continue;
+                    }
+                    let w = [q[0] - a[0], q[1] - a[1]];
+                    plane = plane.max((e[1] * w[0] - e[0] * w[1]) / len2.sqrt());
+                    let t = ((w[0] * e[0] + w[1] * e[1]) / len2).clamp(0.0, 1.0);
+                    seg = seg.min(((w[0] - t * e[0]).powi(2) + (w[1] - t * e[1]).powi(2)).sqrt());
+                }
+                let planar = if plane > 0.0 { seg } else { plane };
+                boxed(&[planar, (y0 - p[1]).max(p[1] - y1)])
+            }
+        }
+    }
+}
+
+impl Scene {
+    /// The signed distance from `p` to the union of the scene's objects (the backdrop
+    /// aside), negative inside one: exact outside, and inside as deep as the deepest
+    /// object's.
+    pub fn signed_distance(&self, p: V3) -> f32 {
+        self.objects
+            .iter()
+            .map(|o| o.shape.signed_distance(p))
+            .fold(f32::INFINITY, f32::min)
+    }
+}
+
 impl Material {
     pub fn albedo(&self, p: V3) -> V3 {
         match *self {
@@ -567,6 +623,30 @@ pub fn object_scene() -> Scene {
     Scene::new(objs, [0.5, -0.4, 0.8])
 }
 
+/// The shapes scene: a ball and a box apart, nothing else, whose surfaces a test knows
+/// exactly ([`Scene::distance`]): a mesh of a model trained on it is measured against them.
+pub fn shapes_scene() -> Scene {
+    let objs = vec![
+        Object {
+            shape: Shape::Sphere {
+                c: [-0.5, 0.15, 0.05],
+                r: 0.5,
+            },
+            material: Material::HueStripes(2.5),
+            specular: 0.0,
+        },
+        Object {
+            shape: Shape::Box {
+                lo: [0.2, -0.55, -0.45],
+                hi: [0.9, 0.25, 0.35],
+            },
+            material: Material::Grid([0.95, 0.75, 0.2], [0.3, 0.15, 0.6], 0.2),
+            specular: 0.0,
+        },
+    ];
+    Scene::new(objs, [0.5, -0.4, 0.8])
+}
+
 /// The object scene inside a room: walls at `half_size` around the origin, the floor half
 /// as far below. Cameras stand inside the room, so the walls are a background far
 /// from the object that every view shows (the layout of a real capture).
@@ -699,4 +779,42 @@ pub fn text_scene(lines: &[Vec<char>]) -> Scene {
         }
     }
     Scene::new(objs, [0.3, -0.6, 0.75])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn signed_distances_are_exact_on_simple_points() {
+        let close = |a: f32, b: f32| (a - b).abs() < 1e-5;
+        let ball = Shape::Sphere {
+            c: [1.0, 0.0, 0.0],
+            r: 0.5,
+        };
+        assert!(close(ball.signed_distance([1.0, 0.0, 0.0]), -0.5));
+        assert!(close(ball.signed_distance([1.0, 2.0, 0.0]), 1.5));
+        let cube = Shape::Box {
+            lo: [0.0; 3],
+            hi: [1.0; 3],
+        };
+        assert!(close(cube.signed_distance([0.5, 0.5, 0.9]), -0.1));
+        assert!(close(cube.signed_distance([2.0, 2.0, 0.5]), 2f32.sqrt()));
+        let can = Shape::Cylinder {
+            c: [0.0; 3],
+            r: 1.0,
+            z0: 0.0,
+            z1: 2.0,
+        };
+        assert!(close(can.signed_distance([0.0, 0.0, 1.8]), -0.2));
+        assert!(close(can.signed_distance([3.0, 0.0, 3.0]), 5f32.sqrt()));
+        // A unit square prism along y from 0 to 1.
+        let p = prism([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]], 0.0, 1.0);
+        assert!(close(p.signed_distance([0.5, 0.5, 0.8]), -0.2));
+        assert!(close(p.signed_distance([2.0, 0.5, 0.5]), 1.0));
+        assert!(close(p.signed_distance([2.0, 2.0, 2.0]), 3f32.sqrt()));
+        let s = shapes_scene();
+        assert!(close(s.signed_distance([-0.5, 0.15, 0.05]), -0.5));
+        assert!(s.signed_distance([0.0, 0.0, 1.5]) > 0.5);
+    }
 }
