@@ -4,7 +4,7 @@
 //! placed by linear interpolation as instant-ngp's `gen_vertices` places it.
 
 use super::Mesh;
-use super::table::{edge_corners, table};
+use super::table::{edge_corners, sub, table};
 
 /// No vertex on this edge.
 const NONE: u32 = u32::MAX;
@@ -237,8 +237,4 @@ impl Cubes {
         }
         self.mesh.triangles.push(ids);
     }
-}
-
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }

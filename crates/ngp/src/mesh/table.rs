@@ -58,7 +58,7 @@ pub fn table() -> &'static Table {
 
 type V = [f32; 3];
 
-fn sub(a: V, b: V) -> V {
+pub(super) fn sub(a: V, b: V) -> V {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
