@@ -24,9 +24,10 @@
 //! they were trained with and their scores; a rerun reuses every model whose sidecar
 //! matches, so an interrupted run resumes.
 
+use super::jobs::{Action, PlannedModel};
 use super::report::{Report, Table};
 use super::setup::{ExpConfig, Experiment, train_pair};
-use super::store::reuse_or_train;
+use super::store::{read_stored, reuse_or_train};
 use ngp::data::save_png_rgb;
 use ngp::error::{Error, Result};
 use ngp::rng::Pcg32;
@@ -375,7 +376,9 @@ fn model_config(
     v
 }
 
-/// Trains (or reuses) one model and analyses its file.
+/// Trains (or reuses) one model and analyses its file, as the run's
+/// [`JobMode`](crate::JobMode) says: `None` where this run scores nothing, or where a
+/// partial report lacks the model.
 fn model(
     cfg: &ExpConfig,
     arm: Arm,
@@ -383,13 +386,75 @@ fn model(
     scenes: (&Path, &Path),
     hidden_kind: &str,
     models_dir: &Path,
-) -> Result<ModelRecord> {
+) -> Result<Option<ModelRecord>> {
     let seed = arm.training_seed(pair_seed(cfg.seed, i));
     let combo = combination(i);
     let config = model_config(cfg, arm, scenes, seed, combo);
     let stem = format!("{}_{i:02}", arm.name());
     let path = models_dir.join(format!("{stem}.ingp"));
-    let (info, _) = reuse_or_train(&path, &config, cfg.verbose, cfg.save_every, |state| {
+    let n_scenes = if arm.hides() { 2 } else { 1 };
+    let planned = PlannedModel {
+        id: format!("detectability-{stem}"),
+        label: format!("{} model of pair {i}", arm.name()),
+        output: path.clone(),
+        inputs: if arm.hides() {
+            vec![scenes.0.to_path_buf(), scenes.1.to_path_buf()]
+        } else {
+            vec![scenes.0.to_path_buf()]
+        },
+        after: Vec::new(),
+        steps: Some(cfg.steps as u64 * n_scenes),
+        samples: Some(cfg.steps as u64 * n_scenes * cfg.batch as u64),
+        seconds: None,
+    };
+    let id = planned.id.clone();
+    let info = match cfg.jobs.action(planned) {
+        Action::Train => Some(train_model(cfg, arm, i, scenes, &path, &config)?),
+        Action::PassOver => None,
+        Action::Read => {
+            let v = read_stored(&path, &config);
+            if v.is_none() {
+                cfg.jobs.missing(&id, &path)?;
+            }
+            v
+        }
+    };
+    let Some(info) = info.filter(|_| cfg.jobs.scores()) else {
+        return Ok(None);
+    };
+    let t0 = Instant::now();
+    let analysis = analyse_file(&path)?;
+    let features = analysis.features();
+    Ok(Some(ModelRecord {
+        arm,
+        index: i,
+        scheme: arm.hides().then_some(combo.0),
+        schedule: combo.1,
+        hidden_kind: hidden_kind.into(),
+        cover_psnr: info["cover_psnr"].as_f64().unwrap_or(f64::NAN),
+        hidden_psnr: info["hidden_psnr"].as_f64(),
+        cover_lpips: info["cover_lpips"].as_f64(),
+        hidden_lpips: info["hidden_lpips"].as_f64(),
+        train_s: info["train_s"].as_f64().unwrap_or(f64::NAN),
+        eval_s: info["eval_s"].as_f64().unwrap_or(f64::NAN),
+        analyse_s: t0.elapsed().as_secs_f64(),
+        features,
+    }))
+}
+
+/// Trains (or reuses) the model of `arm` on pair `i` and records its scores beside it.
+fn train_model(
+    cfg: &ExpConfig,
+    arm: Arm,
+    i: usize,
+    scenes: (&Path, &Path),
+    path: &Path,
+    config: &Value,
+) -> Result<Value> {
+    let seed = arm.training_seed(pair_seed(cfg.seed, i));
+    let combo = combination(i);
+    let stem = format!("{}_{i:02}", arm.name());
+    let (info, _) = reuse_or_train(path, config, cfg.verbose, cfg.save_every, |state| {
         let mcfg = ExpConfig {
             cover: scenes.0.to_path_buf(),
             hidden: vec![scenes.1.to_path_buf()],
@@ -421,24 +486,7 @@ fn model(
         });
         Ok((run.model, fields.as_object().cloned().unwrap_or_default()))
     })?;
-    let t0 = Instant::now();
-    let analysis = analyse_file(&path)?;
-    let features = analysis.features();
-    Ok(ModelRecord {
-        arm,
-        index: i,
-        scheme: arm.hides().then_some(combo.0),
-        schedule: combo.1,
-        hidden_kind: hidden_kind.into(),
-        cover_psnr: info["cover_psnr"].as_f64().unwrap_or(f64::NAN),
-        hidden_psnr: info["hidden_psnr"].as_f64(),
-        cover_lpips: info["cover_lpips"].as_f64(),
-        hidden_lpips: info["hidden_lpips"].as_f64(),
-        train_s: info["train_s"].as_f64().unwrap_or(f64::NAN),
-        eval_s: info["eval_s"].as_f64().unwrap_or(f64::NAN),
-        analyse_s: t0.elapsed().as_secs_f64(),
-        features,
-    })
+    Ok(info)
 }
 
 // ---------------------------------------------------------------------------------------
@@ -731,15 +779,12 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             );
         }
         for &arm in &arms {
-            models.push(model(
-                cfg,
-                arm,
-                i,
-                (&cover_dir, &hidden_dir),
-                &hidden_kind,
-                &models_dir,
-            )?);
+            let scenes = (cover_dir.as_path(), hidden_dir.as_path());
+            models.extend(model(cfg, arm, i, scenes, &hidden_kind, &models_dir)?);
         }
+    }
+    if !cfg.jobs.scores() {
+        return Ok(Report::default());
     }
     let wall = t_all.elapsed().as_secs_f64();
     let n_fit = opts.models.div_ceil(2);
@@ -1050,7 +1095,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             )
         })
         .collect();
-    report.notes.push(format!(
+    report.run_notes.push(format!(
         "Mean per model (training time as recorded when the model was trained): {}. This run: {wall:.0} s for {} models, {} threads.",
         timing.join("; "),
         models.len(),
@@ -1070,6 +1115,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         .collect();
     let text = serde_json::to_string_pretty(&feats).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&out.join("features.json"), text.as_bytes())?;
+    report.missing_jobs = cfg.jobs.missing_jobs();
     report.write(out)?;
     Ok(report)
 }
@@ -1137,6 +1183,7 @@ mod tests {
             verbose: false,
             device: std::sync::Arc::new(Device::default()),
             save_every: None,
+            jobs: Default::default(),
         }
     }
 

@@ -3,6 +3,7 @@
 //! PNG image grids into its output directory.
 
 pub mod detectability;
+pub mod jobs;
 pub mod pairs;
 pub mod report;
 pub mod runs;
@@ -10,6 +11,7 @@ pub mod setup;
 mod store;
 
 pub use detectability::{DetectOptions, run_detectability};
+pub use jobs::{JobMode, PlannedModel};
 pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};
 pub use runs::run_experiment;
 pub use setup::{ExpConfig, Experiment};

@@ -14,11 +14,12 @@
 //! whose sidecar matches, so rerunning the report trains nothing. A scene used by several
 //! pairs is trained once (per box and budget).
 
+use super::jobs::{Action, PlannedModel, is_placeholder, placeholder};
 use super::report::{Report, Table, save_grid};
 use super::setup::{
     Budget, ExpConfig, Experiment, Scene, experiment_key, load_scene, train_scenes,
 };
-use super::store::{ModelState, reuse_or_train};
+use super::store::{ModelState, read_stored, reuse_or_train};
 use ngp::error::{Error, Result};
 use ngp::eval::{ground_truth, spread_views};
 use ngp::lpips::Lpips;
@@ -215,6 +216,9 @@ fn scene_label(p: &Path) -> String {
 struct Models<'a> {
     cfg: &'a ExpConfig,
     dir: PathBuf,
+    /// The current pair's model configuration and cover's training set (placeholders
+    /// take their size and cameras).
+    current: Option<(ModelConfig, std::sync::Arc<ngp::data::Dataset>)>,
     trained: usize,
     reused: usize,
 }
@@ -242,15 +246,38 @@ impl Models<'_> {
     }
 
     /// Reuses the model whose sidecar holds `config`, or trains it with `train` and stores
-    /// it (model first, sidecar last: a model without its sidecar is trained again).
+    /// it (model first, sidecar last: a model without its sidecar is trained again) — as
+    /// the run's [`JobMode`](crate::JobMode) says. Its job's id is `stem` and a tag of
+    /// `id_key`, what names the model before its budget is known (a `--minutes` budget is
+    /// the steps another job reaches, `after`).
     fn get(
         &mut self,
-        stem: &str,
+        job: PairJob,
         config: Value,
         train: impl FnOnce(Option<&mut ModelState>) -> Result<(Model, u32, f64)>,
     ) -> Result<Stored> {
         let tag = format!("{:016x}", fnv64(&config.to_string()));
-        let path = self.dir.join(format!("{stem}-{}.ingp", &tag[..8]));
+        let path = self.dir.join(format!("{}-{}.ingp", job.stem, &tag[..8]));
+        let id = job.id();
+        let planned = PlannedModel {
+            id: id.clone(),
+            label: job.label,
+            // A budget another job measures names the file only once it is measured.
+            output: if job.after.is_empty() {
+                path.clone()
+            } else {
+                self.dir.join(format!("{}-*.ingp", job.stem))
+            },
+            inputs: job.inputs,
+            after: job.after,
+            steps: job.steps,
+            samples: job.steps.map(|s| s * self.cfg.batch as u64),
+            seconds: job.seconds,
+        };
+        let action = self.cfg.jobs.action(planned);
+        if action != Action::Train {
+            return self.not_trained(&id, &path, &config, action);
+        }
         let every = self.cfg.save_every;
         let (v, reused) = reuse_or_train(&path, &config, self.cfg.verbose, every, |state| {
             let (model, steps, train_s) = train(state)?;
@@ -262,13 +289,76 @@ impl Models<'_> {
         } else {
             self.trained += 1;
         }
-        // Score what the file holds (half-precision weights), as a rerun does.
+        let model = if self.cfg.jobs.scores() {
+            // Score what the file holds (half-precision weights), as a rerun does.
+            Model::load(&path)?
+        } else {
+            self.stand_in()?
+        };
         Ok(Stored {
-            model: Model::load(&path)?,
+            model,
             steps: v["steps"].as_u64().unwrap_or(0) as u32,
             train_s: v["train_s"].as_f64().unwrap_or(f64::NAN),
             reused,
         })
+    }
+
+    fn stand_in(&self) -> Result<Model> {
+        match &self.current {
+            Some((config, dataset)) => placeholder(*config, dataset),
+            None => Err(Error::Other("pairs: no pair loaded".into())),
+        }
+    }
+
+    /// A model this run does not train: read from its job's file (collect), or a
+    /// placeholder with the steps its sidecar records, when there is one (a job whose
+    /// budget another job measured reads it there).
+    fn not_trained(
+        &mut self,
+        id: &str,
+        path: &Path,
+        config: &Value,
+        action: Action,
+    ) -> Result<Stored> {
+        let side = read_stored(path, config);
+        let model = match (&side, action) {
+            (Some(_), Action::Read) => {
+                self.reused += 1;
+                Model::load(path)?
+            }
+            (None, Action::Read) => {
+                self.cfg.jobs.missing(id, path)?;
+                self.stand_in()?
+            }
+            _ => self.stand_in()?,
+        };
+        let v = side.unwrap_or(Value::Null);
+        Ok(Stored {
+            model,
+            // A budget not yet measured: one step stands in (a plan records no budget).
+            steps: v["steps"].as_u64().unwrap_or(1) as u32,
+            train_s: v["train_s"].as_f64().unwrap_or(f64::NAN),
+            reused: true,
+        })
+    }
+}
+
+/// A model of a pair as a job.
+struct PairJob {
+    stem: String,
+    /// What names the model before its budget is known.
+    id_key: Value,
+    label: String,
+    inputs: Vec<PathBuf>,
+    after: Vec<String>,
+    steps: Option<u64>,
+    seconds: Option<f64>,
+}
+
+impl PairJob {
+    fn id(&self) -> String {
+        let tag = format!("{:016x}", fnv64(&self.id_key.to_string()));
+        format!("pairs-{}-{}", self.stem, &tag[..8])
     }
 }
 
@@ -387,6 +477,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
     let mut models = Models {
         cfg,
         dir: models_dir,
+        current: None,
         trained: 0,
         reused: 0,
     };
@@ -416,23 +507,53 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             grid: cfg.grid,
             aabb_scale: box_scale,
         };
+        models.current = Some((config, cover.train.clone()));
         let base = models.base_config(box_scale);
         let budget_json = match opts.minutes {
             Some(m) => json!({"minutes": m.to_string()}),
             None => json!({"steps": cfg.steps}),
         };
-        let plain_c = models.get(
-            &format!("plain-{cl}"),
-            json!({"base": base, "role": "plain", "scene": cover_dir, "downscale": cfg.downscale, "budget": budget_json}),
-            |state| {
-                let budget = match opts.minutes {
-                    Some(m) => Budget::Seconds(m * 60.0),
-                    None => Budget::Steps(cfg.steps),
-                };
-                let t = train_scenes(cfg, config, &[(&cover, &pi)], budget, &format!("plain {cl}"), state)?;
-                Ok((t.model, t.steps, t.seconds))
-            },
-        )?;
+        let plain_c_config = json!({"base": base, "role": "plain", "scene": cover_dir, "downscale": cfg.downscale, "budget": budget_json});
+        let job = |stem: String,
+                   id_key: Value,
+                   label: String,
+                   inputs: Vec<PathBuf>,
+                   after: Vec<String>,
+                   scenes: u64| PairJob {
+            stem,
+            id_key,
+            label,
+            inputs,
+            after,
+            steps: opts.minutes.is_none().then_some(cfg.steps as u64 * scenes),
+            seconds: opts.minutes.map(|m| m * 60.0 * scenes as f64),
+        };
+        let plain_c_job = job(
+            format!("plain-{cl}"),
+            plain_c_config.clone(),
+            format!("plain {cl}"),
+            vec![cover_dir.clone()],
+            vec![],
+            1,
+        );
+        // A --minutes budget is the steps the plain cover reaches: its pair's other models
+        // wait for it.
+        let after: Vec<String> = opts.minutes.map(|_| plain_c_job.id()).into_iter().collect();
+        let plain_c = models.get(plain_c_job, plain_c_config, |state| {
+            let budget = match opts.minutes {
+                Some(m) => Budget::Seconds(m * 60.0),
+                None => Budget::Steps(cfg.steps),
+            };
+            let t = train_scenes(
+                cfg,
+                config,
+                &[(&cover, &pi)],
+                budget,
+                &format!("plain {cl}"),
+                state,
+            )?;
+            Ok((t.model, t.steps, t.seconds))
+        })?;
         let steps = plain_c.steps;
         if steps == 0 {
             return Err(Error::Other(format!(
@@ -440,11 +561,28 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
                 cover_dir.display()
             )));
         }
+        let plain_h_config = json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps});
+        let mut id_key = plain_h_config.clone();
+        id_key["steps"] = json!({"budget": budget_json, "of": cover_dir});
         let plain_h = models.get(
-            &format!("plain-{hl}"),
-            json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps}),
+            job(
+                format!("plain-{hl}"),
+                id_key,
+                format!("plain {hl}"),
+                vec![hidden_dir.clone()],
+                after.clone(),
+                1,
+            ),
+            plain_h_config,
             |state| {
-                let t = train_scenes(cfg, config, &[(&hidden, &pi)], Budget::Steps(steps), &format!("plain {hl}"), state)?;
+                let t = train_scenes(
+                    cfg,
+                    config,
+                    &[(&hidden, &pi)],
+                    Budget::Steps(steps),
+                    &format!("plain {hl}"),
+                    state,
+                )?;
                 Ok((t.model, t.steps, t.seconds))
             },
         )?;
@@ -471,7 +609,17 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         if cfg.stealth() {
             cfg.record_density_cap(&mut stego_config);
         }
-        let stego = models.get(&format!("stego-{cl}-{hl}"), stego_config, |state| {
+        let mut id_key = stego_config.clone();
+        id_key["steps"] = json!({"budget": budget_json});
+        let stego_job = job(
+            format!("stego-{cl}-{hl}"),
+            id_key,
+            format!("stego {cl} + {hl}"),
+            vec![cover_dir.clone(), hidden_dir.clone()],
+            after,
+            2,
+        );
+        let stego = models.get(stego_job, stego_config, |state| {
             let t = train_scenes(
                 cfg,
                 config,
@@ -482,6 +630,16 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             )?;
             Ok((t.model, t.steps, t.seconds))
         })?;
+        if !cfg.jobs.scores() {
+            continue;
+        }
+        if [&plain_c, &plain_h, &stego]
+            .iter()
+            .any(|m| is_placeholder(&m.model))
+        {
+            // A partial report: this pair's models are not all there.
+            continue;
+        }
         let t_eval = std::time::Instant::now();
         let sc = score_scene(cfg, &cover, &plain_c.model, &stego.model, &pi, lp)?;
         let sh = score_scene(cfg, &hidden, &plain_h.model, &stego.model, &key, lp)?;
@@ -532,6 +690,9 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             ));
         }
     }
+    if !cfg.jobs.scores() {
+        return Ok(report);
+    }
     let mut t1 = Table::new("Table 1: averages over pairs (held-out views, against ground truth)");
     for (method, c, h) in [
         ("Instant-NGP (plain)", Some(&table1[0]), &table1[2]),
@@ -573,15 +734,28 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
          holder does). The plain hidden model is scored through its stored grid and, in the \
          middle row of Table 1, through a grid rebuilt as the key holder's is: the stego \
          model's hidden scene against the latter is the price of sharing the table alone. \
-         LPIPS: AlexNet, v0.1 linear layers. {} models trained, {} reused.",
+         LPIPS: AlexNet, v0.1 linear layers.",
         match opts.minutes {
             Some(m) => format!("the steps the plain cover reached in {m} min"),
             None => format!("{} steps", cfg.steps),
         },
         cfg.scheme.name(),
-        models.trained,
-        models.reused
     ));
+    report.run_notes.push(format!(
+        "This run: {} models trained, {} reused.",
+        models.trained, models.reused
+    ));
+    report.wall_clock = [
+        "train s",
+        "reused",
+        "models_trained",
+        "models_reused",
+        "seconds",
+        "threads",
+    ]
+    .map(String::from)
+    .to_vec();
+    report.missing_jobs = cfg.jobs.missing_jobs();
     report.tables = vec![t1, per_pair, imperceptibility, budgets];
     report.write(&cfg.out)?;
     Ok(report)

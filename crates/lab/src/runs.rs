@@ -1,7 +1,7 @@
 //! The paper's smaller experiments (fidelity, key sensitivity, partial keys, several hidden
 //! scenes, table size, key strength), and the dispatch of every experiment by name.
 
-use super::report::{Report, Table, save_grid};
+use super::report::{Report, Table};
 use super::setup::{Ctx, ExpConfig, Experiment, Scene, experiment_key, load_scene, setup_json};
 use ngp::encoding::GridConfig;
 use ngp::error::{Error, Result};
@@ -38,11 +38,15 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
     let mut report = Report {
         name: name.to_string(),
         setup: setup_json(cfg),
+        wall_clock: wall_clock_fields(name),
         ..Default::default()
     };
     if name == Experiment::KeyStrength {
-        key_strength_report(cfg, &mut report)?;
-        report.write(&cfg.out)?;
+        // Trains no model: a plan has no job but the report, which measures on its node.
+        if cfg.jobs.scores() {
+            key_strength_report(cfg, &mut report)?;
+            report.write(&cfg.out)?;
+        }
         return Ok(report);
     }
     if cfg.hidden.is_empty() {
@@ -54,6 +58,7 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
     let box_scale = Some(cover.train.aabb_scale);
     let ctx = Ctx {
         cfg,
+        name,
         cover,
         hidden: cfg
             .hidden
@@ -71,8 +76,32 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
             unreachable!("run above")
         }
     }
-    report.write(&cfg.out)?;
+    if cfg.jobs.scores() {
+        report.missing_jobs = cfg.jobs.missing_jobs();
+        report.write(&cfg.out)?;
+    }
     Ok(report)
+}
+
+/// The fields of `name`'s report that are wall-clock or host figures: the machine's, and
+/// the times of training (recorded when a model was trained) and of key trials.
+fn wall_clock_fields(name: Experiment) -> Vec<String> {
+    let mut v: Vec<&str> = super::setup::HOST_FIELDS.to_vec();
+    v.extend(match name {
+        Experiment::Fidelity => &["train_s", "samples_per_s"][..],
+        Experiment::TableSize => &["train_s"],
+        Experiment::KeyStrength => &[
+            "trial_ms",
+            "derive_ms",
+            "index_ms",
+            "brute_force_years",
+            "brute_force_years_index_only",
+            "brute_force_years_log10",
+            "oracle_years",
+        ],
+        _ => &[],
+    });
+    v.into_iter().map(String::from).collect()
 }
 
 fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
@@ -105,8 +134,8 @@ fn fidelity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         ctx.cfg.scheme.name()
     ));
     let (w, hgt) = ctx.size();
-    save_grid(
-        &ctx.cfg.out.join("fidelity.png"),
+    ctx.save_grid(
+        "fidelity.png",
         &[
             ctx.gt(&ctx.cover),
             img_pc,
@@ -166,7 +195,7 @@ fn key_sensitivity(ctx: &Ctx, report: &mut Report) -> Result<()> {
         report.tables.push(t);
         let (w, hgt) = ctx.size();
         let file = format!("key_sensitivity_{}.png", scheme.name());
-        save_grid(&ctx.cfg.out.join(&file), &tiles, w, hgt, tiles.len())?;
+        ctx.save_grid(&file, &tiles, w, hgt, tiles.len())?;
         report.figures.push((
             file,
             format!(
@@ -235,7 +264,7 @@ fn partial_keys(ctx: &Ctx, report: &mut Report) -> Result<()> {
                     scheme.name(),
                     given.replace(' ', "_")
                 );
-                save_grid(&ctx.cfg.out.join(&file), &tiles, w, hgt, tiles.len())?;
+                ctx.save_grid(&file, &tiles, w, hgt, tiles.len())?;
                 report.figures.push((
                     file,
                     format!(
@@ -293,7 +322,7 @@ fn multi_hidden(ctx: &Ctx, report: &mut Report) -> Result<()> {
         t.push(serde_json::Value::Object(row));
     }
     report.tables.push(t);
-    save_grid(&ctx.cfg.out.join("multi_hidden.png"), &tiles, w, hgt, 2)?;
+    ctx.save_grid("multi_hidden.png", &tiles, w, hgt, 2)?;
     report.figures.push((
         "multi_hidden.png".into(),
         "Rows Φ = 1..4: the cover without key, hidden scene 1 with its key".into(),

@@ -2,7 +2,9 @@
 //! they load, their keys, and training and scoring one model through the one recipe
 //! ([`stego::recipe`]).
 
-use super::store::ModelState;
+use super::jobs::{Action, JobMode, PlannedModel, is_placeholder, no_scores, placeholder, slug};
+use super::report::save_grid;
+use super::store::{ModelState, read_stored, reuse_or_train_exact};
 use backend::Device;
 use ngp::data::{Dataset, LoadOptions, Split};
 use ngp::encoding::GridConfig;
@@ -132,6 +134,9 @@ pub struct ExpConfig {
     /// How often a model of the experiments that keep their models (detectability, pairs)
     /// saves its training state, so that a rerun goes on inside it; `None`: never.
     pub save_every: Option<SaveEvery>,
+    /// Train every model here, plan them as jobs, train one, or read them all back
+    /// ([`JobMode`]); shared by the clones of this configuration a run makes.
+    pub jobs: Arc<JobMode>,
 }
 
 impl ExpConfig {
@@ -172,6 +177,8 @@ impl ExpConfig {
 }
 
 pub(crate) struct Scene {
+    /// The folder it was read from.
+    pub dir: PathBuf,
     pub train: Arc<Dataset>,
     pub test: Dataset,
     pub name: String,
@@ -194,6 +201,7 @@ pub(crate) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) ->
         test.fit_into_box(a, None)?;
     }
     Ok(Scene {
+        dir: dir.to_path_buf(),
         train: Arc::new(train),
         test,
         name: dir
@@ -207,6 +215,8 @@ pub(crate) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) ->
 /// An experiment's loaded scenes, and what it does with them.
 pub(crate) struct Ctx<'a> {
     pub(crate) cfg: &'a ExpConfig,
+    /// The experiment (its models' job ids begin with its name).
+    pub(crate) name: Experiment,
     pub(crate) cover: Scene,
     pub(crate) hidden: Vec<Scene>,
 }
@@ -308,21 +318,92 @@ impl Ctx<'_> {
     }
 
     /// Trains one model on `scenes` (dataset, key) for `cfg.steps` steps per scene — the
-    /// cover uses the reference key.
+    /// cover uses the reference key — as the run's [`JobMode`] says: here and kept in
+    /// memory (the single-machine run), as a job that stores it at full precision
+    /// ([`Model::save_exact`], so that the report scores what this process would have), or
+    /// read back from that job's file. A model this run passes over is a placeholder.
     pub(crate) fn train(
         &self,
         grid: GridConfig,
         scenes: &[(&Scene, &Key)],
         label: &str,
     ) -> Result<Trained> {
-        train_scenes(
-            self.cfg,
-            self.model_config(grid),
-            scenes,
-            Budget::Steps(self.cfg.steps),
-            label,
-            None,
-        )
+        let name = slug(label);
+        let path = self.cfg.out.join("models").join(format!("{name}.ingp"));
+        let planned = PlannedModel {
+            id: format!("{}-{name}", self.name),
+            label: label.to_string(),
+            output: path.clone(),
+            inputs: scenes.iter().map(|(s, _)| s.dir.clone()).collect(),
+            after: Vec::new(),
+            steps: Some(self.cfg.steps as u64 * scenes.len() as u64),
+            samples: Some(self.cfg.steps as u64 * scenes.len() as u64 * self.cfg.batch as u64),
+            seconds: None,
+        };
+        let id = planned.id.clone();
+        let config = self.model_config(grid);
+        let action = self.cfg.jobs.action(planned);
+        let train = |state: Option<&mut ModelState>| {
+            let budget = Budget::Steps(self.cfg.steps);
+            train_scenes(self.cfg, config, scenes, budget, label, state)
+        };
+        if self.cfg.jobs.in_process() {
+            return train(None);
+        }
+        let sidecar = json!({"format": 1, "experiment": self.name.name(), "model": label,
+            "setup": reproducible_setup(self.cfg), "levels": grid.n_levels,
+            "features": grid.n_features, "log2_t": grid.log2_hashmap_size});
+        let stored = match action {
+            Action::PassOver => None,
+            Action::Train => {
+                std::fs::create_dir_all(self.cfg.out.join("models"))
+                    .map_err(|e| Error::io(&self.cfg.out, e))?;
+                let every = self.cfg.save_every;
+                reuse_or_train_exact(&path, &sidecar, self.cfg.verbose, every, |st| {
+                    let t = train(st)?;
+                    let fields = json!({"train_s": t.seconds, "samples_per_s": t.samples_per_s, "steps": t.steps});
+                    Ok((t.model, fields.as_object().cloned().unwrap_or_default()))
+                })?;
+                // A job scores nothing: the report is written from the file.
+                None
+            }
+            Action::Read => match read_stored(&path, &sidecar) {
+                Some(v) => Some((Model::load(&path)?, v)),
+                None => {
+                    self.cfg.jobs.missing(&id, &path)?;
+                    None
+                }
+            },
+        };
+        Ok(match stored {
+            Some((model, v)) => Trained {
+                model,
+                seconds: v["train_s"].as_f64().unwrap_or(f64::NAN),
+                samples_per_s: v["samples_per_s"].as_f64().unwrap_or(f64::NAN),
+                steps: v["steps"].as_u64().unwrap_or(0) as u32,
+            },
+            None => Trained {
+                model: placeholder(config, &self.cover.train)?,
+                seconds: f64::NAN,
+                samples_per_s: f64::NAN,
+                steps: 0,
+            },
+        })
+    }
+
+    /// Writes an image grid of the report, unless this run writes no report.
+    pub(crate) fn save_grid(
+        &self,
+        file: &str,
+        tiles: &[Vec<f32>],
+        w: u32,
+        h: u32,
+        cols: usize,
+    ) -> Result<()> {
+        if !self.cfg.jobs.scores() {
+            return Ok(());
+        }
+        save_grid(&self.cfg.out.join(file), tiles, w, h, cols)
     }
 
     pub(crate) fn render_opts(&self) -> RenderOptions {
@@ -339,6 +420,9 @@ impl Ctx<'_> {
         key: &Key,
         scene: &Scene,
     ) -> Result<(EvalResult, Vec<f32>)> {
+        if is_placeholder(model) {
+            return Ok((no_scores(), Vec::new()));
+        }
         let device = &self.cfg.device;
         let opened = open_scene_on(device, model, Some(key), self.cfg.stealth(), self.cfg.seed)?;
         let mut renderer = opened.renderer(device, model)?;
@@ -372,6 +456,21 @@ impl Ctx<'_> {
         &self.hidden[i % self.hidden.len()]
     }
 }
+
+/// The configuration without what depends on the machine (threads, device): what a
+/// model's training depends on, on the CPU.
+pub(crate) fn reproducible_setup(cfg: &ExpConfig) -> serde_json::Value {
+    let mut v = setup_json(cfg);
+    if let Some(o) = v.as_object_mut() {
+        for k in HOST_FIELDS {
+            o.remove(*k);
+        }
+    }
+    v
+}
+
+/// The setup's fields that name the machine a report was written on.
+pub(crate) const HOST_FIELDS: &[&str] = &["threads", "device"];
 
 /// The report's record of the configuration.
 pub(crate) fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
@@ -418,7 +517,12 @@ pub(crate) fn train_pair(
             return Err(Error::Config("a stego model needs a hidden scene".into()));
         }
     };
-    let ctx = Ctx { cfg, cover, hidden };
+    let ctx = Ctx {
+        cfg,
+        name: Experiment::Detectability,
+        cover,
+        hidden,
+    };
     let pi = Key::reference();
     let key = key
         .map(|which| experiment_key(cfg.scheme, 1, cfg.seed, which, &ctx.hidden[0]))

@@ -23,12 +23,40 @@ pub(super) fn reuse_or_train(
     save_every: Option<SaveEvery>,
     train: impl FnOnce(Option<&mut ModelState>) -> Result<(Model, Map<String, Value>)>,
 ) -> Result<(Value, bool)> {
+    reuse_or_train_with(path, config, verbose, save_every, Model::save, train)
+}
+
+/// [`reuse_or_train`], the model stored at full precision ([`Model::save_exact`]): for a
+/// model that another process scores as if it had trained it.
+pub(super) fn reuse_or_train_exact(
+    path: &Path,
+    config: &Value,
+    verbose: bool,
+    save_every: Option<SaveEvery>,
+    train: impl FnOnce(Option<&mut ModelState>) -> Result<(Model, Map<String, Value>)>,
+) -> Result<(Value, bool)> {
+    reuse_or_train_with(path, config, verbose, save_every, Model::save_exact, train)
+}
+
+/// The sidecar of the model at `path` if it holds `config` and the model file is there.
+pub(super) fn read_stored(path: &Path, config: &Value) -> Option<Value> {
     let side = path.with_extension("json");
-    let reused = std::fs::read(&side)
+    std::fs::read(&side)
         .ok()
         .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
-        .filter(|v| v["config"] == *config && path.exists());
-    if let Some(v) = reused {
+        .filter(|v| v["config"] == *config && path.exists())
+}
+
+fn reuse_or_train_with(
+    path: &Path,
+    config: &Value,
+    verbose: bool,
+    save_every: Option<SaveEvery>,
+    save: fn(&Model, &Path) -> Result<()>,
+    train: impl FnOnce(Option<&mut ModelState>) -> Result<(Model, Map<String, Value>)>,
+) -> Result<(Value, bool)> {
+    let side = path.with_extension("json");
+    if let Some(v) = read_stored(path, config) {
         if verbose {
             eprintln!("  reusing {}", path.display());
         }
@@ -37,7 +65,7 @@ pub(super) fn reuse_or_train(
     }
     let mut state = save_every.map(|every| ModelState::new(path, config, every, verbose));
     let (model, fields) = train(state.as_mut())?;
-    model.save(path)?;
+    save(&model, path)?;
     let mut v = Map::new();
     v.insert("config".into(), config.clone());
     v.extend(fields);

@@ -119,6 +119,15 @@ impl Model {
         snapshot::save(path, &self.to_snapshot())
     }
 
+    /// Saves the weights and the density grid at full precision ([`Snapshot::exact`]):
+    /// [`Model::load`] gives back a model that renders to the bit as this one does, where
+    /// [`Model::save`]'s fp16 would move every weight and cells near the threshold.
+    pub fn save_exact(&self, path: &Path) -> Result<()> {
+        let mut s = self.to_snapshot();
+        s.exact = true;
+        snapshot::save(path, &s)
+    }
+
     /// The inference weights (the layout's blocks: density MLP, colour MLP, grid).
     pub fn params(&self) -> &[f32] {
         &self.params
@@ -247,5 +256,50 @@ mod tests {
         {
             assert_eq!(x.to_bits(), y.to_bits());
         }
+    }
+
+    /// An exact file gives back the weights and the densities to the bit (fp16 moves both).
+    #[test]
+    fn an_exact_file_reads_back_to_the_bit() {
+        let config = ModelConfig {
+            grid: GridConfig {
+                n_levels: 4,
+                n_features: 2,
+                log2_hashmap_size: 10,
+                base_resolution: 8,
+            },
+            aabb_scale: 2,
+        };
+        let n = NerfLayout::new(config).unwrap().n_params;
+        let mut r = Pcg32::new(3, 9);
+        let params: Vec<f32> = (0..n).map(|_| r.next_f32() * 2.0 - 1.0).collect();
+        let cells = DENSITY_GRID_CELLS * n_cascades(config.aabb_scale);
+        let density: Vec<f32> = (0..cells).map(|_| r.next_f32() * 0.1).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let grid = OccupancyGrid::from_density(density.clone()).unwrap();
+        let mut snap = Snapshot::new(config, params.clone(), density.clone());
+        snap.loss = 0.25;
+        let model = Model::load(&{
+            let p = dir.path().join("plain.ingp");
+            snapshot::save(&p, &snap).unwrap();
+            p
+        })
+        .unwrap();
+        assert_ne!(model.params(), &params[..], "fp16 moves the weights");
+        let exact = Model {
+            params: params.clone(),
+            grid_f16: None,
+            grid,
+            ..model
+        };
+        let path = dir.path().join("exact.ingp");
+        exact.save_exact(&path).unwrap();
+        let back = Model::load(&path).unwrap();
+        assert_eq!(back.params(), &params[..]);
+        assert_eq!(back.grid.density, density);
+        assert_eq!(back.loss, 0.25);
+        assert!(snapshot::load(&path).unwrap().exact);
+        let plain = snapshot::load(&dir.path().join("plain.ingp")).unwrap();
+        assert!(!plain.exact);
     }
 }

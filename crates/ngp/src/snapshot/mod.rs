@@ -277,6 +277,12 @@ pub struct Snapshot {
     pub camera: SnapshotCamera,
     pub view: SnapshotView,
     pub preserved: Preserved,
+    /// Written at full precision: `params_type` "float" (which instant-ngp also reads) and
+    /// the density grid a second time as f32 under `stegongp_density_grid_float`, so that a
+    /// model read back renders to the bit what the process that trained it rendered. For an
+    /// experiment's models that other processes score (`experiment --plan`); a published
+    /// model is fp16 like the reference's.
+    pub exact: bool,
 }
 
 impl Snapshot {
@@ -296,6 +302,7 @@ impl Snapshot {
             camera: SnapshotCamera::default(),
             view: SnapshotView::for_scale(config.aabb_scale),
             preserved: Preserved::default(),
+            exact: false,
         }
     }
 

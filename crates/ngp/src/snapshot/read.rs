@@ -705,6 +705,21 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
             cells * 2
         ));
     }
+    let exact_density = match snap.get(super::write::EXACT_DENSITY_KEY) {
+        None => None,
+        Some(_) => {
+            let b = snap.bin(super::write::EXACT_DENSITY_KEY)?;
+            if b.len() != gbin.len() * 2 {
+                return Err(format!(
+                    "field snapshot.{}: {} bytes, expected twice density_grid_binary's {}",
+                    super::write::EXACT_DENSITY_KEY,
+                    b.len(),
+                    gbin.len()
+                ));
+            }
+            Some(decode_params(b, 4))
+        }
+    };
     let rgb = nerf.obj("rgb", "snapshot.nerf.rgb")?;
     let dv = SnapshotView::for_scale(aabb_scale);
     let view = SnapshotView {
@@ -758,7 +773,8 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
     Ok(Snapshot {
         config,
         params: decode_params(pbin, elem),
-        density_grid: decode_params(gbin, 2),
+        exact: elem == 4 && exact_density.is_some(),
+        density_grid: exact_density.unwrap_or_else(|| decode_params(gbin, 2)),
         training_step: snap.u32("training_step")?,
         loss: snap.f32("loss")?,
         dataset: ds,

@@ -56,7 +56,7 @@ pub fn to_msgpack(snap: &Snapshot) -> Result<Vec<u8>> {
         .map(binary_bytes)
         .sum::<usize>();
     let mut out = Vec::with_capacity(
-        layout.n_params * 2 + snap.density_grid.len() * 2 + preserved + (1 << 20),
+        layout.n_params * 4 + snap.density_grid.len() * 6 + preserved + (1 << 20),
     );
     encode(&doc, &mut out);
     Ok(out)
@@ -72,6 +72,21 @@ pub(crate) fn fp16_bytes(v: &[f32]) -> Vec<u8> {
     }
     out
 }
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+fn params_bytes(snap: &Snapshot) -> Vec<u8> {
+    if snap.exact {
+        f32_bytes(&snap.params)
+    } else {
+        fp16_bytes(&snap.params)
+    }
+}
+
+/// Where an exact snapshot keeps its density grid at full precision.
+pub(crate) const EXACT_DENSITY_KEY: &str = "stegongp_density_grid_float";
 
 fn aabb(b: &Aabb) -> Value {
     map(vec![("min", fv(&b.min)), ("max", fv(&b.max))])
@@ -251,8 +266,11 @@ fn snapshot_value(snap: &Snapshot, n_params: usize) -> Value {
     let v = &snap.view;
     let mut e = vec![
         ("n_params", u(n_params as u64)),
-        ("params_type", s("__half")),
-        ("params_binary", Value::Binary(fp16_bytes(&snap.params))),
+        (
+            "params_type",
+            s(if snap.exact { "float" } else { "__half" }),
+        ),
+        ("params_binary", Value::Binary(params_bytes(snap))),
     ];
     if let Some(o) = &p.optimizer {
         e.push(("optimizer", o.clone()));
@@ -278,6 +296,12 @@ fn snapshot_value(snap: &Snapshot, n_params: usize) -> Value {
         ("background_color", fv(&v.background_color)),
         ("camera", camera),
     ]);
+    if snap.exact {
+        e.push((
+            EXACT_DENSITY_KEY,
+            Value::Binary(f32_bytes(&snap.density_grid)),
+        ));
+    }
     if let Some(r) = &p.run_state {
         e.push(("stegongp_run_state", r.clone()));
     }

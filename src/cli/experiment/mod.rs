@@ -1,8 +1,14 @@
+mod plan;
+mod slurm;
+mod tee;
+
 use super::common::{DeviceArg, ensure_locked_dir};
 use anyhow::{Result, bail};
 use std::path::PathBuf;
+use std::sync::Arc;
+use stegongp::experiments::report::Report;
 use stegongp::experiments::{
-    DetectOptions, ExpConfig, Experiment, PairSpec, PairsOptions, read_pairs_file,
+    DetectOptions, ExpConfig, Experiment, JobMode, PairSpec, PairsOptions, read_pairs_file,
     run_detectability, run_experiment, run_pairs,
 };
 use stegongp::ngp::encoding::GridConfig;
@@ -16,8 +22,14 @@ pub struct Args {
     #[command(flatten)]
     pub device: DeviceArg,
     /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength |
-    /// detectability | pairs
-    pub name: Experiment,
+    /// detectability | pairs; or `run-job DIR ID` (one job of a plan) or `collect DIR` (a
+    /// plan's report from its finished jobs).
+    pub name: String,
+    /// run-job: the plan's folder and the job's id; collect: the plan's folder.
+    #[arg(value_name = "DIR [ID]", num_args = 0..=2)]
+    pub operands: Vec<PathBuf>,
+    #[command(flatten)]
+    pub plan: plan::PlanArgs,
     /// Output directory: the report goes to OUT/NAME/ (report.md, report.json, PNG grids),
     /// generated scenes to OUT/data/ (detectability: its scenes and models to
     /// OUT/detectability/{scenes,models}/, reused by a rerun with the same settings).
@@ -132,12 +144,43 @@ const DETECT_RES: u32 = 32;
 /// (occupied fraction within a few tenths of a percent of 0.125's).
 const DETECT_OCCUPANCY: f32 = 0.03;
 
-pub fn run(mut a: Args) -> Result<()> {
+pub fn run(a: Args) -> Result<()> {
+    match a.name.as_str() {
+        "run-job" => plan::run_job(a),
+        "collect" => plan::collect(a),
+        _ if a.plan.plan.is_some() => plan::make(a),
+        _ => {
+            if !a.operands.is_empty() {
+                bail!(
+                    "`experiment {}` takes no folder or job id (those belong to run-job and collect)",
+                    a.name
+                );
+            }
+            a.plan.refuse_without_plan()?;
+            let (cfg, report) = experiment(a, Arc::new(JobMode::All), true)?;
+            for t in &report.tables {
+                println!("{}", t.markdown());
+            }
+            for n in &report.notes {
+                println!("{n}\n");
+            }
+            println!("report: {}", cfg.out.join("report.md").display());
+            Ok(())
+        }
+    }
+}
+
+/// Runs experiment `a.name` as `jobs` says (every model here, a plan, one job, or the
+/// report from stored models): the options checked, the shared scenes generated, the
+/// device opened. `lock`: hold the output folder for the run (a job does not: many run at
+/// once in one plan's folder, each writing its own files).
+fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig, Report)> {
+    let name: Experiment = a.name.parse()?;
     if a.random_scene {
         a.training.schedule = Schedule::RandomScene;
     }
-    let detect = a.name == Experiment::Detectability;
-    let pairs_exp = a.name == Experiment::Pairs;
+    let detect = name == Experiment::Detectability;
+    let pairs_exp = name == Experiment::Pairs;
     let explicit_pairs = !a.pairs.is_empty() || a.pairs_file.is_some();
     if !pairs_exp && (explicit_pairs || a.minutes.is_some()) {
         bail!("--pair, --pairs and --minutes belong to `experiment pairs`");
@@ -172,7 +215,7 @@ pub fn run(mut a: Args) -> Result<()> {
     checked.stealth.enabled |= detect;
     checked.check()?;
     let steps = a.steps.unwrap_or(if detect { DETECT_STEPS } else { 300 });
-    if a.training.hidden_from > 0 && a.name == Experiment::KeyStrength {
+    if a.training.hidden_from > 0 && name == Experiment::KeyStrength {
         bail!("--hidden-from changes training, and key-strength trains no model");
     }
     if a.minutes.is_none() {
@@ -181,7 +224,11 @@ pub fn run(mut a: Args) -> Result<()> {
     let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
     // Held until the run ends: its scenes (OUT/data), models and reports would otherwise be
     // interleaved with another run's into the same folder.
-    let _lock = ensure_locked_dir(&a.out)?;
+    let _lock = if lock {
+        Some(ensure_locked_dir(&a.out)?)
+    } else {
+        None
+    };
     let data = a.out.join("data");
     let gen_scene = |name: &str, kind: SceneKind, seed: u64| -> Result<PathBuf> {
         let dir = data.join(name);
@@ -201,7 +248,7 @@ pub fn run(mut a: Args) -> Result<()> {
         }
         Ok(dir)
     };
-    let needs_scenes = a.name != Experiment::KeyStrength && !detect && !explicit_pairs;
+    let needs_scenes = name != Experiment::KeyStrength && !detect && !explicit_pairs;
     let cover = match &a.cover {
         Some(c) => c.clone(),
         None if needs_scenes => gen_scene("cover_object", SceneKind::Object, 1)?,
@@ -209,7 +256,7 @@ pub fn run(mut a: Args) -> Result<()> {
     };
     let mut hidden = a.hidden.clone();
     if hidden.is_empty() && needs_scenes {
-        let n = if a.name == Experiment::MultiHidden {
+        let n = if name == Experiment::MultiHidden {
             4
         } else {
             1
@@ -227,10 +274,15 @@ pub fn run(mut a: Args) -> Result<()> {
             hidden.push(gen_scene("hidden_logo_1", SceneKind::Logo, 20)?);
         }
     }
-    let device = a.device.open()?;
+    // A plan trains nothing: it is made on whatever machine submits it, GPU or not.
+    let device = if matches!(*jobs, JobMode::Plan(_)) {
+        stegongp::backend::Device::open(stegongp::backend::DeviceRequest::Cpu)?
+    } else {
+        a.device.open()?
+    };
     eprintln!("device: {}", device.report());
     let cfg = ExpConfig {
-        out: a.out.join(a.name.name()),
+        out: a.out.join(name.name()),
         cover,
         hidden,
         downscale: a.downscale,
@@ -258,6 +310,7 @@ pub fn run(mut a: Args) -> Result<()> {
         verbose: true,
         device: std::sync::Arc::new(device),
         save_every: a.save_every.0,
+        jobs,
     };
     let report = if pairs_exp {
         let mut pairs = a.pairs.clone();
@@ -290,14 +343,7 @@ pub fn run(mut a: Args) -> Result<()> {
         };
         run_detectability(&cfg, &opts)?
     } else {
-        run_experiment(a.name, &cfg)?
+        run_experiment(name, &cfg)?
     };
-    for t in &report.tables {
-        println!("{}", t.markdown());
-    }
-    for n in &report.notes {
-        println!("{n}\n");
-    }
-    println!("report: {}", cfg.out.join("report.md").display());
-    Ok(())
+    Ok((cfg, report))
 }
