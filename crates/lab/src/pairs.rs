@@ -563,7 +563,10 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         }
         let plain_h_config = json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps});
         let mut id_key = plain_h_config.clone();
-        id_key["steps"] = json!({"budget": budget_json, "of": cover_dir});
+        if opts.minutes.is_some() {
+            // Its steps are those the cover reaches: a model per cover.
+            id_key["steps"] = json!({"budget": budget_json, "of": cover_dir});
+        }
         let plain_h = models.get(
             job(
                 format!("plain-{hl}"),

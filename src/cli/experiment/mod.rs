@@ -1,3 +1,4 @@
+mod paper;
 mod plan;
 mod slurm;
 mod tee;
@@ -106,6 +107,12 @@ pub struct Args {
     /// pairs the steps it reached (instead of --steps).
     #[arg(long)]
     pub minutes: Option<f64>,
+    /// pairs: the paper's Table 1 at its scale, with --cover ROOT the NeRF-synthetic folder
+    /// (chair, drums, ficus, hotdog, lego, materials, mic, ship): two generated 800 px logo
+    /// scenes as its Google and Twitter, its pairing, 50 000 steps of 2^18 samples a scene,
+    /// every test view scored. 18 models: make it a plan (--plan DIR --slurm).
+    #[arg(long)]
+    pub paper_scale: bool,
     /// Skip LPIPS (PSNR and SSIM only).
     #[arg(long)]
     pub no_lpips: bool,
@@ -176,6 +183,9 @@ pub fn run(a: Args) -> Result<()> {
 /// once in one plan's folder, each writing its own files).
 fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig, Report)> {
     let name: Experiment = a.name.parse()?;
+    if a.paper_scale {
+        paper::configure(&mut a)?;
+    }
     if a.random_scene {
         a.training.schedule = Schedule::RandomScene;
     }
@@ -229,6 +239,9 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
     } else {
         None
     };
+    if a.paper_scale {
+        paper::generate_logos(&a.out)?;
+    }
     let data = a.out.join("data");
     let gen_scene = |name: &str, kind: SceneKind, seed: u64| -> Result<PathBuf> {
         let dir = data.join(name);
