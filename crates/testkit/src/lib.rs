@@ -3,8 +3,8 @@
 //! `stegongp` program run as a user runs it ([`cli`]), small models trained through the
 //! recipe ([`models`]), comparisons of two backends' weights ([`compare`]), and the geometry
 //! that writing a COLMAP capture and comparing poses need ([`geometry`]), a capture
-//! photographed from known cameras for `process` ([`capture`]), and a headless Chromium driven over
-//! the DevTools protocol ([`browser`]).
+//! photographed from known cameras for `process` ([`capture`]), a headless Chromium driven over
+//! the DevTools protocol ([`browser`]), and a real one-node Slurm cluster ([`slurm`]).
 //!
 //! A dev-dependency of the workspace's root package (its integration tests); it sits above
 //! every library crate, so their own unit tests cannot use it.
@@ -17,6 +17,7 @@ pub mod geometry;
 pub mod keys;
 pub mod models;
 pub mod scenes;
+pub mod slurm;
 
 /// A test's outside requirement is missing (a package, a program): with `CI=true` that is a
 /// failure, since `.ci/run` installs it; elsewhere the test says what it skips and why.
