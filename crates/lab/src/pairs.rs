@@ -276,7 +276,7 @@ impl Models<'_> {
         };
         let action = self.cfg.jobs.action(planned);
         if action != Action::Train {
-            return self.not_trained(&id, &path, &config, action);
+            return self.not_trained(&id, &path, &config, action, job.steps_per_scene);
         }
         let every = self.cfg.save_every;
         let (v, reused) = reuse_or_train(&path, &config, self.cfg.verbose, every, |state| {
@@ -319,6 +319,7 @@ impl Models<'_> {
         path: &Path,
         config: &Value,
         action: Action,
+        steps_per_scene: Option<u32>,
     ) -> Result<Stored> {
         let side = read_stored(path, config);
         let model = match (&side, action) {
@@ -335,8 +336,11 @@ impl Models<'_> {
         let v = side.unwrap_or(Value::Null);
         Ok(Stored {
             model,
-            // A budget not yet measured: one step stands in (a plan records no budget).
-            steps: v["steps"].as_u64().unwrap_or(1) as u32,
+            // Without its sidecar: the budget in steps, or where the budget is a time not
+            // yet measured, one step (a job that needs it waits for the model's job).
+            steps: v["steps"]
+                .as_u64()
+                .map_or(steps_per_scene.unwrap_or(1), |s| s as u32),
             train_s: v["train_s"].as_f64().unwrap_or(f64::NAN),
             reused: true,
         })
@@ -352,6 +356,8 @@ struct PairJob {
     inputs: Vec<PathBuf>,
     after: Vec<String>,
     steps: Option<u64>,
+    /// The steps a scene, where the budget is steps.
+    steps_per_scene: Option<u32>,
     seconds: Option<f64>,
 }
 
@@ -526,6 +532,7 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             inputs,
             after,
             steps: opts.minutes.is_none().then_some(cfg.steps as u64 * scenes),
+            steps_per_scene: opts.minutes.is_none().then_some(cfg.steps),
             seconds: opts.minutes.map(|m| m * 60.0 * scenes as f64),
         };
         let plain_c_job = job(
@@ -562,11 +569,14 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
             )));
         }
         let plain_h_config = json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps});
+        // Named by its budget, never by a measured step count (which a job that passes over
+        // the cover's model does not have).
         let mut id_key = plain_h_config.clone();
-        if opts.minutes.is_some() {
+        id_key["steps"] = match opts.minutes {
             // Its steps are those the cover reaches: a model per cover.
-            id_key["steps"] = json!({"budget": budget_json, "of": cover_dir});
-        }
+            Some(_) => json!({"budget": budget_json, "of": cover_dir}),
+            None => json!({"budget": budget_json}),
+        };
         let plain_h = models.get(
             job(
                 format!("plain-{hl}"),

@@ -35,7 +35,9 @@ const TEST_VIEWS: usize = 200;
 /// does not fit it.
 pub fn configure(a: &mut Args) -> Result<()> {
     if a.name != "pairs" {
-        bail!("--paper-scale is the paper's Table 1: `experiment pairs --paper-scale --cover ROOT`");
+        bail!(
+            "--paper-scale is the paper's Table 1: `experiment pairs --paper-scale --cover ROOT`"
+        );
     }
     if !a.pairs.is_empty() || a.pairs_file.is_some() || !a.hidden.is_empty() {
         bail!("--paper-scale makes its own pairs: leave out --pair, --pairs and --hidden");
@@ -93,7 +95,10 @@ pub fn generate_logos(out: &Path) -> Result<Vec<PathBuf>> {
     for (name, seed) in [(GOOGLE, 71), (TWITTER, 72)] {
         let dir = out.join("data").join(name);
         if !dir.join("transforms_train.json").exists() {
-            eprintln!("generating {} ({RES} px, {TRAIN_VIEWS} + {TEST_VIEWS} views)", dir.display());
+            eprintln!(
+                "generating {} ({RES} px, {TRAIN_VIEWS} + {TEST_VIEWS} views)",
+                dir.display()
+            );
             let opts = SynthOptions {
                 scene: SceneKind::Logo,
                 resolution: RES,
