@@ -138,6 +138,29 @@ fn unknown_option_values_are_refused() {
         "pink",
     ]);
     fails_with(&out, &["pink"]);
+    let out = stegongp(&[
+        "eval",
+        "--model",
+        "m.ingp",
+        "--data",
+        ".",
+        "--protocol",
+        "nerf",
+    ]);
+    fails_with(&out, &["nerf", "instant-ngp"]);
+    // instant-ngp's protocol is black's: white is refused before the (absent) model loads.
+    let out = stegongp(&[
+        "eval",
+        "--model",
+        "m.ingp",
+        "--data",
+        ".",
+        "--protocol",
+        "instant-ngp",
+        "--background",
+        "white",
+    ]);
+    fails_with(&out, &["--protocol instant-ngp scores on black"]);
     let out = stegongp(&["synth", "--scene", "castle", "--out", "x"]);
     fails_with(&out, &["castle"]);
     let out = stegongp(&["keygen", "--scheme", "rot13", "--out", "k"]);

@@ -214,3 +214,120 @@ fn checkpoints_score_as_eval_scores_the_written_model() {
     assert_ne!(first["psnr"], last["psnr"], "{run}");
     assert_ne!(first["lpips"], last["lpips"], "{run}");
 }
+
+/// `eval --protocol instant-ngp` scores on black whatever `--background` defaults to, names
+/// its protocol in the JSON and the text, agrees with our rules on black up to the sRGB
+/// encoding (the render's background term is zero there), and refuses white; `train
+/// --eval-protocol` scores its checkpoints the same way.
+#[test]
+fn instant_ngp_protocol_scores_on_black_and_says_so() {
+    use testkit::cli::{fails_naming, ok, stdout_ok, stegongp};
+    let d = tempfile::tempdir().unwrap();
+    let p = |n: &str| d.path().join(n).to_str().unwrap().to_string();
+    let (scene, model) = (p("obj"), p("m.ingp"));
+    ok(&stegongp(&[
+        "synth", "--scene", "object", "--res", "32", "--train", "6", "--test", "3", "--out", &scene,
+    ]));
+    let out = stegongp(&[
+        "train",
+        &scene,
+        "--minutes",
+        "0.02",
+        "--checkpoints",
+        "0.02",
+        "--eval-views",
+        "3",
+        "--eval-protocol",
+        "instant-ngp",
+        "--batch",
+        "4096",
+        "--log2-t",
+        "14",
+        "--occupancy-fraction",
+        "0.0078125",
+        "--device",
+        "cpu",
+        "--json",
+        "--out",
+        &model,
+    ]);
+    let log = ok(&out);
+    assert!(log.contains("test PSNR (instant-ngp)"), "{log}");
+    let run: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let cp = &run["checkpoints"][0];
+    assert_eq!(cp["protocol"], "instant-ngp", "{run}");
+    let eval = |extra: &[&str]| -> serde_json::Value {
+        let mut args = vec![
+            "eval",
+            "--model",
+            &model,
+            "--data",
+            &scene,
+            "--device",
+            "cpu",
+            "--json",
+            "--no-lpips",
+        ];
+        args.extend_from_slice(extra);
+        let out = stegongp(&args);
+        ok(&out);
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let ours = eval(&[]);
+    let black = eval(&["--background", "black"]);
+    let ingp = eval(&["--protocol", "instant-ngp"]);
+    assert_eq!(ours["protocol"], "stegongp");
+    assert_eq!(ours["background"], serde_json::json!([1.0, 1.0, 1.0]));
+    assert_eq!(ingp["protocol"], "instant-ngp");
+    assert_eq!(ingp["background"], serde_json::json!([0.0, 0.0, 0.0]));
+    assert_eq!(
+        (ingp["n_views"].as_u64(), ingp["split_views"].as_u64()),
+        (Some(3), Some(3))
+    );
+    let f = |v: &serde_json::Value, k: &str| v[k].as_f64().unwrap();
+    // On black the two rules differ by the encodings' exponents only, far below 0.01 dB;
+    // white is another image altogether.
+    assert!(
+        (f(&ingp, "psnr") - f(&black, "psnr")).abs() < 0.01,
+        "{ingp} {black}"
+    );
+    assert!(
+        (f(&ingp, "psnr") - f(&ours, "psnr")).abs() > 0.01,
+        "{ingp} {ours}"
+    );
+    // The checkpoint (f32 weights) and the file (f16) score alike.
+    assert!(
+        (f(cp, "psnr") - f(&ingp, "psnr")).abs() < 0.1,
+        "{cp} {ingp}"
+    );
+    // run.py's SSIM is its own, not the literature's.
+    assert_ne!(ingp["ssim"], black["ssim"]);
+    let text = stdout_ok(&stegongp(&[
+        "eval",
+        "--model",
+        &model,
+        "--data",
+        &scene,
+        "--device",
+        "cpu",
+        "--no-lpips",
+        "--protocol",
+        "instant-ngp-compat",
+    ]));
+    assert!(
+        text.contains("protocol instant-ngp-compat, 3 of 3 views"),
+        "{text}"
+    );
+    let out = stegongp(&[
+        "eval",
+        "--model",
+        &model,
+        "--data",
+        &scene,
+        "--protocol",
+        "instant-ngp",
+        "--background",
+        "white",
+    ]);
+    fails_naming(&out, &["--protocol instant-ngp", "black"]);
+}

@@ -42,8 +42,10 @@ pub struct ViewArgs {
     /// At most this many views, spread over the split (0 = all).
     #[arg(long, default_value_t = 0)]
     pub views: usize,
-    #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
-    pub background: Background,
+    /// The background views are rendered and scored on (default white; `eval --protocol
+    /// instant-ngp` scores on black and refuses white).
+    #[arg(long, value_parser = choice::<Background>())]
+    pub background: Option<Background>,
     /// A ray stops below this transmittance. Default: as instant-ngp, 1e-4 for `eval` (what
     /// its run.py scores test views with) and 0.01 for `render` (its default for everything
     /// else: screenshots, videos, its viewer), ~40 % faster on a capture for ~0.1 dB.
@@ -117,7 +119,7 @@ impl ViewArgs {
             data,
             scene,
             opts: RenderOptions {
-                background: self.background.rgb(),
+                background: self.background.unwrap_or_default().rgb(),
                 min_transmittance: self.min_transmittance.unwrap_or(default_min_transmittance),
                 ..Default::default()
             },

@@ -1,11 +1,13 @@
 use super::common::{ViewArgs, Viewing, ensure_dir};
-use anyhow::Result;
+use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::save_png_rgb;
-use stegongp::ngp::eval::{EvalResult, evaluate_on};
+use stegongp::ngp::eval::{EvalResult, Protocol, evaluate_under};
 use stegongp::ngp::lpips::Lpips;
+use stegongp::ngp::render::image::Background;
 use stegongp::ngp::render::image::SCORING_MIN_TRANSMITTANCE;
+use stegongp::stego::options::choice;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -21,9 +23,29 @@ pub struct Args {
     /// Skip LPIPS (AlexNet v0.1, computed on the CPU from the embedded weights).
     #[arg(long)]
     pub no_lpips: bool,
+    /// The rules views are scored under. `stegongp`: ours. `instant-ngp`: what instant-ngp's
+    /// scripts/run.py does with --test_transforms, read from its source: black background,
+    /// the render's colour decoded to linear light and the background added there, the
+    /// ground truth's alpha composited in linear light, both encoded to sRGB with the
+    /// exponent 1/2.4 and clipped to [0, 1], PSNR per view averaged over the views, and its
+    /// own SSIM (luminance, 5-tap blur; not the literature's). run.py scores every view of
+    /// the split at the images' own size: compare with its figures at --views 0 and
+    /// --downscale 1. `instant-ngp-compat`: run.py --nerf_compatibility, the setting its
+    /// authors name for the paper's synthetic-scene PSNR (the ground truth's alpha applied
+    /// in sRGB). LPIPS, which run.py does not compute, is ours on the images as scored.
+    #[arg(long, value_parser = choice::<Protocol>(), default_value_t = Protocol::StegoNgp)]
+    pub protocol: Protocol,
 }
 
 pub fn run(a: Args) -> Result<()> {
+    // Refused before the model and the images load.
+    if a.protocol != Protocol::StegoNgp && a.view.background == Some(Background::White) {
+        bail!(
+            "--protocol {} scores on black, as instant-ngp's run.py does: drop --background \
+             white, or score on white with --protocol stegongp",
+            a.protocol
+        );
+    }
     let Viewing {
         device,
         model,
@@ -42,7 +64,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut io_err = None;
     let mut done = 0;
     let lpips = (!a.no_lpips).then(Lpips::embedded);
-    let r = evaluate_on(
+    let r = evaluate_under(
+        a.protocol,
         renderer.as_mut(),
         &data,
         &opts,
@@ -103,8 +126,10 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         let lp = |l: Option<f64>| l.map(|l| format!(", LPIPS {l:.4}")).unwrap_or_default();
         println!(
-            "{} views: PSNR {:.3} dB, SSIM {:.4}{} ({:.1} s); an empty render scores {:.2} dB, SSIM {:.4}{}",
+            "protocol {}, {} of {} views: PSNR {:.3} dB, SSIM {:.4}{} ({:.1} s); an empty render scores {:.2} dB, SSIM {:.4}{}",
+            r.protocol,
             r.n_views,
+            r.split_views,
             r.psnr,
             r.ssim,
             lp(r.lpips),

@@ -7,7 +7,7 @@ use std::sync::Arc;
 use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate_on, spread_views};
+use stegongp::ngp::eval::{Protocol, evaluate_under, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::occupancy::OccupancyGrid;
@@ -65,8 +65,13 @@ pub struct Args {
     /// Test views used at checkpoints.
     #[arg(long, default_value_t = 25)]
     pub eval_views: usize,
+    /// The background checkpoints score on (`--eval-protocol stegongp` only).
     #[arg(long, value_parser = choice::<Background>(), default_value_t = Background::White)]
     pub background: Background,
+    /// The rules checkpoints score views under, as `eval --protocol` (stegongp: ours, on
+    /// --background; instant-ngp: its scripts/run.py's, on black).
+    #[arg(long, value_parser = choice::<Protocol>(), default_value_t = Protocol::StegoNgp)]
+    pub eval_protocol: Protocol,
     #[command(flatten)]
     pub device: DeviceArg,
     /// GPU: time the device's phases (marching, grid, network, loss, compaction,
@@ -129,6 +134,8 @@ fn state_path(a: &Args) -> PathBuf {
 #[derive(Serialize)]
 struct Checkpoint {
     minutes: f64,
+    /// The rules its views were scored under (`--eval-protocol`).
+    protocol: Protocol,
     step: u32,
     psnr: f64,
     ssim: f64,
@@ -516,7 +523,8 @@ pub fn run(a: Args) -> Result<()> {
                 ..Default::default()
             };
             let which = spread_views(data.frames.len(), a.eval_views);
-            let r = evaluate_on(
+            let r = evaluate_under(
+                a.eval_protocol,
                 renderer.as_mut(),
                 data,
                 &opts,
@@ -532,8 +540,9 @@ pub fn run(a: Args) -> Result<()> {
             let stride = training.trainer().march_stride(0);
             let march = MarchSince::new(&t, last_checkpoint.as_ref(), &model.grid, stride);
             let line = format!(
-                "checkpoint {m} min: step {} test PSNR {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s and {:.0} samples a ray a view); {}; {}",
+                "checkpoint {m} min: step {} test PSNR ({}) {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s and {:.0} samples a ray a view); {}; {}",
                 t.steps,
+                r.protocol,
                 r.psnr,
                 r.ssim,
                 r.n_views,
@@ -551,6 +560,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             checkpoints.push(Checkpoint {
                 minutes: m,
+                protocol: r.protocol,
                 step: t.steps,
                 psnr: r.psnr,
                 ssim: r.ssim,

@@ -158,6 +158,91 @@ pub fn ssim(pred: &[f32], gt: &[f32], width: usize, height: usize) -> f64 {
     means.iter().sum::<f64>() / 3.0
 }
 
+/// The 5-tap blur instant-ngp's SSIM filters with (`scripts/common.py`), in each direction.
+const INGP_SSIM_TAPS: [f64; 5] = [0.120078, 0.233881, 0.292082, 0.233881, 0.120078];
+
+/// Index `i` (which may lie up to a few pixels outside `0..n`) folded back into the image
+/// the way scipy's `convolve1d` does by default (mode "reflect": the edge pixel repeats,
+/// `d c b a | a b c d | d c b a`), for any `n ≥ 1`.
+fn reflect_index(i: isize, n: usize) -> usize {
+    if (0..n as isize).contains(&i) {
+        return i as usize;
+    }
+    let period = 2 * n as isize;
+    let k = i.rem_euclid(period) as usize;
+    if k < n { k } else { 2 * n - 1 - k }
+}
+
+/// One direction of the 5-tap blur over a `w × h` plane: along x when `along_x`, else y.
+fn ingp_blur_pass(src: &[f64], w: usize, h: usize, along_x: bool) -> Vec<f64> {
+    let mut out = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let mut acc = 0.0;
+            for (k, &t) in INGP_SSIM_TAPS.iter().enumerate() {
+                let d = k as isize - 2;
+                let (sx, sy) = if along_x {
+                    (reflect_index(x as isize + d, w), y)
+                } else {
+                    (x, reflect_index(y as isize + d, h))
+                };
+                acc += t * src[sy * w + sx];
+            }
+            out[y * w + x] = acc;
+        }
+    }
+    out
+}
+
+fn ingp_blur(src: &[f64], w: usize, h: usize) -> Vec<f64> {
+    ingp_blur_pass(&ingp_blur_pass(src, w, h, false), w, h, true)
+}
+
+/// The SSIM instant-ngp's `scripts/run.py` reports (`common.py`'s `SSIM`), which is not the
+/// literature's: both images clipped to [0, 1] and reduced to Rec. 709 luminance
+/// (0.2126 R + 0.7152 G + 0.0722 B), local statistics from a separable 5-tap blur
+/// ([`INGP_SSIM_TAPS`], edges reflected as scipy's "reflect" mode), K1 = 0.01, K2 = 0.03,
+/// no clamping of the variances, and the map's mean over every pixel (borders included;
+/// non-finite values count as 0). In f64 (the script works in float32). Panics if the
+/// lengths do not match `width·height`.
+pub fn ssim_instant_ngp(pred: &[f32], gt: &[f32], width: usize, height: usize) -> f64 {
+    assert_eq!(pred.len(), 3 * width * height, "ssim: pred length");
+    assert_eq!(gt.len(), 3 * width * height, "ssim: gt length");
+    if width == 0 || height == 0 {
+        return f64::NAN;
+    }
+    let lum = |img: &[f32]| -> Vec<f64> {
+        img.chunks_exact(3)
+            .map(|p| {
+                let c = |v: f32| v.clamp(0.0, 1.0) as f64;
+                0.2126 * c(p[0]) + 0.7152 * c(p[1]) + 0.0722 * c(p[2])
+            })
+            .collect()
+    };
+    let (a, b) = (lum(pred), lum(gt));
+    let prod = |x: &[f64], y: &[f64]| -> Vec<f64> { x.iter().zip(y).map(|(p, q)| p * q).collect() };
+    let (w, h) = (width, height);
+    let (ma, mb) = (ingp_blur(&a, w, h), ingp_blur(&b, w, h));
+    let (aa, bb, ab) = (
+        ingp_blur(&prod(&a, &a), w, h),
+        ingp_blur(&prod(&b, &b), w, h),
+        ingp_blur(&prod(&a, &b), w, h),
+    );
+    let mut total = 0.0;
+    for i in 0..w * h {
+        let (sa, sb, sab) = (
+            aa[i] - ma[i] * ma[i],
+            bb[i] - mb[i] * mb[i],
+            ab[i] - ma[i] * mb[i],
+        );
+        let p1 = (2.0 * ma[i] * mb[i] + SSIM_C1) / (ma[i] * ma[i] + mb[i] * mb[i] + SSIM_C1);
+        let p2 = (2.0 * sab + SSIM_C2) / (sa + sb + SSIM_C2);
+        let v = p1 * p2;
+        total += if v.is_finite() { v } else { 0.0 };
+    }
+    total / (w * h) as f64
+}
+
 #[cfg(test)]
 #[allow(clippy::needless_range_loop)]
 mod tests {
@@ -318,5 +403,101 @@ mod tests {
         let over: Vec<f32> = a.iter().map(|v| v * 1.6 - 0.3).collect();
         let clipped = direct_ssim(&over, &b, w, h);
         assert!((ssim(&over, &b, w, h) - clipped).abs() < 1e-9);
+    }
+
+    /// instant-ngp's SSIM by its definition, written out in 2-D: luminance, the 5×5 kernel
+    /// k[i]·k[j] with each tap's row and column folded back by scipy's "reflect" rule,
+    /// every pixel's value averaged.
+    fn direct_ssim_instant_ngp(a: &[f32], b: &[f32], w: usize, h: usize) -> f64 {
+        let k = INGP_SSIM_TAPS;
+        let lum = |img: &[f32], i: usize| {
+            let c = |v: f32| v.clamp(0.0, 1.0) as f64;
+            0.2126 * c(img[3 * i]) + 0.7152 * c(img[3 * i + 1]) + 0.0722 * c(img[3 * i + 2])
+        };
+        // Half-sample symmetric: −1 → 0, −2 → 1, n → n − 1, n + 1 → n − 2.
+        let fold = |i: isize, n: usize| -> usize {
+            let n = n as isize;
+            let mut i = i;
+            while i < 0 || i >= n {
+                i = if i < 0 { -i - 1 } else { 2 * n - 1 - i };
+            }
+            i as usize
+        };
+        let mut total = 0.0;
+        for y in 0..h {
+            for x in 0..w {
+                let (mut ma, mut mb, mut aa, mut bb, mut ab) = (0.0, 0.0, 0.0, 0.0, 0.0);
+                for dy in 0..5 {
+                    for dx in 0..5 {
+                        let sy = fold(y as isize + dy as isize - 2, h);
+                        let sx = fold(x as isize + dx as isize - 2, w);
+                        let t = k[dy] * k[dx];
+                        let (p, q) = (lum(a, sy * w + sx), lum(b, sy * w + sx));
+                        ma += t * p;
+                        mb += t * q;
+                        aa += t * p * p;
+                        bb += t * q * q;
+                        ab += t * p * q;
+                    }
+                }
+                let (sa, sb, sab) = (aa - ma * ma, bb - mb * mb, ab - ma * mb);
+                total += (2.0 * ma * mb + SSIM_C1) / (ma * ma + mb * mb + SSIM_C1)
+                    * ((2.0 * sab + SSIM_C2) / (sa + sb + SSIM_C2));
+            }
+        }
+        total / (w * h) as f64
+    }
+
+    #[test]
+    fn instant_ngp_ssim_matches_its_definition_borders_included() {
+        // 7×6 (every pixel within two of an edge on some side) and 3×2 (taps folded twice).
+        for (w, h) in [(7, 6), (3, 2), (1, 1)] {
+            let a = random_image(w, h, 21);
+            let b = dimmed(&a);
+            let want = direct_ssim_instant_ngp(&a, &b, w, h);
+            let got = ssim_instant_ngp(&a, &b, w, h);
+            assert!((got - want).abs() < 1e-12, "{w}×{h}: {got} against {want}");
+            assert!((ssim_instant_ngp(&a, &a, w, h) - 1.0).abs() < 1e-12);
+        }
+        // The five taps sum to 1, so constant images keep only the means' term; grey 0.5
+        // against 0.25: (2·0.125 + C1) / (0.25 + 0.0625 + C1).
+        let (w, h) = (6, 5);
+        let (a, b) = (vec![0.5f32; 3 * w * h], vec![0.25f32; 3 * w * h]);
+        let want = (0.25 + SSIM_C1) / (0.3125 + SSIM_C1);
+        assert!((ssim_instant_ngp(&a, &b, w, h) - want).abs() < 1e-9);
+        // Luminance, not channels: pure blue 1 against black differs by 0.0722 only.
+        let blue: Vec<f32> = (0..3 * w * h).map(|i| (i % 3 == 2) as u8 as f32).collect();
+        let black = vec![0.0f32; 3 * w * h];
+        let want = SSIM_C1 / (0.0722 * 0.0722 + SSIM_C1);
+        assert!((ssim_instant_ngp(&blue, &black, w, h) - want).abs() < 1e-6);
+        // Both images are clipped (the literature's SSIM above clips the prediction only).
+        let over: Vec<f32> = a.iter().map(|v| v * 3.0).collect();
+        let ones = vec![1.0f32; 3 * w * h];
+        assert!((ssim_instant_ngp(&over, &ones, w, h) - 1.0).abs() < 1e-12);
+        assert!((ssim_instant_ngp(&ones, &over, w, h) - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn instant_ngp_ssim_matches_scipy() {
+        // Values scipy gives (scripts/ingp_driver.py's ssim_luminance: numpy and
+        // scipy.ndimage.convolve1d, which run.py's common.py uses) for these 9×7 images:
+        // 0.11397102376495324, and 0.19514291733777958 with the first scaled by 1.3, less 0.1,
+        // and clipped.
+        let (w, h) = (9usize, 7usize);
+        let img = |s: usize| -> Vec<f32> {
+            let mut v = Vec::new();
+            for y in 0..h {
+                for x in 0..w {
+                    for c in 0..3 {
+                        v.push(((x * 7 + y * 13 + c * 5 + s) % 17) as f32 / 16.0);
+                    }
+                }
+            }
+            v
+        };
+        let (a, b) = (img(0), img(3));
+        assert!((ssim_instant_ngp(&a, &b, w, h) - 0.113_971_023_764_953_24).abs() < 1e-9);
+        let a2: Vec<f32> = a.iter().map(|v| v * 1.3 - 0.1).collect();
+        assert!((ssim_instant_ngp(&a2, &b, w, h) - 0.195_142_917_337_779_58).abs() < 1e-6);
     }
 }

@@ -24,6 +24,19 @@ pub fn linear_to_srgb(linear: f32) -> f32 {
     }
 }
 
+/// Linear light → sRGB as instant-ngp's Python scripts encode it (`scripts/common.py`'s
+/// `linear_to_srgb`, which `run.py` applies to the rendered and ground-truth images before
+/// it scores them): the exact exponent 1/2.4 and the power branch only strictly above the
+/// knee. In f64, so that scores do not depend on which of the two the CUDA side rounded.
+#[inline]
+pub fn linear_to_srgb_exact(linear: f64) -> f64 {
+    if linear > 0.003_130_8 {
+        1.055 * linear.powf(1.0 / 2.4) - 0.055
+    } else {
+        12.92 * linear
+    }
+}
+
 /// `srgb_to_linear(i / 255)` for every 8-bit code: decoding stored pixels is a table lookup.
 pub static SRGB8_TO_LINEAR: LazyLock<[f32; 256]> = LazyLock::new(|| {
     let mut t = [0.0f32; 256];
@@ -50,6 +63,12 @@ mod tests {
             let x = i as f32 / 100.0;
             assert!((linear_to_srgb(srgb_to_linear(x)) - x).abs() < 2e-4, "{x}");
         }
+        // The scripts' exact exponent: 0.5 → 1.055·0.5^(1/2.4) − 0.055 = 0.735356…, where
+        // the truncated 0.41666 gives 0.735361…; the knee itself stays on the linear branch.
+        assert!((linear_to_srgb_exact(0.5) - 0.735_356_983_052_449).abs() < 1e-12);
+        assert!((linear_to_srgb(0.5) as f64 - 0.735_360_6).abs() < 1e-6);
+        assert_eq!(linear_to_srgb_exact(0.003_130_8), 12.92 * 0.003_130_8);
+        assert!((linear_to_srgb_exact(1.0) - 1.0).abs() < 1e-15);
         assert_eq!(SRGB8_TO_LINEAR[0], 0.0);
         assert_eq!(SRGB8_TO_LINEAR[128], srgb_to_linear(128.0 / 255.0));
     }

@@ -12,7 +12,9 @@ use crate::occupancy::{OccupancyGrid, RefineReport};
 use rayon::prelude::*;
 use std::time::Instant;
 
-/// The background a rendering is composited over (instant-ngp's test-time white or black).
+/// The background a rendering is composited over. White is our scoring default (the NeRF
+/// literature's synthetic-scene scores); instant-ngp's `scripts/run.py` scores on black
+/// (`eval --protocol instant-ngp`), and its testbed's default background is black too.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Background {
     #[default]
@@ -30,7 +32,9 @@ impl crate::choice::Choice for Background {
     }
     fn help(self) -> &'static str {
         match self {
-            Background::White => "instant-ngp's test-time white",
+            Background::White => {
+                "white (ours and the NeRF literature's; instant-ngp's run.py scores on black)"
+            }
             Background::Black => "black",
         }
     }
