@@ -168,6 +168,9 @@ pub(crate) fn is_placeholder(m: &Model) -> bool {
 /// The scores of a model that is not there: every figure empty (`null` in the report).
 pub(crate) fn no_scores() -> EvalResult {
     EvalResult {
+        protocol: Default::default(),
+        background: [f32::NAN; 3],
+        split_views: 0,
         psnr: f64::NAN,
         ssim: f64::NAN,
         lpips: None,
