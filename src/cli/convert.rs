@@ -7,7 +7,7 @@
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use stegongp::ngp::data::colmap2nerf::to_transforms;
+use stegongp::ngp::data::colmap2nerf::{CentreFrom, to_transforms};
 use stegongp::ngp::data::transforms::parse_transforms_value;
 use stegongp::ngp::data::{check_aabb_scale, import_capture};
 use stegongp::util::write_atomic;
@@ -47,6 +47,11 @@ struct Summary {
     centre: [f64; 3],
     /// 4 / mean camera distance.
     scale: f64,
+    /// `axes` (colmap2nerf's closest point of the optical axes) or `focus` (the depth of
+    /// what each camera sees: LLFF's bounds, or a forward-facing COLMAP model's points).
+    centre_from: CentreFrom,
+    /// How nearly the cameras look the same way (1: all alike, near 0: all round).
+    view_alignment: f64,
     /// COLMAP points3D count, when the model has one.
     points: Option<u64>,
 }
@@ -86,6 +91,8 @@ pub fn run(a: Args) -> Result<()> {
         up: conv.norm.up,
         centre: conv.norm.centre,
         scale: conv.norm.scale,
+        centre_from: conv.norm.centre_from,
+        view_alignment: conv.norm.view_alignment,
         points: scene.points.as_ref().map(|p| p.count),
     };
     if a.json {
@@ -93,7 +100,7 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         let v = |p: [f64; 3]| format!("({:.4}, {:.4}, {:.4})", p[0], p[1], p[2]);
         println!(
-            "{} {}: {} frames, {} camera{}, images from {}/, aabb_scale {}, centre {} scaled by {:.5}{}; wrote {}",
+            "{} {}: {} frames, {} camera{}, images from {}/, aabb_scale {}, centre {} (from the {}) scaled by {:.5}{}; wrote {}",
             s.format,
             s.source.display(),
             s.frames,
@@ -102,6 +109,10 @@ pub fn run(a: Args) -> Result<()> {
             s.images_dir,
             s.aabb_scale,
             v(s.centre),
+            match s.centre_from {
+                CentreFrom::Axes => "cameras' axes",
+                CentreFrom::Focus => "depth the cameras see",
+            },
             s.scale,
             s.points
                 .map(|n| format!(", {n} points"))

@@ -1,7 +1,8 @@
 //! COLMAP sparse models, binary (`cameras.bin`, `images.bin`, `points3D.bin`, little-endian,
 //! COLMAP's documented layout) or text (`cameras.txt`, `images.txt`, `points3D.txt`); binary
-//! is preferred when a folder holds both. `points3D` is optional: when present only its
-//! count and bounding box are kept.
+//! is preferred when a folder holds both. `points3D` is optional: when present its count,
+//! bounding box and tracks are kept; the tracks give each image the depth range of the
+//! points it sees, as LLFF's `imgs2poses` takes its bounds (see [`depth_bounds`]).
 //!
 //! Camera models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV are read (their
 //! distortion is OpenCV's k1, k2, p1, p2, which is what [`crate::camera::Distortion`]
@@ -102,6 +103,76 @@ pub struct ColmapModel {
     /// In file order.
     pub images: Vec<ColmapImage>,
     pub points: Option<PointsSummary>,
+    /// Which points each image sees, when `points3D` is present.
+    pub tracks: Option<PointTracks>,
+}
+
+/// The points of a model and the images that see them (COLMAP world coordinates).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PointTracks {
+    /// Each point's position (non-finite points are left out).
+    pub xyz: Vec<[f64; 3]>,
+    /// (image id, index into `xyz`) for every observation.
+    pub seen: Vec<(i32, u32)>,
+}
+
+impl PointTracks {
+    fn push(&mut self, xyz: [f64; 3], images: impl IntoIterator<Item = i32>) {
+        if !xyz.iter().all(|v| v.is_finite()) {
+            return;
+        }
+        let k = self.xyz.len() as u32;
+        self.xyz.push(xyz);
+        self.seen.extend(images.into_iter().map(|id| (id, k)));
+    }
+}
+
+/// The percentiles of what a camera sees that LLFF's `imgs2poses` keeps as its near and
+/// far bounds.
+const NEAR_PERCENTILE: f64 = 0.1;
+const FAR_PERCENTILE: f64 = 99.9;
+
+/// numpy's `percentile` (linear interpolation) of sorted values.
+fn percentile(sorted: &[f64], q: f64) -> f64 {
+    let x = q / 100.0 * (sorted.len() - 1) as f64;
+    let (i, f) = (x.floor() as usize, x.fract());
+    let j = (i + 1).min(sorted.len() - 1);
+    sorted[i] + (sorted[j] - sorted[i]) * f
+}
+
+/// Near and far depth of what each image sees, by image id: the 0.1st and 99.9th
+/// percentiles of the depths along the camera's axis of the points in its track, as LLFF's
+/// `imgs2poses` writes into `poses_bounds.npy`. Points behind the camera are ignored; an
+/// image that sees none has no entry.
+pub fn depth_bounds(images: &[ColmapImage], tracks: &PointTracks) -> BTreeMap<i32, [f64; 2]> {
+    let poses: BTreeMap<i32, [[f64; 4]; 3]> = images
+        .iter()
+        .map(|im| (im.id, colmap_c2w(im.qvec, im.tvec)))
+        .collect();
+    let mut depths: BTreeMap<i32, Vec<f64>> = BTreeMap::new();
+    for &(id, k) in &tracks.seen {
+        let (Some(m), Some(p)) = (poses.get(&id), tracks.xyz.get(k as usize)) else {
+            continue;
+        };
+        // OpenCV axes: the camera looks down its third column.
+        let z: f64 = (0..3).map(|i| (p[i] - m[i][3]) * m[i][2]).sum();
+        if z > 0.0 && z.is_finite() {
+            depths.entry(id).or_default().push(z);
+        }
+    }
+    depths
+        .into_iter()
+        .map(|(id, mut z)| {
+            z.sort_by(f64::total_cmp);
+            (
+                id,
+                [
+                    percentile(&z, NEAR_PERCENTILE),
+                    percentile(&z, FAR_PERCENTILE),
+                ],
+            )
+        })
+        .collect()
 }
 
 impl ColmapModel {
@@ -394,7 +465,7 @@ fn empty_points() -> PointsSummary {
     }
 }
 
-pub fn read_points_bin(path: &Path) -> Result<PointsSummary> {
+pub fn read_points_bin(path: &Path) -> Result<(PointsSummary, PointTracks)> {
     let data = read_file(path)?;
     let mut r = Bin {
         path,
@@ -403,6 +474,8 @@ pub fn read_points_bin(path: &Path) -> Result<PointsSummary> {
     };
     let n = r.count(8 + 24 + 3 + 8 + 8, || "number of points".into())?;
     let mut s = empty_points();
+    let mut tracks = PointTracks::default();
+    let mut ids = Vec::new();
     for i in 0..n {
         let w = |f: &str| format!("point {i}: {f}");
         let _id = r.u64(|| w("point3D_id"))?;
@@ -410,13 +483,18 @@ pub fn read_points_bin(path: &Path) -> Result<PointsSummary> {
         r.take(3, || w("rgb"))?;
         let _err = r.f64(|| w("error"))?;
         let tl = r.count(8, || w("track length"))?;
-        r.skip(tl, 8, || w("track"))?;
+        ids.clear();
+        for _ in 0..tl {
+            ids.push(r.i32(|| w("track image_id"))?);
+            let _point2d = r.i32(|| w("track point2D_idx"))?;
+        }
         if xyz.iter().all(|v| v.is_finite()) {
             grow(&mut s, xyz);
         }
+        tracks.push(xyz, ids.iter().copied());
     }
     r.finish()?;
-    Ok(s)
+    Ok((s, tracks))
 }
 
 fn read_text(path: &Path) -> Result<String> {
@@ -555,32 +633,38 @@ pub fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>> {
     Ok(out)
 }
 
-pub fn read_points_txt(path: &Path) -> Result<PointsSummary> {
+pub fn read_points_txt(path: &Path) -> Result<(PointsSummary, PointTracks)> {
     let text = read_text(path)?;
     let mut s = empty_points();
+    let mut tracks = PointTracks::default();
     for (i, l) in text.lines().enumerate() {
         let ln = i + 1;
         let l = l.trim();
         if l.is_empty() || l.starts_with('#') {
             continue;
         }
-        let el: Vec<&str> = l.split_whitespace().take(4).collect();
-        if el.len() < 4 {
+        let el: Vec<&str> = l.split_whitespace().collect();
+        if el.len() < 8 || (el.len() - 8) % 2 != 0 {
             return Err(line_err(
                 path,
                 ln,
-                "expected POINT3D_ID X Y Z R G B ERROR TRACK[]",
+                "expected POINT3D_ID X Y Z R G B ERROR TRACK[] (pairs IMAGE_ID POINT2D_IDX)",
             ));
         }
         let mut p = [0.0f64; 3];
         for k in 0..3 {
             p[k] = parse_num(path, ln, ["X", "Y", "Z"][k], el[k + 1])?;
         }
+        let images = el[8..]
+            .chunks(2)
+            .map(|pair| parse_num::<i32>(path, ln, "TRACK IMAGE_ID", pair[0]))
+            .collect::<Result<Vec<i32>>>()?;
         if p.iter().all(|v| v.is_finite()) {
             grow(&mut s, p);
         }
+        tracks.push(p, images);
     }
-    Ok(s)
+    Ok((s, tracks))
 }
 
 /// Reads the model that `dir` directly holds (binary preferred).
@@ -599,13 +683,14 @@ pub fn read_model(dir: &Path) -> Result<ColmapModel> {
         ModelFormat::Binary => (read_cameras_bin(&cam_path)?, read_images_bin(&img_path)?),
         ModelFormat::Text => (read_cameras_txt(&cam_path)?, read_images_txt(&img_path)?),
     };
-    let points = if pts_path.is_file() {
-        Some(match format {
+    let (points, tracks) = if pts_path.is_file() {
+        let (s, t) = match format {
             ModelFormat::Binary => read_points_bin(&pts_path)?,
             ModelFormat::Text => read_points_txt(&pts_path)?,
-        })
+        };
+        (Some(s), Some(t))
     } else {
-        None
+        (None, None)
     };
     let mut cameras = BTreeMap::new();
     for c in cams {
@@ -650,6 +735,7 @@ pub fn read_model(dir: &Path) -> Result<ColmapModel> {
         cameras,
         images,
         points,
+        tracks,
     })
 }
 
@@ -679,6 +765,11 @@ pub fn import(model_dir: &Path, images: Option<&str>) -> Result<ImportedScene> {
         .collect();
     let mut cameras: Vec<ImportCamera> = Vec::new();
     let mut cam_index: BTreeMap<(i32, u32, u32), usize> = BTreeMap::new();
+    let bounds = model
+        .tracks
+        .as_ref()
+        .map(|t| depth_bounds(&model.images, t))
+        .unwrap_or_default();
     let mut frames = Vec::with_capacity(order.len());
     for ((im, path), d) in order.iter().zip(paths).zip(dims) {
         let (w, h) = d?;
@@ -723,7 +814,7 @@ pub fn import(model_dir: &Path, images: Option<&str>) -> Result<ImportedScene> {
             image_path: path,
             camera: idx,
             c2w: colmap_c2w(im.qvec, im.tvec),
-            depth_bounds: None,
+            depth_bounds: bounds.get(&im.id).copied(),
         });
     }
     Ok(ImportedScene {
@@ -782,6 +873,51 @@ mod tests {
         let e = read_images_txt(&imgs).unwrap_err().to_string();
         assert!(
             e.contains("line 1") && e.contains("not a finite rotation"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn depth_bounds_are_llffs_percentiles_of_the_points_in_front() {
+        // Image 1 at the origin looking down +z (identity), image 2 one unit further back
+        // along z; points at depths 1..=1000 in front of image 1, one behind both.
+        let im = |id, tz| ColmapImage {
+            id,
+            qvec: [1.0, 0.0, 0.0, 0.0],
+            tvec: [0.0, 0.0, tz],
+            camera_id: 1,
+            name: format!("{id}.png"),
+        };
+        let mut t = PointTracks::default();
+        for d in 1..=1000 {
+            t.push([0.3, -0.2, d as f64], [1, 2]);
+        }
+        t.push([0.0, 0.0, -5.0], [1, 2]);
+        t.push([f64::NAN, 0.0, 1.0], [1]);
+        assert_eq!(t.xyz.len(), 1001, "non-finite points are dropped");
+        let b = depth_bounds(&[im(1, 0.0), im(2, 1.0), im(3, 0.0)], &t);
+        // numpy.percentile(range(1, 1001), [0.1, 99.9]) = 1.999, 999.001.
+        assert!((b[&1][0] - 1.999).abs() < 1e-9 && (b[&1][1] - 999.001).abs() < 1e-9);
+        assert!((b[&2][0] - 2.999).abs() < 1e-9 && (b[&2][1] - 1000.001).abs() < 1e-9);
+        assert!(
+            !b.contains_key(&3),
+            "an image that sees no point has no bounds"
+        );
+    }
+
+    #[test]
+    fn text_points_carry_their_tracks() {
+        let t = tempfile::tempdir().unwrap();
+        let p = t.path().join("points3D.txt");
+        std::fs::write(&p, "# c\n7 1 2 3 9 9 9 0.5 4 0 5 2\n8 0 0 1 9 9 9 0.5\n").unwrap();
+        let (s, tr) = read_points_txt(&p).unwrap();
+        assert_eq!(s.count, 2);
+        assert_eq!(tr.xyz, vec![[1.0, 2.0, 3.0], [0.0, 0.0, 1.0]]);
+        assert_eq!(tr.seen, vec![(4, 0), (5, 0)]);
+        std::fs::write(&p, "7 1 2 3 9 9 9 0.5 4\n").unwrap();
+        let e = read_points_txt(&p).unwrap_err().to_string();
+        assert!(
+            e.contains("line 1") && e.contains("IMAGE_ID POINT2D_IDX"),
             "{e}"
         );
     }

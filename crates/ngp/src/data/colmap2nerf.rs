@@ -90,7 +90,8 @@ pub struct ImportFrame {
     /// Camera-to-world 3×4 in COLMAP's world, camera axes right, down, forward (OpenCV).
     pub c2w: [[f64; 4]; 3],
     /// Near and far depth of what this camera sees, where the capture records it (LLFF's
-    /// bounds), in the units of `c2w`.
+    /// bounds, or the percentiles of a COLMAP model's point depths that LLFF's
+    /// `imgs2poses` takes them from), in the units of `c2w`.
     pub depth_bounds: Option<[f64; 2]>,
 }
 
@@ -132,6 +133,43 @@ pub struct Normalisation {
     pub centre: [f64; 3],
     /// Factor applied after recentring: 4 / mean camera distance.
     pub scale: f64,
+    /// How the centre was found.
+    pub centre_from: CentreFrom,
+    /// How nearly the cameras look the same way ([`view_alignment`]).
+    pub view_alignment: f64,
+}
+
+/// Where the normalisation's centre comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CentreFrom {
+    /// colmap2nerf's weighted closest point of the optical axes.
+    Axes,
+    /// The mean of the points at each camera's focus depth along its axis.
+    Focus,
+}
+
+/// View alignment from which a capture counts as forward-facing: its cameras' axes then lie
+/// within about 20° of their mean (0.97 is the alignment of axes spread evenly over ±25°).
+/// colmap2nerf's closest point of nearly parallel axes is ill-conditioned: flower, posed by
+/// `process`, aligns at 0.99 and its closest point fell among the cameras; 360° and
+/// object-centred captures align far below (fox-colmap 0.82).
+pub const FORWARD_FACING_ALIGNMENT: f64 = 0.97;
+
+/// The length of the mean of the cameras' unit viewing directions (COLMAP camera-to-world,
+/// OpenCV axes): 1 when every camera looks the same way, near 0 for cameras all round.
+pub fn view_alignment(c2w_colmap: &[[[f64; 4]; 3]]) -> f64 {
+    let mut sum = [0.0; 3];
+    for m in c2w_colmap {
+        let f = [m[0][2], m[1][2], m[2][2]];
+        let n = norm(f);
+        if n > 0.0 && n.is_finite() {
+            for k in 0..3 {
+                sum[k] += f[k] / n;
+            }
+        }
+    }
+    norm(sum) / c2w_colmap.len().max(1) as f64
 }
 
 /// The result of [`to_transforms`].
@@ -317,7 +355,12 @@ pub fn normalise(
     }
     let col = |m: &[[f64; 4]; 3], j: usize| [m[0][j], m[1][j], m[2][j]];
     let (mut totp, mut totw) = ([0.0; 3], 0.0);
-    match focus.filter(|f| f.len() == ms.len() && !f.is_empty()) {
+    let focus = focus.filter(|f| f.len() == ms.len() && !f.is_empty());
+    let centre_from = match focus {
+        Some(_) => CentreFrom::Focus,
+        None => CentreFrom::Axes,
+    };
+    match focus {
         Some(depths) => {
             for (m, &d) in ms.iter().zip(depths) {
                 // OpenGL cameras look down −z: the point is o − d·z.
@@ -372,6 +415,8 @@ pub fn normalise(
             rotation: r,
             centre: totp,
             scale,
+            centre_from,
+            view_alignment: view_alignment(c2w_colmap),
         },
     )
 }
@@ -495,6 +540,11 @@ pub fn to_transforms(scene: &ImportedScene, aabb_scale: u32, base_dir: &Path) ->
         .iter()
         .map(|f| f.depth_bounds.map(focus_depth))
         .collect();
+    // LLFF's bounds centre every LLFF capture, as before COLMAP models carried depths;
+    // a COLMAP model's point depths centre it only where colmap2nerf's estimate fails.
+    let focus = focus.filter(|_| {
+        scene.format == DatasetFormat::Llff || view_alignment(&poses) >= FORWARD_FACING_ALIGNMENT
+    });
     let (ms, norm) = normalise(&poses, focus.as_deref());
     let single = scene.cameras.len() == 1;
     let frames: Vec<Value> = scene
@@ -737,6 +787,92 @@ mod tests {
         );
     }
 
+    /// A COLMAP capture of `c2w` poses, each seeing depths 2 to 6.
+    fn colmap_capture(poses: &[[[f64; 4]; 3]]) -> ImportedScene {
+        let camera = ImportCamera {
+            width: 8,
+            height: 6,
+            fx: 7.0,
+            fy: 7.0,
+            cx: 4.0,
+            cy: 3.0,
+            k1: 0.0,
+            k2: 0.0,
+            p1: 0.0,
+            p2: 0.0,
+        };
+        let frames = poses
+            .iter()
+            .enumerate()
+            .map(|(i, &c2w)| ImportFrame {
+                name: format!("{i}.png"),
+                image_path: PathBuf::from(format!("/d/images/{i}.png")),
+                camera: 0,
+                c2w,
+                depth_bounds: Some([2.0, 6.0]),
+            })
+            .collect();
+        ImportedScene {
+            format: DatasetFormat::Colmap,
+            source: PathBuf::from("/d/sparse/0"),
+            root: PathBuf::from("/d"),
+            images_dir: "images".into(),
+            cameras: vec![camera],
+            frames,
+            default_aabb_scale: 16,
+            points: None,
+        }
+    }
+
+    #[test]
+    fn point_depths_centre_a_forward_facing_colmap_capture_only() {
+        // Side by side, looking at points 3 ahead (+y) of the middle camera, the axes
+        // diverging slightly (aligned at 0.99+): centred on the focus depth, as LLFF is.
+        let ahead: Vec<_> = [-0.5, 0.0, 0.5]
+            .iter()
+            .map(|&x| look_at_colmap([x, 0.0, 0.0], [1.5 * x, 3.0, 0.0]))
+            .collect();
+        let c = to_transforms(&colmap_capture(&ahead), 16, Path::new("/d"));
+        assert_eq!(c.norm.centre_from, CentreFrom::Focus);
+        assert!(c.norm.view_alignment > FORWARD_FACING_ALIGNMENT);
+        // All round a point: colmap2nerf's closest point of the axes, whatever the depths.
+        let round: Vec<_> = (0..6)
+            .map(|i| (i as f64 * 60.0).to_radians())
+            .map(|a| look_at_colmap([5.0 * a.cos(), 0.5, 5.0 * a.sin()], [0.0; 3]))
+            .collect();
+        let c = to_transforms(&colmap_capture(&round), 16, Path::new("/d"));
+        assert_eq!(c.norm.centre_from, CentreFrom::Axes);
+        assert!(c.norm.view_alignment < 0.2);
+        // An LLFF capture keeps its bounds' centre all round too.
+        let mut llff = colmap_capture(&round);
+        llff.format = DatasetFormat::Llff;
+        let c = to_transforms(&llff, 16, Path::new("/d"));
+        assert_eq!(c.norm.centre_from, CentreFrom::Focus);
+    }
+
+    #[test]
+    fn view_alignment_tells_forward_facing_from_all_round() {
+        let look = |f: [f64; 3]| {
+            let mut m = [[0.0; 4]; 3];
+            for k in 0..3 {
+                m[k][2] = f[k] * 2.0;
+            }
+            m
+        };
+        let same = [look([0.0, 1.0, 0.0]); 3];
+        assert!((view_alignment(&same) - 1.0).abs() < 1e-12);
+        let round = [1.0, -1.0].map(|s| look([s, 0.0, 0.0]));
+        assert!(view_alignment(&round).abs() < 1e-12);
+        // Spread evenly over ±25°: the documented threshold.
+        let spread: Vec<_> = (0..=50)
+            .map(|i| ((i as f64 - 25.0) as f64).to_radians())
+            .map(|a| look([a.sin(), a.cos(), 0.0]))
+            .collect();
+        let a = view_alignment(&spread);
+        assert!((a - FORWARD_FACING_ALIGNMENT).abs() < 0.005, "{a}");
+        assert_eq!(view_alignment(&[]), 0.0);
+    }
+
     #[test]
     fn forward_facing_cameras_centre_on_their_focus_depth() {
         // Three OpenCV cameras side by side, all looking down +y of COLMAP's world (axes
@@ -756,6 +892,7 @@ mod tests {
             .collect();
         assert_eq!(focus_depth([2.0, 6.0]), 3.0);
         let (ms, n) = normalise(&poses, Some(&[3.0, 3.0, 3.0]));
+        assert_eq!(n.centre_from, CentreFrom::Focus);
         let dists: Vec<f64> = ms
             .iter()
             .map(|m| norm([m[0][3], m[1][3], m[2][3]]))
@@ -769,5 +906,6 @@ mod tests {
         // rotated world, among the cameras.
         let (_, n0) = normalise(&poses, None);
         assert_eq!(n0.centre, [0.0; 3]);
+        assert_eq!(n0.centre_from, CentreFrom::Axes);
     }
 }
