@@ -644,7 +644,7 @@ pub fn read_points_txt(path: &Path) -> Result<(PointsSummary, PointTracks)> {
             continue;
         }
         let el: Vec<&str> = l.split_whitespace().collect();
-        if el.len() < 8 || (el.len() - 8) % 2 != 0 {
+        if el.len() < 8 || !(el.len() - 8).is_multiple_of(2) {
             return Err(line_err(
                 path,
                 ln,

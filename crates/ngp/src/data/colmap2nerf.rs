@@ -865,7 +865,7 @@ mod tests {
         assert!(view_alignment(&round).abs() < 1e-12);
         // Spread evenly over ±25°: the documented threshold.
         let spread: Vec<_> = (0..=50)
-            .map(|i| ((i as f64 - 25.0) as f64).to_radians())
+            .map(|i| (i as f64 - 25.0).to_radians())
             .map(|a| look([a.sin(), a.cos(), 0.0]))
             .collect();
         let a = view_alignment(&spread);
