@@ -906,7 +906,7 @@ mod tests {
         assert!(close(ring.signed_distance([1.0, 0.0, 2.0]), 0.75));
         let h = 0.5f32.sqrt();
         assert!(close(ring.signed_distance([2.0 * h, 2.0 * h, 1.0]), 0.75));
-        assert!(close(ring.signed_distance([0.0, -1.6, 1.3]), 0.25));
+        assert!(close(ring.signed_distance([0.0, -1.4, 1.3]), 0.25));
         let s = shapes_scene();
         assert!(close(s.signed_distance([-0.5, 0.15, 0.05]), -0.5));
         assert!(s.signed_distance([0.0, 0.0, 1.5]) > 0.5);
