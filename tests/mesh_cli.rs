@@ -1,8 +1,9 @@
 //! `stegongp mesh` on a small stego model of generated scenes whose surfaces are known: the
-//! cover (the object scene) without a key, the hidden scene (a ball and a box) with it,
-//! measured against the scenes' exact surfaces in lattice cells; closed and outward
-//! meshes; a wrong key's mesh; the files read back by real mesh tools; and bad input
-//! refused before anything is written.
+//! cover (the object scene) without a key, the hidden scene (a ball, a box and a torus)
+//! with it, measured against the scenes' exact surfaces in lattice cells; closed and
+//! outward meshes, each shape one surface of its genus; a wrong key's mesh; the files read
+//! back by real mesh tools; an empty mesh's report; and bad input refused before anything
+//! is written.
 
 use ply_rs_bw::parser::Parser;
 use ply_rs_bw::ply::{DefaultElement, Property};
@@ -11,12 +12,12 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 use stegongp::ngp::mesh::Mesh;
-use stegongp::ngp::mesh::topology::{edges, signed_volume};
+use stegongp::ngp::mesh::topology::{components, edges, euler_characteristic, signed_volume};
 use stegongp::ngp::network::ModelConfig;
 use stegongp::stego::recipe::StepOptions;
 use stegongp::stego::{SchemeKind, save_key};
 use stegongp::synth::SceneKind;
-use stegongp::synth::scene::{Scene, object_scene, shapes_scene};
+use stegongp::synth::scene::{Shape, object_scene, shapes_scene};
 use testkit::cli::{fails_naming, stdout_ok, stegongp};
 use testkit::keys::seeded_key;
 use testkit::scenes::generated;
@@ -152,8 +153,14 @@ struct Fit {
     outward: f32,
 }
 
-/// [`fit`] of the vertices `seen` keeps.
-fn fit(mesh: &Mesh, scene: &Scene, cell: f32, seen: impl Fn([f32; 3]) -> bool) -> Fit {
+/// [`Fit`] of the vertices `seen` keeps, against the signed distance `sd` (negative
+/// inside).
+fn fit(
+    mesh: &Mesh,
+    sd: impl Fn([f32; 3]) -> f32,
+    cell: f32,
+    seen: impl Fn([f32; 3]) -> bool,
+) -> Fit {
     let mut d = Vec::new();
     let (mut inside, mut near, mut out, mut all) = (0usize, 0usize, 0usize, 0usize);
     for (p, n) in mesh.positions.iter().zip(&mesh.normals) {
@@ -161,7 +168,7 @@ fn fit(mesh: &Mesh, scene: &Scene, cell: f32, seen: impl Fn([f32; 3]) -> bool) -
             continue;
         }
         all += 1;
-        let s = scene.signed_distance(*p) / cell;
+        let s = sd(*p) / cell;
         if s < -1.0 {
             inside += 1;
             continue;
@@ -175,7 +182,7 @@ fn fit(mesh: &Mesh, scene: &Scene, cell: f32, seen: impl Fn([f32; 3]) -> bool) -
                     let (mut a, mut b) = (*p, *p);
                     a[k] += h;
                     b[k] -= h;
-                    scene.signed_distance(a) - scene.signed_distance(b)
+                    sd(a) - sd(b)
                 })
                 .collect();
             out += (g[0] * n[0] + g[1] * n[1] + g[2] * n[2] > 0.0) as usize;
@@ -193,45 +200,80 @@ fn fit(mesh: &Mesh, scene: &Scene, cell: f32, seen: impl Fn([f32; 3]) -> bool) -
     }
 }
 
-/// The mean distance, in cells, from points spread over the shapes' surfaces to the
-/// nearest vertex: what of the surface the mesh misses.
-fn completeness(mesh: &Mesh, cell: f32) -> f32 {
-    let mut samples = Vec::new();
-    // The ball (centre, radius) and the box of `shapes_scene`, on a Fibonacci spiral and
-    // a grid of each face.
-    let (c, r) = ([-0.5f32, 0.15, 0.05], 0.5f32);
-    for i in 0..400 {
-        let z = 1.0 - 2.0 * (i as f32 + 0.5) / 400.0;
-        let a = i as f32 * 2.399_963;
-        let s = (1.0 - z * z).sqrt();
-        samples.push([c[0] + r * s * a.cos(), c[1] + r * s * a.sin(), c[2] + r * z]);
-    }
-    let (lo, hi) = ([0.2f32, -0.55, -0.45], [0.9f32, 0.25, 0.35]);
-    for axis in 0..3 {
-        for side in [lo[axis], hi[axis]] {
-            for i in 0..8 {
-                for j in 0..8 {
-                    let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
-                    let mut p = [0.0; 3];
-                    p[axis] = side;
-                    p[u] = lo[u] + (hi[u] - lo[u]) * (i as f32 + 0.5) / 8.0;
-                    p[v] = lo[v] + (hi[v] - lo[v]) * (j as f32 + 0.5) / 8.0;
-                    samples.push(p);
+/// Points spread over a shape's surface, each with the area it stands for: the ball on a
+/// Fibonacci spiral, each face of the box on a grid, the torus on a grid of its two angles
+/// (the area of a sample shrinks towards the hole, where the tube's circle is shorter).
+fn surface_samples(shape: &Shape) -> Vec<([f32; 3], f32)> {
+    let mut out = Vec::new();
+    match *shape {
+        Shape::Sphere { c, r } => {
+            let n = 400;
+            for i in 0..n {
+                let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
+                let a = i as f32 * 2.399_963;
+                let s = (1.0 - z * z).sqrt();
+                let p = [c[0] + r * s * a.cos(), c[1] + r * s * a.sin(), c[2] + r * z];
+                out.push((p, 4.0 * std::f32::consts::PI * r * r / n as f32));
+            }
+        }
+        Shape::Box { lo, hi } => {
+            for axis in 0..3 {
+                let (u, v) = ((axis + 1) % 3, (axis + 2) % 3);
+                let area = (hi[u] - lo[u]) * (hi[v] - lo[v]) / 64.0;
+                for side in [lo[axis], hi[axis]] {
+                    for i in 0..8 {
+                        for j in 0..8 {
+                            let mut p = [0.0; 3];
+                            p[axis] = side;
+                            p[u] = lo[u] + (hi[u] - lo[u]) * (i as f32 + 0.5) / 8.0;
+                            p[v] = lo[v] + (hi[v] - lo[v]) * (j as f32 + 0.5) / 8.0;
+                            out.push((p, area));
+                        }
+                    }
                 }
             }
         }
+        Shape::Torus { c, major, minor } => {
+            let (n, m) = (48, 16);
+            let step = std::f32::consts::TAU;
+            for i in 0..n {
+                let a = (i as f32 + 0.5) / n as f32 * step;
+                for j in 0..m {
+                    let b = (j as f32 + 0.5) / m as f32 * step;
+                    let rho = major + minor * b.cos();
+                    let p = [
+                        c[0] + rho * a.cos(),
+                        c[1] + rho * a.sin(),
+                        c[2] + minor * b.sin(),
+                    ];
+                    out.push((p, step * step / (n * m) as f32 * minor * rho));
+                }
+            }
+        }
+        other => panic!("no samples of {other:?}"),
     }
-    let total: f32 = samples
-        .iter()
-        .map(|s| {
-            mesh.positions
-                .iter()
-                .map(|p| (0..3).map(|d| (p[d] - s[d]).powi(2)).sum::<f32>())
-                .fold(f32::INFINITY, f32::min)
-                .sqrt()
-        })
-        .sum();
-    total / samples.len() as f32 / cell
+    out
+}
+
+/// The mean distance, in cells, from points spread over `shapes`' surfaces (weighted by
+/// the area each stands for) to the nearest vertex: what of the surface the mesh misses.
+fn completeness(mesh: &Mesh, shapes: &[Shape], cell: f32) -> f32 {
+    let (mut sum, mut area) = (0.0, 0.0);
+    for (s, w) in shapes.iter().flat_map(surface_samples) {
+        let d = mesh
+            .positions
+            .iter()
+            .map(|p| (0..3).map(|d| (p[d] - s[d]).powi(2)).sum::<f32>())
+            .fold(f32::INFINITY, f32::min)
+            .sqrt();
+        sum += w * d;
+        area += w;
+    }
+    sum / area / cell
+}
+
+fn scene_shapes() -> Vec<Shape> {
+    shapes_scene().objects.iter().map(|o| o.shape).collect()
 }
 
 /// The hidden scene's mesh with the key (`--axes dataset`), made once: every `--key` run
@@ -253,8 +295,9 @@ fn the_hidden_scene_with_its_key_is_its_shapes_closed_and_outward() {
     assert_eq!(m.positions.len() as u64, r["vertices"].as_u64().unwrap());
     assert_eq!(m.triangles.len() as u64, r["triangles"].as_u64().unwrap());
     let cell = cell(r);
-    let f = fit(&m, &shapes_scene(), cell, |_| true);
-    let miss = completeness(&m, cell);
+    let scene = shapes_scene();
+    let f = fit(&m, |p| scene.signed_distance(p), cell, |_| true);
+    let miss = completeness(&m, &scene_shapes(), cell);
     let chamfer = 0.5 * (f.mean + miss);
     let e = edges(&m);
     eprintln!(
@@ -273,6 +316,93 @@ fn the_hidden_scene_with_its_key_is_its_shapes_closed_and_outward() {
     assert!(f.outward > 0.95, "{f:?}");
 }
 
+/// Each shape's outer surface in the hidden mesh: the component with the most vertices
+/// within a cell of the shape's exact surface. A young model also leaves cavities inside
+/// the solids (their walls are components of their own, normals into the cavity, more than
+/// a cell inside: see `fit`'s `inside`), and may leave small floaters; neither has many
+/// vertices on the surface, so the outer one wins. Its index in `parts` and its vertices'
+/// share nearest this shape of all (under 1 when it has merged with another shape).
+fn outer_component(parts: &[Mesh], shapes: &[Shape], k: usize, cell: f32) -> (usize, f32) {
+    let on = |m: &Mesh| {
+        m.positions
+            .iter()
+            .filter(|p| shapes[k].signed_distance(**p).abs() < cell)
+            .count()
+    };
+    let i = (0..parts.len()).max_by_key(|&i| on(&parts[i])).unwrap();
+    let nearest = |p: &[f32; 3]| {
+        (0..shapes.len())
+            .min_by(|&a, &b| {
+                let (da, db) = (shapes[a].signed_distance(*p), shapes[b].signed_distance(*p));
+                da.abs().total_cmp(&db.abs())
+            })
+            .unwrap()
+    };
+    let own = parts[i]
+        .positions
+        .iter()
+        .filter(|p| nearest(p) == k)
+        .count();
+    (i, own as f32 / parts[i].positions.len() as f32)
+}
+
+/// Not yet true of CI's 200-step model (measured 2026-12-02, see benchmarks/mesh.md): at
+/// the default threshold the torus and the box (0.10 apart, two cells) share one component
+/// (χ −14), and the ball's outer surface is joined to its cavity by tunnels (χ −30); at
+/// threshold 4 the three are apart but every one has tunnels (χ −60, −94, −26). Run it on a
+/// model that has learnt the solids' insides (`--ignored`) to check the genus.
+#[test]
+#[ignore = "CI's 200-step model joins the torus to the box and the ball to its cavity"]
+fn each_hidden_shape_is_one_closed_surface_of_its_genus() {
+    let (out, r) = hidden_mesh();
+    let m = read_ply(out);
+    let cell = cell(r);
+    let parts = components(&m);
+    eprintln!(
+        "hidden: {} components, (triangles, χ) {:?}",
+        parts.len(),
+        parts
+            .iter()
+            .map(|p| (p.triangles.len(), euler_characteristic(p)))
+            .collect::<Vec<_>>()
+    );
+    let shapes = scene_shapes();
+    let mut taken = Vec::new();
+    for (k, shape) in shapes.iter().enumerate() {
+        let (name, chi) = match shape {
+            Shape::Sphere { .. } => ("ball", 2),
+            Shape::Box { .. } => ("box", 2),
+            Shape::Torus { .. } => ("torus", 0),
+            other => panic!("{other:?}"),
+        };
+        let (i, own) = outer_component(&parts, &shapes, k, cell);
+        let part = &parts[i];
+        let f = fit(part, |p| shape.signed_distance(p), cell, |_| true);
+        let miss = completeness(part, std::slice::from_ref(shape), cell);
+        let chamfer = 0.5 * (f.mean + miss);
+        let e = edges(part);
+        let got = euler_characteristic(part);
+        eprintln!(
+            "{name}: component {i}, {} vertices, {} triangles, {:.1} % nearest it, χ {got}; \
+             {f:?}; surface to mesh {miss:.2} cells; Chamfer {chamfer:.2} cells",
+            part.positions.len(),
+            part.triangles.len(),
+            100.0 * own
+        );
+        // One surface of this shape alone: not merged with a neighbour (whose vertices
+        // would then be in it, and whose handle would change χ), and no other shape's.
+        assert!(!taken.contains(&i), "{name} shares component {i}");
+        taken.push(i);
+        assert!(own > 0.99, "{name}: {own}");
+        assert!(e.closed_and_oriented(), "{name}: {e:?}");
+        assert!(signed_volume(part) > 0.0, "{name}");
+        assert_eq!(got, chi, "{name}: χ {got}, not {chi}");
+        assert!(f.median < 0.5 && f.p90 < 1.5, "{name}: {f:?}");
+        assert!(f.outward > 0.95, "{name}: {f:?}");
+        assert!(miss < 1.0 && chamfer < 0.75, "{name}: {miss} {chamfer}");
+    }
+}
+
 #[test]
 fn the_cover_without_a_key_is_the_object_scene() {
     let f = fixture();
@@ -284,7 +414,8 @@ fn the_cover_without_a_key_is_the_object_scene() {
     // the network puts under it is never seen: the platform's underside and below count
     // out.
     let above = |p: [f32; 3]| p[2] > PLATFORM_BOTTOM;
-    let f = fit(&m, &object_scene(), cell, above);
+    let scene = object_scene();
+    let f = fit(&m, |p| scene.signed_distance(p), cell, above);
     let e = edges(&m);
     eprintln!(
         "cover: {} vertices, {} triangles, cell {cell:.4}; {f:?}; {e:?}",
@@ -295,9 +426,12 @@ fn the_cover_without_a_key_is_the_object_scene() {
     assert!(f.median < 0.5 && f.p90 < 2.0, "{f:?}");
     // The platform is under three cells thick, so a vertex within a cell of its top or
     // bottom may be either's; the objects standing on it are not.
-    let on_top = fit(&m, &object_scene(), cell, |p| {
-        p[2] > PLATFORM_TOP + 2.0 * cell
-    });
+    let on_top = fit(
+        &m,
+        |p| scene.signed_distance(p),
+        cell,
+        |p| p[2] > PLATFORM_TOP + 2.0 * cell,
+    );
     eprintln!("cover, above the platform: {on_top:?}");
     // The cover's surface is rough at this size and training (its density hovers around
     // the threshold in a thin fuzz, each bump with its own normal): mostly outward, where
@@ -306,7 +440,8 @@ fn the_cover_without_a_key_is_the_object_scene() {
     assert!(on_top.outward > 0.65, "{on_top:?}");
     assert!(signed_volume(&m) > 0.0);
     // Far from the shapes: the key makes the difference.
-    let far = fit(&m, &shapes_scene(), cell, above);
+    let shapes = shapes_scene();
+    let far = fit(&m, |p| shapes.signed_distance(p), cell, above);
     assert!(
         far.median > 4.0 * f.median,
         "the cover's mesh lies near the hidden shapes: {far:?}"
@@ -490,26 +625,58 @@ fn the_gpu_meshes_what_the_cpu_meshes() {
     assert!(edges(&mg).closed_and_oriented());
 }
 
-#[test]
-fn a_threshold_above_everything_gives_an_empty_mesh_and_says_so() {
+/// `stegongp mesh MODEL --out OUT --json EXTRA…` that succeeds with an empty mesh: its
+/// report and what it said on standard error.
+fn empty_mesh(name: &str, extra: &[&str]) -> (Value, String) {
     let f = fixture();
-    let out = f.dir.path().join("empty.ply");
-    let o = stegongp(&[
+    let out = f.dir.path().join(name);
+    let mut args = vec![
         "mesh",
         path_str(&f.model),
         "--out",
         path_str(&out),
-        "--threshold",
-        "1000",
-    ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(o.status.success(), "{err}");
-    assert!(
-        err.contains("no surface") && err.contains("--threshold 1000"),
-        "{err}"
-    );
+        "--json",
+    ];
+    args.extend_from_slice(extra);
+    let o = stegongp(&args);
+    let err = String::from_utf8_lossy(&o.stderr).into_owned();
+    let report: Value = serde_json::from_str(&stdout_ok(&o)).expect("one JSON report");
     let m = read_ply(&out);
     assert!(m.positions.is_empty() && m.triangles.is_empty());
+    assert_eq!(report["triangles"], 0);
+    (report, err)
+}
+
+#[test]
+fn a_threshold_above_everything_gives_an_empty_mesh_and_says_so() {
+    // Evaluated, never crossed: the largest density met is in the report and the message,
+    // which proposes a threshold below it.
+    let (r, err) = empty_mesh("empty.ply", &["--threshold", "1e9"]);
+    let max = r["max_density"].as_f64().expect("a number") as f32;
+    assert!(r["evaluated_points"].as_u64().unwrap() > 0, "{r}");
+    assert!(max.is_finite() && max < 1e9, "{r}");
+    assert!(
+        err.contains("no surface")
+            && err.contains("--threshold 1000000000")
+            && err.contains(&format!("--threshold below {max}")),
+        "{err}"
+    );
+}
+
+#[test]
+fn a_box_with_no_occupied_cell_evaluates_nothing_and_says_so() {
+    // Outside the model's box altogether: every lattice point masked, nothing evaluated,
+    // so there is no largest density (null, not NaN) and no threshold to propose.
+    let (r, err) = empty_mesh("nowhere.ply", &["--box", "5,5,5,6,6,6"]);
+    assert_eq!(r["evaluated_points"], 0, "{r}");
+    assert!(r["max_density"].is_null(), "{r}");
+    assert!(
+        err.contains("no surface")
+            && err.contains("no density was evaluated")
+            && err.contains("Leave --box out")
+            && !err.contains("--threshold"),
+        "{err}"
+    );
 }
 
 #[test]

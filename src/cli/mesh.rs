@@ -69,8 +69,9 @@ struct Report {
     box_max: [f32; 3],
     threshold: f32,
     evaluated_points: u64,
-    /// The largest raw density the lattice met (NaN when no point was evaluated).
-    max_density: f32,
+    /// The largest raw density the lattice met; `None` (JSON null) when no point was
+    /// evaluated.
+    max_density: Option<f32>,
     density_seconds: f64,
     cubes_seconds: f64,
     colour_seconds: f64,
@@ -201,7 +202,7 @@ pub fn run(a: Args) -> Result<()> {
         box_max: [0.0; 3],
         threshold: a.threshold,
         evaluated_points: 0,
-        max_density: f32::NAN,
+        max_density: None,
         density_seconds: 0.0,
         cubes_seconds: 0.0,
         colour_seconds: 0.0,
@@ -227,11 +228,9 @@ pub fn run(a: Args) -> Result<()> {
     if mesh.is_empty() {
         mesh = Mesh::default();
         if bounds.is_some() {
-            eprintln!(
-                "no surface: the raw density never crosses --threshold {} in the box (its \
-                 largest value there is {}); the mesh is empty. A lower --threshold may find one",
-                a.threshold, report.max_density
-            );
+            let h = 0.5 * (grid.max_cascade() as f32).exp2();
+            let whole = (frame.position([0.5 - h; 3]), frame.position([0.5 + h; 3]));
+            eprintln!("{}", no_surface(&a, &report, whole));
         }
     } else {
         let t = Instant::now();
@@ -287,12 +286,32 @@ fn march_lattice(
     report.evaluated_points = out.evaluated;
     report.density_seconds = density_seconds;
     report.cubes_seconds = started.elapsed().as_secs_f64() - density_seconds;
-    report.max_density = if out.evaluated > 0 {
-        max_density
-    } else {
-        f32::NAN
-    };
+    report.max_density = (out.evaluated > 0).then_some(max_density);
     Ok(out.mesh)
+}
+
+/// Why a box gave no surface: none of its lattice points fell in an occupied cell (nothing
+/// was evaluated: the box is elsewhere than the model's matter), or the density was
+/// evaluated and never reached the threshold (a lower one may find a surface). `whole`:
+/// the model's box, corners in the written coordinates.
+fn no_surface(a: &Args, r: &Report, whole: ([f32; 3], [f32; 3])) -> String {
+    let b = |v: [f32; 3]| format!("{:.4},{:.4},{:.4}", v[0], v[1], v[2]);
+    match r.max_density {
+        None => format!(
+            "no surface: no lattice point of the box fell in a cell the occupancy grid calls \
+             occupied, so no density was evaluated; the mesh is empty. Leave --box out to mesh \
+             the occupied part of the model's box, or give a --box over it (the whole box: \
+             --box {},{})",
+            b([0, 1, 2].map(|d| whole.0[d].min(whole.1[d]))),
+            b([0, 1, 2].map(|d| whole.0[d].max(whole.1[d]))),
+        ),
+        Some(max) => format!(
+            "no surface: the raw density never crosses --threshold {} in the box ({} lattice \
+             points evaluated, the largest density met {max}); the mesh is empty. A \
+             --threshold below {max} may find one",
+            a.threshold, r.evaluated_points
+        ),
+    }
 }
 
 fn print_report(a: &Args, r: &Report) -> Result<()> {

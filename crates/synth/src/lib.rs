@@ -49,7 +49,7 @@ pub enum SceneKind {
     Room,
     /// A generated 3-D logo ([`logo::Logo`]), drawn from [`SynthOptions::seed`].
     Logo,
-    /// A ball and a box of known surfaces ([`scene::shapes_scene`]), seen from all round
+    /// A ball, a box and a torus of known surfaces ([`scene::shapes_scene`]), seen from all round
     /// (training views below the horizon too): what a mesh is measured against.
     Shapes,
 }
@@ -103,7 +103,7 @@ impl clap::ValueEnum for SceneKind {
                  scene in the instant-ngp format (needs --aabb-scale ≥ 2)"
             }
             SceneKind::Shapes => {
-                "A ball and a box of known surfaces, seen from all round (for measuring meshes)"
+                "A ball, a box and a torus of known surfaces, seen from all round (for measuring meshes)"
             }
         };
         Some(clap::builder::PossibleValue::new(self.name()).help(help))

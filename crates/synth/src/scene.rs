@@ -1,6 +1,6 @@
 //! Analytic geometry and procedural materials: spheres, axis-aligned boxes, vertical
-//! cylinders and discs, and convex polygons of the x–z plane extruded along y (prisms),
-//! shaded with Lambert + ambient under one directional light, with shadows. World
+//! cylinders and discs, convex polygons of the x–z plane extruded along y (prisms), and
+//! tori lying flat (axis z), shaded with Lambert + ambient under one directional light, with shadows. World
 //! coordinates are Blender's: z up, metres, everything inside |x|,|y|,|z| < 1.3.
 
 pub type V3 = [f32; 3];
@@ -83,6 +83,14 @@ pub enum Shape {
         pts: [[f32; 2]; 4],
         y0: f32,
         y1: f32,
+    },
+    /// A torus lying flat: its axis along z through `c`, the tube's centre line a circle of
+    /// radius `major` in the plane z = c.z, the tube of radius `minor` (< `major`, so that
+    /// it has a hole).
+    Torus {
+        c: V3,
+        major: f32,
+        minor: f32,
     },
 }
 
@@ -296,8 +304,63 @@ impl Shape {
                     Some((t1, n1))
                 }
             }
+            Shape::Torus { c, major, minor } => torus_hit(c, major, minor, o, d, EPS),
         }
     }
+}
+
+/// The torus's signed distance (exact) and its gradient (the outward unit normal on the
+/// surface): the distance from the tube's centre circle, less the tube's radius.
+fn torus_field(c: V3, major: f32, minor: f32, p: V3) -> (f32, V3) {
+    let q = sub(p, c);
+    let rho = (q[0] * q[0] + q[1] * q[1]).sqrt();
+    // On the axis every direction is nearest; any will do (the axis is never on the surface).
+    let (ux, uy) = if rho > 1e-12 {
+        (q[0] / rho, q[1] / rho)
+    } else {
+        (1.0, 0.0)
+    };
+    let (w, h) = (rho - major, q[2]);
+    let len = (w * w + h * h).sqrt();
+    let n = if len > 1e-12 {
+        [ux * w / len, uy * w / len, h / len]
+    } else {
+        [0.0, 0.0, 1.0]
+    };
+    (len - minor, n)
+}
+
+/// A ray's first hit on a torus past `eps`, by sphere tracing the exact signed distance
+/// from where the ray enters the torus's bounding sphere: every step moves by the distance
+/// to the surface, so it never passes through it (from inside the tube too, by the
+/// distance's absolute value). A quartic's roots in f32 lose the grazing hits this keeps.
+fn torus_hit(c: V3, major: f32, minor: f32, o: V3, d: V3, eps: f32) -> Option<(f32, V3)> {
+    let bound = major + minor;
+    let oc = sub(o, c);
+    let b = dot(oc, d);
+    let disc = b * b - (dot(oc, oc) - bound * bound);
+    if disc < 0.0 {
+        return None;
+    }
+    let s = disc.sqrt();
+    let (t_in, t_out) = (-b - s, -b + s);
+    if t_out <= eps {
+        return None;
+    }
+    let mut t = t_in.max(eps);
+    // The tolerance of a hit, relative to the torus's size.
+    let tol = 1e-5 * bound;
+    for _ in 0..256 {
+        let (dist, n) = torus_field(c, major, minor, add(o, mul(d, t)));
+        if dist.abs() < tol {
+            return Some((t, n));
+        }
+        t += dist.abs();
+        if t > t_out {
+            return None;
+        }
+    }
+    None
 }
 
 impl Shape {
@@ -340,6 +403,7 @@ impl Shape {
                 let planar = if plane > 0.0 { seg } else { plane };
                 boxed(&[planar, (y0 - p[1]).max(p[1] - y1)])
             }
+            Shape::Torus { c, major, minor } => torus_field(c, major, minor, p).0,
         }
     }
 }
@@ -459,6 +523,10 @@ impl Scene {
                         b[2] = b[2].max(p[1]);
                     }
                     (a, b)
+                }
+                Shape::Torus { c, major, minor } => {
+                    let e = [major + minor, major + minor, minor];
+                    (sub(c, e), add(c, e))
                 }
             };
             for k in 0..3 {
@@ -623,8 +691,10 @@ pub fn object_scene() -> Scene {
     Scene::new(objs, [0.5, -0.4, 0.8])
 }
 
-/// The shapes scene: a ball and a box apart, nothing else, whose surfaces a test knows
-/// exactly ([`Scene::distance`]): a mesh of a model trained on it is measured against them.
+/// The shapes scene: a ball, a box and a torus lying flat, apart, nothing else, whose
+/// surfaces a test knows exactly ([`Scene::signed_distance`]): a mesh of a model trained on
+/// it is measured against them, and the torus's hole (0.42 across, seen through from the
+/// views above and below the horizon) gives the mesh a surface of genus 1.
 pub fn shapes_scene() -> Scene {
     let objs = vec![
         Object {
@@ -641,6 +711,17 @@ pub fn shapes_scene() -> Scene {
                 hi: [0.9, 0.25, 0.35],
             },
             material: Material::Grid([0.95, 0.75, 0.2], [0.3, 0.15, 0.6], 0.2),
+            specular: 0.0,
+        },
+        // Beside the box (0.10 above its face y = 0.25, two cells of a 64 lattice) and the
+        // ball (0.15 from it), inside |x|, |y| < 1.3 (y up to 1.29).
+        Object {
+            shape: Shape::Torus {
+                c: [0.4, 0.82, 0.0],
+                major: 0.34,
+                minor: 0.13,
+            },
+            material: Material::Checker([0.3, 0.75, 0.45], [0.92, 0.92, 0.95], 0.12),
             specular: 0.0,
         },
     ];
@@ -813,8 +894,107 @@ mod tests {
         assert!(close(p.signed_distance([0.5, 0.5, 0.8]), -0.2));
         assert!(close(p.signed_distance([2.0, 0.5, 0.5]), 1.0));
         assert!(close(p.signed_distance([2.0, 2.0, 2.0]), 3f32.sqrt()));
+        // A torus of radii 1 and 0.25 about (0, 0, 1): the tube's centre, the hole's centre,
+        // above the tube, and off the tube's rim at 45°.
+        let ring = Shape::Torus {
+            c: [0.0, 0.0, 1.0],
+            major: 1.0,
+            minor: 0.25,
+        };
+        assert!(close(ring.signed_distance([0.0, 1.0, 1.0]), -0.25));
+        assert!(close(ring.signed_distance([0.0, 0.0, 1.0]), 0.75));
+        assert!(close(ring.signed_distance([1.0, 0.0, 2.0]), 0.75));
+        let h = 0.5f32.sqrt();
+        assert!(close(ring.signed_distance([2.0 * h, 2.0 * h, 1.0]), 0.75));
+        assert!(close(ring.signed_distance([0.0, -1.4, 1.3]), 0.25));
         let s = shapes_scene();
         assert!(close(s.signed_distance([-0.5, 0.15, 0.05]), -0.5));
         assert!(s.signed_distance([0.0, 0.0, 1.5]) > 0.5);
+        // The torus's tube and hole.
+        assert!(close(s.signed_distance([0.4, 0.82 + 0.34, 0.0]), -0.13));
+        assert!(close(s.signed_distance([0.4, 0.82, 0.0]), 0.34 - 0.13));
+    }
+
+    /// The shapes stay apart (no two surfaces within 0.08, the torus being 0.10 from the
+    /// box: two cells of the mesh test's lattice) and inside |x|, |y|, |z| < 1.3.
+    #[test]
+    fn the_shapes_scene_keeps_its_shapes_apart_and_inside() {
+        let s = shapes_scene();
+        assert_eq!(s.objects.len(), 3);
+        assert!(
+            (0..3).all(|k| s.lo[k] > -1.3 && s.hi[k] < 1.3),
+            "{:?} {:?}",
+            s.lo,
+            s.hi
+        );
+        // On a 0.02 grid over the scene's bounds: no point within 0.04 of two shapes.
+        let n = 130;
+        for i in 0..n {
+            for j in 0..n {
+                for k in 0..n / 2 {
+                    let p = [
+                        -1.3 + 2.6 * i as f32 / n as f32,
+                        -1.3 + 2.6 * j as f32 / n as f32,
+                        -0.65 + 1.3 * k as f32 / (n / 2) as f32,
+                    ];
+                    let near = s
+                        .objects
+                        .iter()
+                        .filter(|o| o.shape.signed_distance(p) < 0.04)
+                        .count();
+                    assert!(near < 2, "{p:?} is near two shapes");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_ray_through_the_torus_hole_misses_and_one_into_the_tube_hits_it() {
+        let c = [0.3, -0.2, 0.5];
+        let ring = Shape::Torus {
+            c,
+            major: 1.0,
+            minor: 0.25,
+        };
+        let hit = |o: V3, d: V3| {
+            let d = normalize(d);
+            ring.intersect(o, d, [1.0 / d[0], 1.0 / d[1], 1.0 / d[2]])
+        };
+        // Down the axis, and slanted through the hole: misses.
+        assert!(hit(add(c, [0.0, 0.0, 3.0]), [0.0, 0.0, -1.0]).is_none());
+        assert!(hit(add(c, [0.2, 0.1, 3.0]), [-0.1, 0.05, -1.0]).is_none());
+        // Beside the ring altogether.
+        assert!(hit(add(c, [1.3, 0.0, 3.0]), [0.0, 0.0, -1.0]).is_none());
+        // Straight down onto the tube's top: t = 3 − 0.25, normal +z.
+        let (t, n) = hit(add(c, [1.0, 0.0, 3.0]), [0.0, 0.0, -1.0]).expect("the tube");
+        assert!((t - 2.75).abs() < 1e-4, "{t}");
+        assert!(dot(n, [0.0, 0.0, 1.0]) > 0.9999, "{n:?}");
+        // Along x in the ring's plane, from outside: the outer rim at x = 1.25, normal −x
+        // (facing the ray); off-centre in y, the hit and normal still on the tube.
+        let (t, n) = hit(add(c, [-3.0, 0.0, 0.0]), [1.0, 0.0, 0.0]).expect("the rim");
+        assert!((t - (3.0 - 1.25)).abs() < 1e-4, "{t}");
+        assert!(dot(n, [-1.0, 0.0, 0.0]) > 0.9999, "{n:?}");
+        let o = add(c, [0.1, -3.0, 0.15]);
+        let (t, n) = hit(o, [0.0, 1.0, 0.0]).expect("the tube, off-centre");
+        // The tube's section at x = 0.1 is a circle only in the torus's own (ρ, z) plane;
+        // check the hit against the exact distance and the normal against the gradient.
+        let p = add(o, mul([0.0, 1.0, 0.0], t));
+        assert!(ring.signed_distance(p).abs() < 1e-4, "{p:?}");
+        let q = sub(p, c);
+        let rho = (q[0] * q[0] + q[1] * q[1]).sqrt();
+        let want = normalize([q[0] / rho * (rho - 1.0), q[1] / rho * (rho - 1.0), q[2]]);
+        assert!(dot(n, want) > 0.9999, "{n:?} {want:?}");
+        assert!(n[1] < 0.0, "faces the ray: {n:?}");
+        // From inside the tube: it leaves through the wall, normal along the ray.
+        let (t, n) = hit(add(c, [1.0, 0.0, 0.0]), [0.0, 0.0, 1.0]).expect("from inside");
+        assert!((t - 0.25).abs() < 1e-4, "{t}");
+        assert!(n[2] > 0.9999, "{n:?}");
+        // A scene with the torus: a ray through the hole sees nothing.
+        let s = shapes_scene();
+        assert!(s.intersect([0.4, 0.82, 3.0], [0.0, 0.0, -1.0]).is_none());
+        let h = s
+            .intersect([0.4 + 0.34, 0.82, 3.0], [0.0, 0.0, -1.0])
+            .expect("its tube");
+        assert!((h.t - (3.0 - 0.13)).abs() < 1e-4 && h.obj == 2, "{}", h.t);
     }
 }
