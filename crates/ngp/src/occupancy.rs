@@ -58,6 +58,13 @@ pub fn mip_from_pos(pos: [f32; 3], max_cascade: u32) -> u32 {
         .abs()
         .max((pos[1] - 0.5).abs())
         .max((pos[2] - 0.5).abs());
+    mip_from_distance(m, max_cascade)
+}
+
+/// [`mip_from_pos`] of a position whose largest distance from the centre along an axis is
+/// `m`.
+#[inline]
+pub fn mip_from_distance(m: f32, max_cascade: u32) -> u32 {
     // frexp exponent of m: m = f·2^e with f in [0.5, 1).
     let e = if m == 0.0 {
         0

@@ -7,8 +7,8 @@ use super::Mesh;
 use super::cubes::{Cubes, TooManyTriangles};
 use crate::error::{Error, Result};
 use crate::occupancy::{
-    GRID_SIZE, MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid, cell_at, mip_from_pos,
-    morton3d_invert,
+    GRID_SIZE, MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid, mip_from_distance, mip_from_pos,
+    morton3d, morton3d_invert, pow2,
 };
 use rayon::prelude::*;
 
@@ -67,6 +67,16 @@ impl Lattice {
             self.min[1] + y as f32 * s[1],
             self.min[2] + z as f32 * s[2],
         ]
+    }
+
+    /// The coordinates of the points along each axis, as [`Lattice::point`] gives them.
+    pub fn coordinates(&self) -> [Vec<f32>; 3] {
+        let s = self.step();
+        [0, 1, 2].map(|d| {
+            (0..self.res[d])
+                .map(|i| self.min[d] + i as f32 * s[d])
+                .collect()
+        })
     }
 
     /// Layers a slab of `points` holds (at least one).
@@ -133,15 +143,63 @@ pub fn occupied_box_within(grid: &OccupancyGrid, cascade: u32) -> Option<([f32; 
     Some((lo.map(|v| v.max(0.5 - h)), hi.map(|v| v.min(0.5 + h))))
 }
 
-/// Whether the occupancy grid calls the cell holding `p` (ngp space) empty, as instant-ngp
-/// reads it for a lattice point: the cascade `p` falls in, the cell's optical thickness
-/// below the minimum; a point outside the grid is empty.
-#[inline]
-fn masked(grid: &OccupancyGrid, p: [f32; 3]) -> bool {
-    let mip = mip_from_pos(p, grid.max_cascade());
-    match cell_at(p, mip) {
-        Some(i) => grid.density[mip as usize * N_CELLS + i as usize] < MIN_OPTICAL_THICKNESS,
-        None => true,
+/// Whether the occupancy grid calls the cell of a lattice point empty, as instant-ngp reads
+/// it (the cascade the point falls in, the cell's optical thickness below the minimum; a
+/// point outside the grid is empty), for every point of a lattice, read from tables made per axis: a point's
+/// coordinates are its axes' own, so each coordinate's distance from the centre and its
+/// cell at each cascade are worked out once instead of at each of the lattice's points.
+struct AxisMask<'a> {
+    grid: &'a OccupancyGrid,
+    max_cascade: u32,
+    /// Per axis, each coordinate's distance from the centre.
+    apart: [Vec<f32>; 3],
+    /// Per axis, each coordinate's cell along it at each cascade (cascade-major), spread
+    /// into its bits of a Morton code, or [`AxisMask::OUTSIDE`] off the cascade's grid.
+    bits: [Vec<u32>; 3],
+}
+
+impl<'a> AxisMask<'a> {
+    /// Above any Morton code of a 128³ grid, and so is any code OR-ed with it.
+    const OUTSIDE: u32 = u32::MAX;
+
+    fn new(grid: &'a OccupancyGrid, coords: &[Vec<f32>; 3]) -> Self {
+        let max_cascade = grid.max_cascade();
+        let g = GRID_SIZE as f32;
+        let bits = [0, 1, 2].map(|d| {
+            (0..=max_cascade)
+                .flat_map(|mip| {
+                    let s = pow2(-(mip as i32));
+                    coords[d].iter().map(move |&p| {
+                        // cell_at's test, one axis at a time.
+                        let u = (p - 0.5) * s + 0.5;
+                        let i = (u * g) as i32;
+                        if !(0..GRID_SIZE as i32).contains(&i) || u < 0.0 {
+                            return Self::OUTSIDE;
+                        }
+                        let mut ijk = [0; 3];
+                        ijk[d] = i as u32;
+                        morton3d(ijk[0], ijk[1], ijk[2])
+                    })
+                })
+                .collect()
+        });
+        AxisMask {
+            grid,
+            max_cascade,
+            apart: [0, 1, 2].map(|d| coords[d].iter().map(|&p| (p - 0.5).abs()).collect()),
+            bits,
+        }
+    }
+
+    #[inline]
+    fn masked(&self, x: usize, y: usize, z: usize) -> bool {
+        let m = self.apart[0][x].max(self.apart[1][y]).max(self.apart[2][z]);
+        let mip = mip_from_distance(m, self.max_cascade) as usize;
+        let cell = self.bits[0][mip * self.apart[0].len() + x]
+            | self.bits[1][mip * self.apart[1].len() + y]
+            | self.bits[2][mip * self.apart[2].len() + z];
+        cell == Self::OUTSIDE
+            || self.grid.density[mip * N_CELLS + cell as usize] < MIN_OPTICAL_THICKNESS
     }
 }
 
@@ -198,6 +256,8 @@ fn march_in_slabs(
         max_triangles,
     );
     let per_slab = lattice.slab_layers(slab_points);
+    let coords = lattice.coordinates();
+    let mask = mask.map(|g| AxisMask::new(g, &coords));
     let mut values = Vec::new();
     let mut evaluated = 0u64;
     for z0 in (0..nz).step_by(per_slab) {
@@ -215,10 +275,9 @@ fn march_in_slabs(
                     return (at, pos);
                 }
                 for x in 1..nx - 1 {
-                    let p = lattice.point(x, y, z);
-                    if mask.is_none_or(|g| !masked(g, p)) {
+                    if mask.as_ref().is_none_or(|m| !m.masked(x, y, z)) {
                         at.push((r * nx + x) as u32);
-                        pos.push(p);
+                        pos.push([coords[0][x], coords[1][y], coords[2][z]]);
                     }
                 }
                 (at, pos)
@@ -290,6 +349,65 @@ mod tests {
                 })
                 .collect())
         }
+    }
+
+    #[test]
+    fn the_axis_tables_mask_what_each_point_would() {
+        use crate::occupancy::cell_at;
+        let mut grid = OccupancyGrid::new(5);
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        for d in grid.density.iter_mut() {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1);
+            *d = if state >> 63 == 0 { 0.0 } else { 1.0 };
+        }
+        let rule = |p: [f32; 3]| {
+            let mip = mip_from_pos(p, grid.max_cascade());
+            match cell_at(p, mip) {
+                Some(i) => {
+                    grid.density[mip as usize * N_CELLS + i as usize] < MIN_OPTICAL_THICKNESS
+                }
+                None => true,
+            }
+        };
+        // Past the grid on every side; across every cascade's edge; one through the
+        // centre itself (0.1875 + 5/16 = 0.5), where frexp's exponent of 0 is 0.
+        for (lo, hi, res) in [
+            ([-9.0, -8.0, -8.6], [9.0, 9.1, 8.2], 96),
+            ([-1.3, 0.2, -0.7], [2.2, 0.9, 1.6], 80),
+            ([0.1875; 3], [1.125; 3], 16),
+        ] {
+            let l = Lattice::new(lo, hi, res).unwrap();
+            let coords = l.coordinates();
+            let mask = AxisMask::new(&grid, &coords);
+            let mut empty = 0;
+            for z in 0..l.res[2] {
+                for y in 0..l.res[1] {
+                    for x in 0..l.res[0] {
+                        let p = l.point(x, y, z);
+                        assert_eq!(p, [coords[0][x], coords[1][y], coords[2][z]]);
+                        assert_eq!(
+                            mask.masked(x, y, z),
+                            rule(p),
+                            "point {p:?} of {lo:?}–{hi:?}"
+                        );
+                        empty += usize::from(rule(p));
+                    }
+                }
+            }
+            assert!(
+                empty > 0 && (empty as u64) < l.points(),
+                "{empty} of {}",
+                l.points()
+            );
+        }
+        assert!(
+            Lattice::new([0.1875; 3], [1.125; 3], 16)
+                .unwrap()
+                .coordinates()[0]
+                .contains(&0.5)
+        );
     }
 
     #[test]
