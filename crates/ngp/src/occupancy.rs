@@ -101,16 +101,25 @@ pub fn pow2(k: i32) -> f32 {
 #[inline]
 pub fn cell_at(pos: [f32; 3], mip: u32) -> Option<u32> {
     let s = pow2(-(mip as i32));
-    let g = GRID_SIZE as f32;
-    let mut i = [0i32; 3];
-    for d in 0..3 {
-        i[d] = (((pos[d] - 0.5) * s + 0.5) * g) as i32;
-        // `as i32` truncates toward zero like the reference's ivec3 conversion.
-        if !(0..GRID_SIZE as i32).contains(&i[d]) || ((pos[d] - 0.5) * s + 0.5) < 0.0 {
-            return None;
-        }
+    let i = [
+        cell_along(pos[0], s)?,
+        cell_along(pos[1], s)?,
+        cell_along(pos[2], s)?,
+    ];
+    Some(morton3d(i[0], i[1], i[2]))
+}
+
+/// [`cell_at`] along one axis: the cell holding coordinate `p` in the cascade whose scale is
+/// `s` (`2^-mip`), or `None` outside it.
+#[inline]
+pub fn cell_along(p: f32, s: f32) -> Option<u32> {
+    let u = (p - 0.5) * s + 0.5;
+    // `as i32` truncates toward zero like the reference's ivec3 conversion.
+    let i = (u * GRID_SIZE as f32) as i32;
+    if !(0..GRID_SIZE as i32).contains(&i) || u < 0.0 {
+        return None;
     }
-    Some(morton3d(i[0] as u32, i[1] as u32, i[2] as u32))
+    Some(i as u32)
 }
 
 /// The distance along `d` (`idir` its reciprocal) from `pos` to the far side of its cell of

@@ -134,9 +134,10 @@ impl Cubes {
         assert_eq!(layer.len(), self.nx * self.ny, "a layer of the lattice");
         let z = self.layers as f32;
         let surface = self.surface;
-        for (hot, row) in self.hot.iter_mut().zip(layer.chunks(self.nx)) {
-            *hot = row.iter().any(|&f| surface.inside(f));
-        }
+        self.hot
+            .par_iter_mut()
+            .zip(layer.par_chunks(self.nx))
+            .for_each(|(hot, row)| *hot = row.iter().any(|&f| surface.inside(f)));
         if self.layers == 0 {
             let (mut xs, mut ys) = (
                 std::mem::take(&mut self.lo_x),
@@ -300,12 +301,12 @@ impl Cubes {
         let cell_rows = self.ny.saturating_sub(1);
         let tab = table();
         let this = &*self;
+        let (p, h) = (&this.prev_hot, &this.hot);
         let found: Vec<Vec<[u32; 3]>> = (0..cell_rows.div_ceil(rows))
             .into_par_iter()
             .map(|t| {
                 let mut found = Vec::new();
                 for y in t * rows..((t + 1) * rows).min(cell_rows) {
-                    let (p, h) = (&this.prev_hot, &this.hot);
                     if !(p[y] || p[y + 1] || h[y] || h[y + 1]) {
                         continue;
                     }

@@ -7,8 +7,8 @@ use super::Mesh;
 use super::cubes::{Cubes, TooManyTriangles};
 use crate::error::{Error, Result};
 use crate::occupancy::{
-    GRID_SIZE, MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid, mip_from_distance, mip_from_pos,
-    morton3d, morton3d_invert, pow2,
+    GRID_SIZE, MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid, cell_along, mip_from_distance,
+    mip_from_pos, morton3d, morton3d_invert, pow2,
 };
 use rayon::prelude::*;
 
@@ -58,18 +58,8 @@ impl Lattice {
         [0, 1, 2].map(|d| (self.max[d] - self.min[d]) / (self.res[d] - 1) as f32)
     }
 
-    /// The ngp-space position of point `(x, y, z)`.
-    #[inline]
-    pub fn point(&self, x: usize, y: usize, z: usize) -> [f32; 3] {
-        let s = self.step();
-        [
-            self.min[0] + x as f32 * s[0],
-            self.min[1] + y as f32 * s[1],
-            self.min[2] + z as f32 * s[2],
-        ]
-    }
-
-    /// The coordinates of the points along each axis, as [`Lattice::point`] gives them.
+    /// The ngp-space coordinates of the points along each axis: point `(x, y, z)` lies at
+    /// `(c[0][x], c[1][y], c[2][z])`.
     pub fn coordinates(&self) -> [Vec<f32>; 3] {
         let s = self.step();
         [0, 1, 2].map(|d| {
@@ -145,9 +135,10 @@ pub fn occupied_box_within(grid: &OccupancyGrid, cascade: u32) -> Option<([f32; 
 
 /// Whether the occupancy grid calls the cell of a lattice point empty, as instant-ngp reads
 /// it (the cascade the point falls in, the cell's optical thickness below the minimum; a
-/// point outside the grid is empty), for every point of a lattice, read from tables made per axis: a point's
-/// coordinates are its axes' own, so each coordinate's distance from the centre and its
-/// cell at each cascade are worked out once instead of at each of the lattice's points.
+/// point outside the grid is empty), for every point of a lattice. Read from tables made
+/// per axis: a point's coordinates are its axes' own, so each coordinate's distance from
+/// the centre and its cell at each cascade are worked out once instead of at each of the
+/// lattice's points.
 struct AxisMask<'a> {
     grid: &'a OccupancyGrid,
     max_cascade: u32,
@@ -164,21 +155,16 @@ impl<'a> AxisMask<'a> {
 
     fn new(grid: &'a OccupancyGrid, coords: &[Vec<f32>; 3]) -> Self {
         let max_cascade = grid.max_cascade();
-        let g = GRID_SIZE as f32;
         let bits = [0, 1, 2].map(|d| {
             (0..=max_cascade)
                 .flat_map(|mip| {
                     let s = pow2(-(mip as i32));
                     coords[d].iter().map(move |&p| {
-                        // cell_at's test, one axis at a time.
-                        let u = (p - 0.5) * s + 0.5;
-                        let i = (u * g) as i32;
-                        if !(0..GRID_SIZE as i32).contains(&i) || u < 0.0 {
-                            return Self::OUTSIDE;
-                        }
-                        let mut ijk = [0; 3];
-                        ijk[d] = i as u32;
-                        morton3d(ijk[0], ijk[1], ijk[2])
+                        cell_along(p, s).map_or(Self::OUTSIDE, |i| {
+                            let mut ijk = [0; 3];
+                            ijk[d] = i;
+                            morton3d(ijk[0], ijk[1], ijk[2])
+                        })
                     })
                 })
                 .collect()
@@ -385,8 +371,10 @@ mod tests {
             for z in 0..l.res[2] {
                 for y in 0..l.res[1] {
                     for x in 0..l.res[0] {
-                        let p = l.point(x, y, z);
-                        assert_eq!(p, [coords[0][x], coords[1][y], coords[2][z]]);
+                        let p = [coords[0][x], coords[1][y], coords[2][z]];
+                        let s = l.step();
+                        let at = [x, y, z].map(|i| i as f32);
+                        assert_eq!(p, [0, 1, 2].map(|d| l.min[d] + at[d] * s[d]));
                         assert_eq!(
                             mask.masked(x, y, z),
                             rule(p),
