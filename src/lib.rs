@@ -6,6 +6,7 @@
 //! [`stego`] keys, the training recipe, stealth and [`steganalysis`], and
 //! [`experiments`] (the `lab` crate), [`show`] camera paths, video and the viewer.
 
+pub use attack;
 pub use backend;
 pub use lab as experiments;
 pub use ngp;

@@ -51,6 +51,10 @@ enum Cmd {
     /// The surface of the cover (or with --key of a hidden scene) as a coloured PLY or OBJ
     /// mesh, by marching cubes on the network's density.
     Mesh(cli::mesh::Args),
+    /// Edit a model as whoever downloads it might (noise, pruning, quantisation,
+    /// fine-tuning, purification, re-distillation) and write the result as a snapshot: what
+    /// a hidden scene survives.
+    Attack(cli::attack::Args),
 }
 
 /// Mesa's device-select Vulkan layer, which the loader runs in every program that opens
@@ -93,6 +97,7 @@ fn main() {
         Cmd::View(a) => cli::view::run(a),
         Cmd::Devices(a) => cli::devices::run(a),
         Cmd::Mesh(a) => cli::mesh::run(a),
+        Cmd::Attack(a) => cli::attack::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

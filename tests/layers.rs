@@ -1,5 +1,6 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! lab and the show layer (paths, video, viewer), those on the stego layer, the stego layer on the device boundary, that on the
+//! lab and the show layer (paths, video, viewer), the lab on the attacks, those on the stego
+//! layer, the stego layer on the device boundary, that on the
 //! engine and its wgpu backend, and the engine on no other crate of ours, nor on wgpu or
 //! clap. Read from `cargo metadata` (the resolved graph, so a dependency of a dependency
 //! counts too).
@@ -10,7 +11,7 @@ use std::process::Command;
 
 /// Each crate of the workspace and the crates of ours it may depend on (normal and build
 /// dependencies; tests may use more).
-const ALLOWED: [(&str, &[&str]); 10] = [
+const ALLOWED: [(&str, &[&str]); 11] = [
     ("stegongp-ngp", &[]),
     ("stegongp-gpu", &["stegongp-ngp"]),
     ("stegongp-backend", &["stegongp-ngp", "stegongp-gpu"]),
@@ -18,6 +19,17 @@ const ALLOWED: [(&str, &[&str]); 10] = [
     (
         "stegongp-stego",
         &["stegongp-ngp", "stegongp-gpu", "stegongp-backend"],
+    ),
+    // Edits of a published model (noise, pruning, fine-tuning, purification): they read
+    // files and train through the recipe, and know nothing of the experiments.
+    (
+        "stegongp-attack",
+        &[
+            "stegongp-ngp",
+            "stegongp-gpu",
+            "stegongp-backend",
+            "stegongp-stego",
+        ],
     ),
     (
         "stegongp-lab",
@@ -27,6 +39,7 @@ const ALLOWED: [(&str, &[&str]); 10] = [
             "stegongp-backend",
             "stegongp-stego",
             "stegongp-synth",
+            "stegongp-attack",
         ],
     ),
     (
@@ -49,6 +62,7 @@ const ALLOWED: [(&str, &[&str]); 10] = [
             "stegongp-synth",
             "stegongp-lab",
             "stegongp-show",
+            "stegongp-attack",
         ],
     ),
     (
@@ -71,6 +85,7 @@ const ALLOWED: [(&str, &[&str]); 10] = [
             "stegongp-synth",
             "stegongp-lab",
             "stegongp-show",
+            "stegongp-attack",
         ],
     ),
 ];

@@ -1,5 +1,6 @@
 //! One module per subcommand, plus what they share.
 
+pub mod attack;
 pub mod common;
 pub mod convert;
 pub mod demo;

@@ -112,6 +112,25 @@ pub struct Args {
     pub json: bool,
 }
 
+/// `--robust`: each key file records the mode (rewritten in place, owner-only, as keygen
+/// writes it), so that whoever holds the key reads the scene as it trained.
+fn record_robust(keys: &[PathBuf]) -> Result<()> {
+    for kp in keys {
+        let key = keygen::load_key_reporting(kp)?;
+        if key.robust() {
+            continue;
+        }
+        stegongp::stego::save_key(kp, &key.with_robust(true), true)
+            .with_context(|| format!("{}: cannot record the robust mode in it", kp.display()))?;
+        eprintln!(
+            "{}: now records the robust mode (\"robust\": true): render, eval, view and \
+             mesh read the hidden scene with this key alone",
+            kp.display()
+        );
+    }
+    Ok(())
+}
+
 fn parse_every(s: &str) -> std::result::Result<SaveEvery, String> {
     s.parse()
 }
@@ -340,7 +359,10 @@ pub fn run(a: Args) -> Result<()> {
         .iter()
         .zip(&a.key)
         .map(|(dir, kp)| {
-            let key = keygen::load_key_reporting(kp)?;
+            let mut key = keygen::load_key_reporting(kp)?;
+            if a.training.robust {
+                key = key.with_robust(true);
+            }
             let name = kp.display().to_string();
             Ok(HiddenScene::load(
                 dir,
@@ -365,6 +387,9 @@ pub fn run(a: Args) -> Result<()> {
         stored_loss: StoredLoss::Smoothed,
     };
     recipe.check()?;
+    if a.training.robust {
+        record_robust(&a.key)?;
+    }
     let eval_data = if a.checkpoints.is_empty() {
         None
     } else {
@@ -444,6 +469,11 @@ pub fn run(a: Args) -> Result<()> {
         }
         if a.training.stealth.enabled {
             eprintln!("{}", a.training.stealth.describe());
+        }
+        if a.training.robust {
+            eprintln!(
+                "robust: hidden scenes confined to the table entries the cover's occupancy grid reaches"
+            );
         }
     }
     let pb = match budget {

@@ -5,7 +5,9 @@
 pub mod detectability;
 pub mod jobs;
 pub mod pairs;
+pub mod plot;
 pub mod report;
+pub mod robustness;
 pub mod runs;
 pub mod setup;
 mod store;
@@ -13,5 +15,6 @@ mod store;
 pub use detectability::{DetectOptions, run_detectability};
 pub use jobs::{JobMode, PlannedModel};
 pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};
+pub use robustness::{Mode, RobustnessOptions, default_attacks, run_robustness};
 pub use runs::run_experiment;
 pub use setup::{ExpConfig, Experiment};

@@ -35,6 +35,22 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
         };
         return super::pairs::run_pairs(cfg, &opts);
     }
+    if name == Experiment::Robustness {
+        let opts = super::robustness::RobustnessOptions {
+            pairs: cfg
+                .hidden
+                .iter()
+                .map(|h| super::pairs::PairSpec {
+                    cover: cfg.cover.clone(),
+                    hidden: h.clone(),
+                })
+                .collect(),
+            attacks: super::robustness::default_attacks(),
+            modes: super::robustness::Mode::ALL.to_vec(),
+            render_side: 200,
+        };
+        return super::robustness::run_robustness(cfg, &opts);
+    }
     let mut report = Report {
         name: name.to_string(),
         setup: setup_json(cfg),
@@ -72,7 +88,10 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
         Experiment::PartialKeys => partial_keys(&ctx, &mut report)?,
         Experiment::MultiHidden => multi_hidden(&ctx, &mut report)?,
         Experiment::TableSize => table_size(&ctx, &mut report)?,
-        Experiment::KeyStrength | Experiment::Detectability | Experiment::Pairs => {
+        Experiment::KeyStrength
+        | Experiment::Detectability
+        | Experiment::Pairs
+        | Experiment::Robustness => {
             unreachable!("run above")
         }
     }

@@ -34,11 +34,12 @@ pub enum Experiment {
     KeyStrength,
     Detectability,
     Pairs,
+    Robustness,
 }
 
 impl Experiment {
     /// Every experiment, in the order the CLI lists them.
-    pub const ALL: [Experiment; 8] = [
+    pub const ALL: [Experiment; 9] = [
         Experiment::Fidelity,
         Experiment::KeySensitivity,
         Experiment::PartialKeys,
@@ -47,6 +48,7 @@ impl Experiment {
         Experiment::KeyStrength,
         Experiment::Detectability,
         Experiment::Pairs,
+        Experiment::Robustness,
     ];
 
     pub fn name(self) -> &'static str {
@@ -59,6 +61,7 @@ impl Experiment {
             Experiment::KeyStrength => "key-strength",
             Experiment::Detectability => "detectability",
             Experiment::Pairs => "pairs",
+            Experiment::Robustness => "robustness",
         }
     }
 }
@@ -164,6 +167,9 @@ impl ExpConfig {
         }
         if self.training.hidden_batch != 1.0 {
             config["hidden_batch"] = json!(self.training.hidden_batch.to_string());
+        }
+        if self.training.robust {
+            config["robust"] = json!(true);
         }
     }
 
@@ -474,7 +480,7 @@ pub(crate) const HOST_FIELDS: &[&str] = &["threads", "device"];
 
 /// The report's record of the configuration.
 pub(crate) fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
-    json!({
+    let mut v = json!({
         "cover": cfg.cover, "hidden": cfg.hidden, "downscale": cfg.downscale, "hidden_downscale": cfg.hidden_downscale,
         "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
         "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
@@ -484,7 +490,12 @@ pub(crate) fn setup_json(cfg: &ExpConfig) -> serde_json::Value {
         "cover_only_mlp": cfg.trains_cover_only_mlp(), "hidden_from_step": cfg.training.hidden_from,
         "hidden_loss_weight": cfg.training.hidden_weight, "density_cap": cfg.training.stealth.density_cap, "lpips": cfg.lpips,
         "threads": rayon::current_num_threads(), "device": cfg.device.report(),
-    })
+    });
+    // Only when set, so that the sidecars of models trained before it existed still match.
+    if cfg.training.robust {
+        v["robust"] = json!(true);
+    }
+    v
 }
 
 /// One model of an experiment that trains many scene pairs (detectability), with its
@@ -607,7 +618,8 @@ mod tests {
                 "table-size",
                 "key-strength",
                 "detectability",
-                "pairs"
+                "pairs",
+                "robustness"
             ]
         );
         for e in Experiment::ALL {

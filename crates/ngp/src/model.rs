@@ -66,7 +66,21 @@ impl Model {
     }
 
     pub fn load(path: &Path) -> Result<Self> {
-        let snap = snapshot::load(path)?;
+        Self::from_snapshot(snapshot::load(path)?, path)
+    }
+
+    /// This model as a reader of its published file gets it: saved as [`Model::save`] saves
+    /// (fp16 weights and grid) and read back, without touching a disk. What an edit of the
+    /// published file starts from.
+    pub fn published(&self) -> Result<Self> {
+        let origin = Path::new("the published model");
+        let bytes = snapshot::to_bytes(&self.to_snapshot(), false)?;
+        let snap = snapshot::from_bytes(&bytes).map_err(|m| Error::format(origin, m))?;
+        Self::from_snapshot(snap, origin)
+    }
+
+    /// A model from a snapshot read from `path` (named in errors).
+    pub fn from_snapshot(snap: Snapshot, path: &Path) -> Result<Self> {
         let net = NerfNetwork::new(snap.config)?;
         if snap.params.len() != net.layout.n_params {
             return Err(Error::format(
@@ -126,6 +140,23 @@ impl Model {
         let mut s = self.to_snapshot();
         s.exact = true;
         snapshot::save(path, &s)
+    }
+
+    /// This model with other weights (an edit of a published file: noise, pruning,
+    /// quantisation, a fine-tune): the same configuration, grid and stored cameras.
+    pub fn with_params(self, params: Vec<f32>) -> Result<Self> {
+        if params.len() != self.net.layout.n_params {
+            return Err(Error::Config(format!(
+                "{} parameters for a {}-parameter network",
+                params.len(),
+                self.net.layout.n_params
+            )));
+        }
+        Ok(Model {
+            grid_f16: grid::exact_half_table(&params[self.net.layout.grid_offset..]),
+            params,
+            ..self
+        })
     }
 
     /// The inference weights (the layout's blocks: density MLP, colour MLP, grid).

@@ -18,6 +18,9 @@
 //! `aabb_scale` (optional, a power of two ≤ 128) is the box the hidden scene fills inside
 //! the model's: training confines the scene to it and the key holder's occupancy grid is
 //! cut to it (absent: the model's whole box, as in keys made before it existed).
+//! `robust` (optional, default false) says the model was trained with `train --robust`:
+//! the key holder confines the key's indices to the entries the cover's stored grid
+//! reaches, as training did.
 //! `dense` is optional (default `permute`); `kdf` records how a passphrase key was made
 //! (the salt is not secret: passphrase + salt recreate the key); `reference_groups` (group
 //! numbers that fall back to the reference index) appears only in diagnostic partial keys.
@@ -112,6 +115,9 @@ pub fn key_to_json(key: &Key) -> Value {
     }
     if let Some(b) = key.scene_box() {
         o.insert("aabb_scale".into(), json!(b));
+    }
+    if key.robust() {
+        o.insert("robust".into(), json!(true));
     }
     Value::Object(o)
 }
@@ -554,8 +560,15 @@ pub fn parse_key_with_warnings(path: &Path, text: &str) -> Result<LoadedKey> {
                 })? as u32,
         ),
     };
+    let robust = match o.get("robust") {
+        None => false,
+        Some(v) => v
+            .as_bool()
+            .ok_or_else(|| bad("robust", format!("expected true or false, got {v}")))?,
+    };
     let key = Key::new(scheme, dense).map_err(|e| Error::format(path, e.to_string()))?;
     let key = key
+        .with_robust(robust)
         .with_kdf(kdf)
         .with_reference_groups(&groups)
         .map_err(|e| bad("reference_groups", e.to_string()))?

@@ -224,6 +224,9 @@ pub struct Key {
     /// The aabb_scale of the box the hidden scene is confined to inside a larger model's
     /// (`None`: the model's whole box, as keys made before boxes existed).
     scene_box: Option<u32>,
+    /// The model was trained with `train --robust`: the key's indices are confined to the
+    /// entries the cover's stored grid reaches ([`crate::stealth::robust_indices`]).
+    robust: bool,
 }
 
 impl std::fmt::Debug for Key {
@@ -233,6 +236,7 @@ impl std::fmt::Debug for Key {
             .field("dense", &self.dense)
             .field("reference_groups", &self.reference_group_list())
             .field("scene_box", &self.scene_box)
+            .field("robust", &self.robust)
             .finish()
     }
 }
@@ -272,6 +276,7 @@ impl Key {
             reference_groups: 0,
             kdf: None,
             scene_box: None,
+            robust: false,
         })
     }
 
@@ -283,6 +288,7 @@ impl Key {
             reference_groups: 0,
             kdf: None,
             scene_box: None,
+            robust: false,
         }
     }
 
@@ -323,6 +329,17 @@ impl Key {
         }
         self.scene_box = scene_box;
         Ok(self)
+    }
+    /// Whether the model this key opens was trained with `train --robust` (its hidden
+    /// scene confined to the entries the cover's stored grid reaches): the key file records
+    /// it, so that reading a robust model needs the key alone.
+    pub fn robust(&self) -> bool {
+        self.robust
+    }
+    /// This key, recording (or not) that its scene trains and reads robustly.
+    pub fn with_robust(mut self, robust: bool) -> Key {
+        self.robust = robust;
+        self
     }
     /// Whether both keys give every level the same index functions (their boxes and how
     /// they were made aside): two hidden scenes under such keys would overwrite each other.
@@ -491,13 +508,14 @@ impl Key {
                 m: *m,
             },
         };
-        // Same box: a wrong key is tried where the hidden scene is.
+        // Same box and mode: a wrong key is tried where, and as, the hidden scene is read.
         Key {
             scheme,
             dense: like.dense,
             reference_groups: 0,
             kdf: None,
             scene_box: like.scene_box,
+            robust: like.robust,
         }
     }
 }

@@ -10,7 +10,7 @@
 //! [`Training::finish`] refuses a model whose hidden scenes never trained.
 
 use crate::keys::Key;
-use crate::stealth::{Stealth, StealthOptions};
+use crate::stealth::{ConfineTo, Stealth, StealthOptions};
 use backend::{Device, TrainBackend};
 use ngp::data::{Dataset, LoadOptions, Split};
 use ngp::encoding::{GridConfig, reference_indices};
@@ -135,6 +135,13 @@ pub struct HiddenOptions {
     /// "Stego on a 360° cover").
     #[cfg_attr(feature = "clap", arg(long, value_name = "F", default_value_t = 1.0))]
     pub hidden_batch: f32,
+    /// Robust: confine the hidden scenes to the table entries the cover's own occupancy
+    /// grid reaches, so that resetting the entries the cover cannot reach (`stegongp
+    /// attack … purify`), which is free for the cover, leaves them; the key files record
+    /// it (`"robust": true`, written by train), so reading needs only the key. Combines
+    /// with --stealth (README, "What the hidden scene survives").
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub robust: bool,
     #[cfg_attr(feature = "clap", command(flatten))]
     pub stealth: StealthOptions,
 }
@@ -146,6 +153,7 @@ impl Default for HiddenOptions {
             hidden_weight: 1.0,
             hidden_from: 0,
             hidden_batch: 1.0,
+            robust: false,
             stealth: StealthOptions::default(),
         }
     }
@@ -331,6 +339,11 @@ impl Recipe {
                     "--hidden-from needs at least one --hidden scene".into(),
                 ));
             }
+            if self.options.robust {
+                return Err(Error::Config(
+                    "--robust needs at least one --hidden scene".into(),
+                ));
+            }
         }
         if let Budget::Steps(steps) = self.budget
             && !self.hidden.is_empty()
@@ -341,6 +354,23 @@ impl Recipe {
             h.key.validate_for(&layout.grid).map_err(|e| {
                 Error::Other(format!("{}: key does not fit this model: {e}", h.key_name))
             })?;
+            if h.key.robust() != self.options.robust {
+                return Err(Error::Config(format!(
+                    "{}: the key {} the robust mode and the training {}: a key holder reads \
+                     the scene as its key says",
+                    h.key_name,
+                    if h.key.robust() {
+                        "records"
+                    } else {
+                        "does not record"
+                    },
+                    if self.options.robust {
+                        "uses it"
+                    } else {
+                        "does not"
+                    }
+                )));
+            }
             if h.key.is_reference() {
                 return Err(Error::Config(format!(
                     "{}: this key is the reference index Π, which is the cover's: the hidden scene would overwrite it",
@@ -418,10 +448,19 @@ impl Recipe {
         let config = self.train_config(device);
         let solo = config.solo_steps;
         let mut trainer = device.trainer(self.model, scenes, config)?;
-        if self.options.stealth.enabled {
-            let keys: Vec<Key> = self.hidden.iter().map(|h| h.key.clone()).collect();
-            let policy = Stealth::new(layout, &keys, &self.options.stealth)?;
-            trainer.set_policy(Box::new(policy))?;
+        let keys: Vec<Key> = self.hidden.iter().map(|h| h.key.clone()).collect();
+        match (self.options.stealth.enabled, self.options.robust) {
+            (true, robust) => {
+                let to = if robust {
+                    ConfineTo::Reachable
+                } else {
+                    ConfineTo::Moved
+                };
+                let policy = Stealth::new(layout, &keys, &self.options.stealth)?.confined_to(to);
+                trainer.set_policy(Box::new(policy))?;
+            }
+            (false, true) => trainer.set_policy(Box::new(Stealth::robust(layout, &keys)?))?,
+            (false, false) => {}
         }
         Ok(Training {
             trainer,

@@ -6,7 +6,7 @@
 //! the experiments and the tests.
 
 use super::keys::Key;
-use super::stealth::hidden_indices;
+use super::stealth::{hidden_indices, robust_indices};
 use backend::{Device, RenderBackend};
 use ngp::encoding::{LevelIndices, reference_indices};
 use ngp::error::Result;
@@ -98,7 +98,13 @@ pub fn open_scene_on(
     let layout = &model.net.layout.grid;
     Ok(match key {
         Some(k) if !k.is_reference() => {
-            let indices = hidden_indices(k, &model.net.layout, model.params(), stealth);
+            // A robust key says how its scene was confined (to what the stored grid
+            // reaches), with or without stealth's other parts.
+            let indices = if k.robust() {
+                robust_indices(k, &model.net.layout, &model.grid)
+            } else {
+                hidden_indices(k, &model.net.layout, model.params(), stealth)
+            };
             // Cut to the box the scene was trained in: outside it, its index meets only
             // the cover's entries, whose density would render as haze.
             let rebuilt = key_holder_grid_on(device, model, &indices, k.scene_box(), seed)?;

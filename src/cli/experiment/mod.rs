@@ -9,8 +9,8 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::experiments::report::Report;
 use stegongp::experiments::{
-    DetectOptions, ExpConfig, Experiment, JobMode, PairSpec, PairsOptions, read_pairs_file,
-    run_detectability, run_experiment, run_pairs,
+    DetectOptions, ExpConfig, Experiment, JobMode, Mode, PairSpec, PairsOptions, RobustnessOptions,
+    default_attacks, read_pairs_file, run_detectability, run_experiment, run_pairs, run_robustness,
 };
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
@@ -23,7 +23,7 @@ pub struct Args {
     #[command(flatten)]
     pub device: DeviceArg,
     /// fidelity | key-sensitivity | partial-keys | multi-hidden | table-size | key-strength |
-    /// detectability | pairs; or `run-job DIR ID` (one job of a plan) or `collect DIR` (a
+    /// detectability | pairs | robustness; or `run-job DIR ID` (one job of a plan) or `collect DIR` (a
     /// plan's report from its finished jobs).
     pub name: String,
     /// run-job: the plan's folder and the job's id; collect: the plan's folder.
@@ -94,9 +94,9 @@ pub struct Args {
     /// another seed, scored as if they hid something: chance at this population's size).
     #[arg(long)]
     pub no_control_arm: bool,
-    /// pairs: a cover/hidden pair of dataset folders, COVER:HIDDEN (repeatable) [default:
-    /// --cover with each --hidden; without those, a generated object cover with a generated
-    /// text and a generated logo].
+    /// pairs, robustness: a cover/hidden pair of dataset folders, COVER:HIDDEN (repeatable)
+    /// [default: --cover with each --hidden; without those, a generated object cover with a
+    /// generated text (and, for pairs, a generated logo)].
     #[arg(long = "pair", value_name = "COVER:HIDDEN")]
     pub pairs: Vec<PairSpec>,
     /// pairs: a JSON file of pairs (a list of "COVER:HIDDEN" strings or {"cover", "hidden"}
@@ -113,6 +113,19 @@ pub struct Args {
     /// every test view scored. 18 models: make it a plan (--plan DIR --slurm).
     #[arg(long)]
     pub paper_scale: bool,
+    /// robustness: an attack at one strength, as `stegongp attack` takes it (repeatable)
+    /// [default: every attack at the field's strengths: noise σ 0.0005–0.01, pruning
+    /// 5–50 %, int8 and int4, purify, purify-contribution 1e-8–1e-6, purify-mlp=100,
+    /// finetune and finetune-renders 100/500/2000 steps, redistil=2000].
+    #[arg(long = "attack", value_name = "ATTACK", value_parser = parse_attack)]
+    pub attacks: Vec<stegongp::attack::Attack>,
+    /// robustness: the modes compared (comma-separated) [default: plain,default,stealth,robust].
+    #[arg(long, value_delimiter = ',', value_parser = parse_mode)]
+    pub modes: Vec<stegongp::experiments::Mode>,
+    /// robustness: the long side of the cover's renders that finetune-renders, purify-mlp,
+    /// redistil and purify-contribution use.
+    #[arg(long, default_value_t = 200)]
+    pub render_side: u32,
     /// Skip LPIPS (PSNR and SSIM only).
     #[arg(long)]
     pub no_lpips: bool,
@@ -122,6 +135,14 @@ pub struct Args {
     /// inside the model it was training; `off` for never.
     #[arg(long, value_name = "N|Mm|off", default_value = "10m", value_parser = parse_state_every)]
     pub save_every: StateEvery,
+}
+
+fn parse_attack(s: &str) -> std::result::Result<stegongp::attack::Attack, String> {
+    s.parse().map_err(|e: stegongp::Error| e.to_string())
+}
+
+fn parse_mode(s: &str) -> std::result::Result<stegongp::experiments::Mode, String> {
+    s.parse().map_err(|e: stegongp::Error| e.to_string())
 }
 
 /// `--save-every`: how often, or never.
@@ -191,9 +212,26 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
     }
     let detect = name == Experiment::Detectability;
     let pairs_exp = name == Experiment::Pairs;
+    let robust_exp = name == Experiment::Robustness;
     let explicit_pairs = !a.pairs.is_empty() || a.pairs_file.is_some();
-    if !pairs_exp && (explicit_pairs || a.minutes.is_some()) {
-        bail!("--pair, --pairs and --minutes belong to `experiment pairs`");
+    if !pairs_exp && a.minutes.is_some() {
+        bail!("--minutes belongs to `experiment pairs`");
+    }
+    if !pairs_exp && !robust_exp && explicit_pairs {
+        bail!("--pair and --pairs belong to `experiment pairs` and `experiment robustness`");
+    }
+    if !robust_exp && (!a.attacks.is_empty() || !a.modes.is_empty()) {
+        bail!("--attack and --modes belong to `experiment robustness`");
+    }
+    if robust_exp && a.training.stealth.enabled {
+        bail!(
+            "robustness trains plain, default, --stealth and --robust models itself (--modes picks them): leave out --stealth"
+        );
+    }
+    if robust_exp && a.training.robust {
+        bail!(
+            "robustness trains plain, default, --stealth and --robust models itself (--modes picks them): leave out --robust"
+        );
     }
     if explicit_pairs && (a.cover.is_some() || !a.hidden.is_empty()) {
         bail!("give the scenes either as --pair/--pairs or as --cover/--hidden, not both");
@@ -325,7 +363,7 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
         save_every: a.save_every.0,
         jobs,
     };
-    let report = if pairs_exp {
+    let report = if pairs_exp || robust_exp {
         let mut pairs = a.pairs.clone();
         if let Some(f) = &a.pairs_file {
             pairs.extend(read_pairs_file(f)?);
@@ -340,12 +378,30 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
                 })
                 .collect();
         }
-        let opts = PairsOptions {
-            pairs,
-            minutes: a.minutes,
-            lpips: cfg.lpips,
-        };
-        run_pairs(&cfg, &opts)?
+        if robust_exp {
+            let opts = RobustnessOptions {
+                pairs,
+                attacks: if a.attacks.is_empty() {
+                    default_attacks()
+                } else {
+                    a.attacks.clone()
+                },
+                modes: if a.modes.is_empty() {
+                    Mode::ALL.to_vec()
+                } else {
+                    a.modes.clone()
+                },
+                render_side: a.render_side,
+            };
+            run_robustness(&cfg, &opts)?
+        } else {
+            let opts = PairsOptions {
+                pairs,
+                minutes: a.minutes,
+                lpips: cfg.lpips,
+            };
+            run_pairs(&cfg, &opts)?
+        }
     } else if detect {
         let opts = DetectOptions {
             models: a.models,

@@ -273,6 +273,37 @@ impl Trainer {
         })
     }
 
+    /// Starts from published weights instead of the seed's initialisation, before the first
+    /// step: `params` become the weights (the optimizer fresh, its EMA of them as they are:
+    /// an entry no step moves publishes as given), and scene 0 marches through `grid` where
+    /// one is given (a published model's stored grid, refreshed from there as training goes
+    /// on). What fine-tuning a downloaded model is.
+    pub fn start_from(&mut self, params: &[f32], grid: Option<OccupancyGrid>) -> Result<()> {
+        if self.step != 0 {
+            return Err(Error::Config(
+                "a trainer starts from given weights only before its first step".into(),
+            ));
+        }
+        if params.len() != self.params.len() {
+            return Err(Error::Config(format!(
+                "{} parameters for a {}-parameter network",
+                params.len(),
+                self.params.len()
+            )));
+        }
+        self.params.copy_from_slice(params);
+        if let Some(g) = grid {
+            if g.n_cascades != self.scenes[0].grid.n_cascades {
+                return Err(Error::Config(format!(
+                    "an occupancy grid of {} cascades for a model of {}",
+                    g.n_cascades, self.scenes[0].grid.n_cascades
+                )));
+            }
+            self.scenes[0].grid = g;
+        }
+        Ok(())
+    }
+
     pub fn n_scenes(&self) -> usize {
         self.scenes.len()
     }

@@ -16,9 +16,10 @@
 
 use crate::keys::Key;
 use crate::steganalysis::INIT_BOUND;
-use ngp::encoding::reach::EntrySet;
-use ngp::encoding::{GridLayout, LevelIndex, LevelIndices};
+use ngp::encoding::reach::{EntrySet, reachable_entries};
+use ngp::encoding::{GridLayout, LevelIndex, LevelIndices, reference_indices};
 use ngp::network::NerfLayout;
+use ngp::occupancy::OccupancyGrid;
 use std::sync::Arc;
 
 /// A level's keyed index followed by the public map into the cover's reachable entries. A
@@ -131,6 +132,57 @@ pub(super) fn confine_indices(inner: &[LevelIndex], maps: &[Arc<[u32]>]) -> Leve
         .zip(maps)
         .map(|(inner, map)| confined(inner.clone(), map))
         .collect()
+}
+
+/// Which of the cover's entries the hidden scenes are confined to.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ConfineTo {
+    /// Those the cover moved off their initialisation (`--stealth`): read from the weights,
+    /// so any edit of the weights that moves an entry off it (noise) moves the map.
+    #[default]
+    Moved,
+    /// Those the reference index reaches from the stored occupancy grid's occupied cells
+    /// (`--robust`): the entries no edit can reset without the cover's own samples reading
+    /// the change, and a map read from the grid alone, which weight edits leave as it is.
+    Reachable,
+}
+
+impl ConfineTo {
+    pub fn name(self) -> &'static str {
+        match self {
+            ConfineTo::Moved => "moved",
+            ConfineTo::Reachable => "reachable",
+        }
+    }
+}
+
+/// The entries the cover's stored grid lets the reference index reach, as a key holder
+/// computes them from the file (`grid` as a reader rebuilds it:
+/// [`OccupancyGrid::as_stored`] in training, the loaded grid after). A level the grid
+/// reaches nowhere keeps one entry, as [`cover_entries`] does before the cover moved any.
+pub fn reachable_cover_entries(layout: &NerfLayout, grid: &OccupancyGrid) -> Vec<EntrySet> {
+    let mut sets = reachable_entries(
+        &layout.grid,
+        grid,
+        layout.config.aabb_scale,
+        &reference_indices(&layout.grid),
+    );
+    for set in &mut sets {
+        if set.is_empty() {
+            set.insert(0);
+        }
+    }
+    sets
+}
+
+/// A robust model's hidden index for `key`: the key's indices confined to the entries the
+/// stored grid reaches.
+pub fn robust_indices(key: &Key, layout: &NerfLayout, grid: &OccupancyGrid) -> LevelIndices {
+    let maps: Vec<Arc<[u32]>> = reachable_cover_entries(layout, grid)
+        .iter()
+        .map(|s| Arc::from(confinement_map(s)))
+        .collect();
+    confine(key, &layout.grid, &maps)
 }
 
 /// The index functions a key holder renders a hidden scene with: the key's, confined to the

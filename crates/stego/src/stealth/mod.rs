@@ -56,7 +56,8 @@ pub mod density_cap;
 pub mod left_entries;
 
 pub use confine::{
-    confine, confined, confinement_map, confinement_maps, cover_entries, hidden_indices,
+    ConfineTo, confine, confined, confinement_map, confinement_maps, cover_entries, hidden_indices,
+    reachable_cover_entries, robust_indices,
 };
 pub use density_cap::DensityCap;
 pub use left_entries::LeftEntries;
@@ -202,6 +203,10 @@ pub struct Stealth {
     /// The cover's entries the last confinement was made from (a training state saves
     /// them: the weights they were read from have moved on since); empty before.
     entries: Vec<EntrySet>,
+    /// Which of the cover's entries confinement keeps to (`--robust`: those its grid
+    /// reaches). Apart from [`StealthParts`], whose text a training state records: a state
+    /// saved before it existed confined to the moved ones, and says nothing.
+    confine_to: ConfineTo,
 }
 
 impl Stealth {
@@ -236,7 +241,24 @@ impl Stealth {
             left,
             cap_cells: Vec::new(),
             entries: Vec::new(),
+            confine_to: ConfineTo::Moved,
         })
+    }
+
+    /// The policy of `train --robust`, alone (`parts` none but confinement) or with
+    /// stealth's: the hidden scenes confined to the entries the cover's stored grid reaches.
+    pub fn confined_to(mut self, to: ConfineTo) -> Self {
+        self.confine_to = to;
+        self
+    }
+
+    /// `train --robust` without `--stealth`: confinement to the reachable entries alone.
+    pub fn robust(layout: NerfLayout, keys: &[Key]) -> Result<Self> {
+        let parts = StealthParts {
+            confine: true,
+            ..StealthParts::none()
+        };
+        Ok(Self::with_parts(layout, keys, parts)?.confined_to(ConfineTo::Reachable))
     }
 }
 
@@ -252,11 +274,16 @@ impl TrainPolicy for Stealth {
         !self.parts.pace || scenes.contains(&0)
     }
 
-    fn indices(&mut self, _grid: &OccupancyGrid, published: &[f32]) -> Vec<(usize, LevelIndices)> {
+    fn indices(&mut self, grid: &OccupancyGrid, published: &[f32]) -> Vec<(usize, LevelIndices)> {
         if self.keyed.is_empty() {
             return Vec::new();
         }
-        self.entries = cover_entries(&self.layout, published);
+        self.entries = match self.confine_to {
+            ConfineTo::Moved => cover_entries(&self.layout, published),
+            // The grid a reader of the file rebuilds (fp16 densities), so that the key
+            // holder's map is training's last.
+            ConfineTo::Reachable => reachable_cover_entries(&self.layout, &grid.as_stored()),
+        };
         self.confined_indices()
     }
 
@@ -321,12 +348,16 @@ impl TrainPolicy for Stealth {
             .iter()
             .map(|set| map(vec![("words", u64s(set.words()))]))
             .collect();
-        Ok(Some(encode(&map(vec![
+        let mut fields = vec![
             ("format", Value::from(STATE_FORMAT)),
             ("parts", Value::from(format!("{:?}", self.parts))),
             ("entries", Value::Array(entries)),
             ("cap_cells", u32s(&self.cap_cells)),
-        ]))))
+        ];
+        if self.confine_to != ConfineTo::Moved {
+            fields.push(("confine_to", Value::from(self.confine_to.name())));
+        }
+        Ok(Some(encode(&map(fields))))
     }
 
     fn restore_state(
@@ -347,6 +378,21 @@ impl TrainPolicy for Stealth {
             return Err(f.err(
                 "parts",
                 "saved with other stealth options (--cover-only-mlp, --density-cap)",
+            ));
+        }
+        let saved_to = if f.has("confine_to") {
+            f.str("confine_to")?
+        } else {
+            ConfineTo::Moved.name()
+        };
+        if saved_to != self.confine_to.name() {
+            return Err(f.err(
+                "confine_to",
+                format!(
+                    "saved confining the hidden scenes to the cover's {saved_to} entries, \
+                     resumed with {} (--robust)",
+                    self.confine_to.name()
+                ),
             ));
         }
         let levels = &self.layout.grid.levels;
