@@ -40,6 +40,11 @@ pub struct KeyArgs {
     /// (confined to the cover's reachable table entries, computed from the stored grid).
     #[arg(long)]
     pub stealth: bool,
+    /// The model was trained with `train --robust`: apply --key confined to the entries the
+    /// cover's stored grid reaches. A key file that training used records it already
+    /// (`"robust": true`); this is for a copy made before.
+    #[arg(long)]
+    pub robust: bool,
 }
 
 impl KeyArgs {
@@ -49,14 +54,19 @@ impl KeyArgs {
             if self.key_variant.is_some() {
                 bail!("--key-variant needs --key");
             }
-            if self.stealth {
-                bail!("--stealth needs --key (it says how the hidden scene's key is applied)");
+            if self.stealth || self.robust {
+                bail!(
+                    "--stealth and --robust need --key (they say how the hidden scene's key is applied)"
+                );
             }
             return Ok(None);
         };
         let mut key = keygen::load_key_reporting(kp)?;
         key.validate_for(&model.net.layout.grid)
             .with_context(|| format!("{}: key does not fit this model", kp.display()))?;
+        if self.robust {
+            key = key.with_robust(true);
+        }
         if let Some(v) = self.key_variant {
             key = v.apply(&key);
         }

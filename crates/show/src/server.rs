@@ -492,6 +492,10 @@ fn open_key(body: &[u8], ctx: &Ctx) -> std::result::Result<OpenedScene, String> 
         .map(|s| s.as_bool().ok_or("stealth: expected true or false"))
         .transpose()?
         .unwrap_or(false);
+    let robust = field(&v, "robust")
+        .map(|s| s.as_bool().ok_or("robust: expected true or false"))
+        .transpose()?
+        .unwrap_or(false);
     let key: Key = if let Some(text) = field(&v, "key_file") {
         let text = text
             .as_str()
@@ -533,6 +537,9 @@ fn open_key(body: &[u8], ctx: &Ctx) -> std::result::Result<OpenedScene, String> 
     };
     key.validate_for(&ctx.model.net.layout.grid)
         .map_err(|e| format!("the key does not fit this model: {e}"))?;
+    // A key file of a robust model records it; a passphrase says it with the box.
+    let robust = robust || key.robust();
+    let key = key.with_robust(robust);
     open_scene_on(ctx.device, ctx.model, Some(&key), stealth, ctx.opts.seed)
         .map_err(|e| e.to_string())
 }
