@@ -34,10 +34,17 @@ score() { # model data [args…] → "psnr ssim blank_psnr"
   "$bin" eval --model "$model" --data "$data" --views "$views" --no-lpips --json "$@" 2>/dev/null |
     python3 -c 'import json,sys; d=json.load(sys.stdin); print(d["psnr"], d["ssim"], d["blank_psnr"])'
 }
-attacks=(none "noise=0.001" "noise=0.005" "prune=0.15" "prune-magnitude=0.15" "quantise=8"
-  "quantise=4" purify "purify-contribution=1e-7" "purify-mlp=$ft" "finetune=$ft"
-  "finetune-renders=$ft" "redistil=$((ft * 3))")
-for mode in plain default stealth robust; do
+# ATTACKS (space-separated) overrides the list; a (mode, attack) already in rows.jsonl is
+# not measured again, so a stopped run goes on where it was.
+if [ -n "${ATTACKS:-}" ]; then
+  read -r -a attacks <<<"none $ATTACKS"
+else
+  attacks=(none "noise=0.001" "noise=0.005" "prune=0.15" "prune-magnitude=0.15" "quantise=8"
+    "quantise=4" purify "purify-contribution=1e-7" "purify-mlp=$ft" "finetune=$ft"
+    "finetune-renders=$ft" "redistil=$((ft * 3))")
+fi
+touch "$out/rows.jsonl"
+for mode in ${MODES:-plain default stealth robust}; do
   train $mode
   hidden_args=()
   case $mode in
@@ -45,6 +52,9 @@ for mode in plain default stealth robust; do
     default|robust) hidden_args=(--key "$out/$mode.key") ;;
   esac
   for a in "${attacks[@]}"; do
+    if grep -qF "\"mode\":\"$mode\",\"attack\":\"$a\"," "$out/rows.jsonl"; then
+      continue
+    fi
     tag=$(echo "$a" | tr '=' '_')
     f="$out/$mode.$tag.ingp"
     secs=0
@@ -63,3 +73,25 @@ for mode in plain default stealth robust; do
     echo "{\"mode\":\"$mode\",\"attack\":\"$a\",\"cover_psnr\":$cp,\"cover_ssim\":$cs,\"cover_blank\":$cb,\"hidden_psnr\":$hp,\"hidden_ssim\":$hs,\"hidden_blank\":$hb,\"attack_seconds\":$secs}" | tee -a "$out/rows.jsonl"
   done
 done
+# The table: a row per attack, hidden / cover PSNR per mode (hidden erased: ≤ 1 dB above
+# the empty render's PSNR, marked ✗).
+python3 - "$out/rows.jsonl" <<'PY'
+import json, sys
+rows = [json.loads(l) for l in open(sys.argv[1])]
+modes = [m for m in ["plain", "default", "stealth", "robust"] if any(r["mode"] == m for r in rows)]
+attacks = list(dict.fromkeys(r["attack"] for r in rows))
+print("| attack | " + " | ".join(f"{m} hidden / cover" if m != "plain" else "plain cover" for m in modes) + " |")
+print("|---" * (len(modes) + 1) + "|")
+for a in attacks:
+    cells = []
+    for m in modes:
+        r = next((r for r in rows if r["mode"] == m and r["attack"] == a), None)
+        if r is None:
+            cells.append("")
+        elif r["hidden_psnr"] is None:
+            cells.append(f"{r['cover_psnr']:.2f}")
+        else:
+            gone = " ✗" if r["hidden_psnr"] <= r["hidden_blank"] + 1.0 else ""
+            cells.append(f"{r['hidden_psnr']:.2f}{gone} / {r['cover_psnr']:.2f}")
+    print(f"| {a} | " + " | ".join(cells) + " |")
+PY
