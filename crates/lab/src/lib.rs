@@ -14,7 +14,7 @@ mod store;
 
 pub use detectability::{DetectOptions, run_detectability};
 pub use jobs::{JobMode, PlannedModel};
-pub use pairs::{PairSpec, PairsOptions, read_pairs_file, run_pairs};
+pub use pairs::{PairSpec, PairsOptions, cover_with_each, read_pairs_file, run_pairs};
 pub use robustness::{Mode, RobustnessOptions, default_attacks, run_robustness};
 pub use runs::run_experiment;
 pub use setup::{ExpConfig, Experiment};

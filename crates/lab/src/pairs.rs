@@ -63,6 +63,17 @@ impl std::str::FromStr for PairSpec {
     }
 }
 
+/// `cover` with each of `hidden`: the pairs of a run given `--cover` and `--hidden`.
+pub fn cover_with_each(cover: &Path, hidden: &[PathBuf]) -> Vec<PairSpec> {
+    hidden
+        .iter()
+        .map(|h| PairSpec {
+            cover: cover.to_path_buf(),
+            hidden: h.clone(),
+        })
+        .collect()
+}
+
 /// Reads a pairs file: JSON, either a list of `"COVER:HIDDEN"` strings or of
 /// `{"cover": …, "hidden": …}` objects, or an object `{"pairs": [ … ]}`. Relative paths are
 /// taken relative to the file's folder.

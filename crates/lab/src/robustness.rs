@@ -145,6 +145,17 @@ struct Scores {
     hidden_view: Vec<f32>,
 }
 
+impl Scores {
+    /// One line for the log.
+    fn summary(&self) -> String {
+        let hidden = self
+            .hidden
+            .as_ref()
+            .map_or("-".into(), |h| format!("{:.2} dB", h.psnr));
+        format!("cover {:.2} dB, hidden {hidden}", self.cover.psnr)
+    }
+}
+
 fn score(ctx: &Ctx, model: &Model, key: Option<&Key>) -> Result<Scores> {
     let (cover, _) = ctx.score(model, &Key::reference(), &ctx.cover)?;
     let Some(key) = key else {
@@ -278,6 +289,92 @@ fn row(pair: &str, mode: Mode, attack: &str, s: &Scores, base: &Scores, seconds:
     })
 }
 
+/// What the runs of one experiment collect: the table's rows and the picture grid's tiles.
+#[derive(Default)]
+struct Collected {
+    rows: Vec<Value>,
+    tiles: Vec<Vec<f32>>,
+    tile_size: (u32, u32),
+}
+
+/// One pair's model of one mode, published and attacked by each attack, scored as this run
+/// scores.
+fn measure(
+    cfg: &ExpConfig,
+    opts: &RobustnessOptions,
+    pi: usize,
+    mode: Mode,
+    out: &mut Collected,
+) -> Result<()> {
+    let pair = &opts.pairs[pi];
+    let mcfg = ExpConfig {
+        training: mode.training(&cfg.training),
+        ..cfg.clone()
+    };
+    let cover = load_scene(&pair.cover, cfg.downscale, None)?;
+    let hidden = load_scene(
+        &pair.hidden,
+        cfg.hidden_downscale,
+        Some(cover.train.aabb_scale),
+    )?;
+    let pair_name = format!("{}+{}", cover.name, hidden.name);
+    let key = experiment_key(cfg.scheme, 1, cfg.seed, pi as u64, &hidden)?
+        .with_robust(mode == Mode::Robust);
+    let ctx = Ctx {
+        cfg: &mcfg,
+        name: Experiment::Robustness,
+        cover,
+        hidden: vec![hidden],
+    };
+    let key = mode.hides().then_some(&key);
+    let label = format!("{} {pair_name}", mode.name());
+    let (model, id) = model_of(&ctx, key, &label)?;
+    let published = if is_placeholder(&model) {
+        model
+    } else {
+        model.published()?
+    };
+    let scores = |m: &Model| -> Result<Option<Scores>> {
+        if !cfg.jobs.scores() || is_placeholder(m) {
+            return Ok(None);
+        }
+        score(&ctx, m, key).map(Some)
+    };
+    let base = scores(&published)?;
+    if let Some(b) = &base {
+        ctx.log(&format!("  {label}: {}", b.summary()));
+        out.rows.push(row(&pair_name, mode, "none", b, b, 0.0));
+    }
+    let actx = AttackContext {
+        seed: cfg.seed,
+        data: Some(pair.cover.clone()),
+        load: LoadOptions {
+            downscale: cfg.downscale,
+            ..LoadOptions::default()
+        },
+        render_side: opts.render_side,
+        render_views: 64,
+        batch: cfg.batch,
+    };
+    let middle = middle_strengths(&opts.attacks);
+    for attack in &opts.attacks {
+        let t0 = std::time::Instant::now();
+        let m = attacked(&ctx, &published, &id, attack, &actx)?;
+        let secs = t0.elapsed().as_secs_f64();
+        if let (Some(b), Some(s)) = (&base, scores(&m)?) {
+            ctx.log(&format!("  {label} after {attack}: {}", s.summary()));
+            out.rows
+                .push(row(&pair_name, mode, &attack.to_string(), &s, b, secs));
+            if pi == 0 && mode.hides() && middle.contains(attack) && !s.hidden_view.is_empty() {
+                out.tiles.push(s.hidden_view);
+                let t = &ctx.hidden(0).test;
+                out.tile_size = (t.width, t.height);
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Runs the experiment and writes its report into `cfg.out`.
 pub fn run_robustness(cfg: &ExpConfig, opts: &RobustnessOptions) -> Result<Report> {
     if opts.pairs.is_empty() {
@@ -297,122 +394,32 @@ pub fn run_robustness(cfg: &ExpConfig, opts: &RobustnessOptions) -> Result<Repor
         wall_clock: vec!["attack_s".into(), "threads".into(), "device".into()],
         ..Default::default()
     };
-    let mut table =
-        Table::new("Every attack: the cover without a key, the hidden scene with its key");
-    let mut rows: Vec<Value> = Vec::new();
-    let mut tiles = Vec::new();
-    let mut tile_size = (0, 0);
-    for (pi, pair) in opts.pairs.iter().enumerate() {
+    let mut got = Collected::default();
+    for pi in 0..opts.pairs.len() {
         for &mode in &opts.modes {
-            let mcfg = ExpConfig {
-                training: mode.training(&cfg.training),
-                ..cfg.clone()
-            };
-            let cover = load_scene(&pair.cover, cfg.downscale, None)?;
-            let hidden = load_scene(
-                &pair.hidden,
-                cfg.hidden_downscale,
-                Some(cover.train.aabb_scale),
-            )?;
-            let pair_name = format!("{}+{}", cover.name, hidden.name);
-            let key = experiment_key(cfg.scheme, 1, cfg.seed, pi as u64, &hidden)?
-                .with_robust(mode == Mode::Robust);
-            let ctx = Ctx {
-                cfg: &mcfg,
-                name: Experiment::Robustness,
-                cover,
-                hidden: vec![hidden],
-            };
-            let key = mode.hides().then_some(&key);
-            let label = format!("{} {pair_name}", mode.name());
-            let (model, id) = model_of(&ctx, key, &label)?;
-            let published = if is_placeholder(&model) {
-                model
-            } else {
-                model.published()?
-            };
-            let scores = |m: &Model| -> Result<Option<Scores>> {
-                if !cfg.jobs.scores() || is_placeholder(m) {
-                    return Ok(None);
-                }
-                score(&ctx, m, key).map(Some)
-            };
-            let base = scores(&published)?;
-            if let Some(b) = &base {
-                ctx.log(&format!(
-                    "  {label}: cover {:.2} dB, hidden {}",
-                    b.cover.psnr,
-                    b.hidden
-                        .as_ref()
-                        .map_or("-".into(), |h| format!("{:.2} dB", h.psnr))
-                ));
-                rows.push(row(&pair_name, mode, "none", b, b, 0.0));
-            }
-            let actx = AttackContext {
-                seed: cfg.seed,
-                data: Some(pair.cover.clone()),
-                load: LoadOptions {
-                    downscale: cfg.downscale,
-                    ..LoadOptions::default()
-                },
-                render_side: opts.render_side,
-                render_views: 64,
-                batch: cfg.batch,
-            };
-            let middle = middle_strengths(&opts.attacks);
-            for attack in &opts.attacks {
-                let t0 = std::time::Instant::now();
-                let m = attacked(&ctx, &published, &id, attack, &actx)?;
-                let secs = t0.elapsed().as_secs_f64();
-                if let (Some(b), Some(s)) = (&base, scores(&m)?) {
-                    let r = row(&pair_name, mode, &attack.to_string(), &s, b, secs);
-                    ctx.log(&format!(
-                        "  {label} after {attack}: cover {:.2} dB, hidden {}",
-                        s.cover.psnr,
-                        s.hidden
-                            .as_ref()
-                            .map_or("-".into(), |h| format!("{:.2} dB", h.psnr))
-                    ));
-                    rows.push(r);
-                    if pi == 0
-                        && mode.hides()
-                        && middle.contains(attack)
-                        && !s.hidden_view.is_empty()
-                    {
-                        tiles.push(s.hidden_view);
-                        let t = &ctx.hidden(0).test;
-                        tile_size = (t.width, t.height);
-                    }
-                }
-            }
+            measure(cfg, opts, pi, mode, &mut got)?;
         }
     }
     if !cfg.jobs.scores() {
         return Ok(report);
     }
-    for r in &rows {
+    let mut table =
+        Table::new("Every attack: the cover without a key, the hidden scene with its key");
+    for r in &got.rows {
         table.push(r.clone());
     }
-    report.tables.push(headlines(&rows, &opts.modes));
-    report.tables.push(middle_table(&rows, &opts.attacks));
+    report.tables.push(headlines(&got.rows, &opts.modes));
+    report.tables.push(middle_table(&got.rows, &opts.attacks));
     report.tables.push(table);
     report.notes.push(NOTE.into());
     report.missing_jobs = cfg.jobs.missing_jobs();
-    save_curves(
-        &cfg.out.join("curves.png"),
-        &rows,
-        &opts.attacks,
-        &opts.modes,
-    )?;
-    if !tiles.is_empty() {
+    let curves = cfg.out.join("curves.png");
+    save_curves(&curves, &got.rows, &opts.attacks, &opts.modes)?;
+    if !got.tiles.is_empty() {
         let cols = middle_strengths(&opts.attacks).len();
-        super::report::save_grid(
-            &cfg.out.join("hidden_after_attacks.png"),
-            &tiles,
-            tile_size.0,
-            tile_size.1,
-            cols,
-        )?;
+        let (w, h) = got.tile_size;
+        let grid = cfg.out.join("hidden_after_attacks.png");
+        super::report::save_grid(&grid, &got.tiles, w, h, cols)?;
     }
     report.write(&cfg.out)?;
     Ok(report)

@@ -22,14 +22,7 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
     if name == Experiment::Pairs {
         // The cover with each hidden scene; the CLI passes its own pairs and options.
         let opts = super::pairs::PairsOptions {
-            pairs: cfg
-                .hidden
-                .iter()
-                .map(|h| super::pairs::PairSpec {
-                    cover: cfg.cover.clone(),
-                    hidden: h.clone(),
-                })
-                .collect(),
+            pairs: super::pairs::cover_with_each(&cfg.cover, &cfg.hidden),
             minutes: None,
             lpips: cfg.lpips,
         };
@@ -37,14 +30,7 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
     }
     if name == Experiment::Robustness {
         let opts = super::robustness::RobustnessOptions {
-            pairs: cfg
-                .hidden
-                .iter()
-                .map(|h| super::pairs::PairSpec {
-                    cover: cfg.cover.clone(),
-                    hidden: h.clone(),
-                })
-                .collect(),
+            pairs: super::pairs::cover_with_each(&cfg.cover, &cfg.hidden),
             attacks: super::robustness::default_attacks(),
             modes: super::robustness::Mode::ALL.to_vec(),
             render_side: 200,

@@ -10,7 +10,8 @@ use std::sync::Arc;
 use stegongp::experiments::report::Report;
 use stegongp::experiments::{
     DetectOptions, ExpConfig, Experiment, JobMode, Mode, PairSpec, PairsOptions, RobustnessOptions,
-    default_attacks, read_pairs_file, run_detectability, run_experiment, run_pairs, run_robustness,
+    cover_with_each, default_attacks, read_pairs_file, run_detectability, run_experiment,
+    run_pairs, run_robustness,
 };
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
@@ -369,14 +370,7 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
             pairs.extend(read_pairs_file(f)?);
         }
         if pairs.is_empty() {
-            pairs = cfg
-                .hidden
-                .iter()
-                .map(|h| PairSpec {
-                    cover: cfg.cover.clone(),
-                    hidden: h.clone(),
-                })
-                .collect();
+            pairs = cover_with_each(&cfg.cover, &cfg.hidden);
         }
         if robust_exp {
             let opts = RobustnessOptions {
