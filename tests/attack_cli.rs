@@ -155,7 +155,7 @@ fn purify_is_free_for_the_cover_erases_a_default_hidden_scene_and_not_a_robust_o
     let (key, robust_key) = (p(d.path(), "k.json"), p(d.path(), "robust.json"));
     ok(&stegongp(&["keygen", "--out", &key]));
     ok(&stegongp(&["keygen", "--out", &robust_key]));
-    let default = train(d.path(), "default", &cover, Some((&text, &key)), &[], "250");
+    let default = train(d.path(), "default", &cover, Some((&text, &key)), &[], "200");
     let robust = train(
         d.path(),
         "robust",

@@ -17,7 +17,7 @@ const ARGS: [&str; 20] = [
     "--batch",
     "4096",
     "--eval-views",
-    "2",
+    "1",
     "--no-lpips",
     "--log2-t",
     "14",
