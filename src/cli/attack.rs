@@ -8,7 +8,7 @@ use super::common::{check_model_path, progress};
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::PathBuf;
-use stegongp::attack::{Applied, Attack, AttackContext, apply};
+use stegongp::attack::{Applied, Attack, AttackContext, apply_all};
 use stegongp::ngp::data::LoadOptions;
 use stegongp::ngp::model::Model;
 
@@ -59,7 +59,8 @@ pub struct Args {
     pub json: bool,
 }
 
-fn parse_attack(s: &str) -> std::result::Result<Attack, String> {
+/// clap's parser of an attack (`noise=0.001`), for `attack` and `experiment robustness`.
+pub fn parse_attack(s: &str) -> std::result::Result<Attack, String> {
     s.parse().map_err(|e: stegongp::Error| e.to_string())
 }
 
@@ -103,7 +104,7 @@ pub fn run(a: Args) -> Result<()> {
     {
         bail!("--data {}: not a folder", d.display());
     }
-    let mut model = Model::load(&a.model)
+    let model = Model::load(&a.model)
         .with_context(|| format!("{}: cannot read the model", a.model.display()))?;
     let bar = progress(
         a.attacks.len() as u64,
@@ -112,12 +113,9 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         bar.set_draw_target(indicatif::ProgressDrawTarget::hidden());
     }
-    let mut reports = Vec::new();
-    for (i, attack) in a.attacks.iter().enumerate() {
-        bar.set_message(attack.to_string());
-        let (m, r) = apply(model, attack, &ctx.for_attack(i))
-            .with_context(|| format!("attack `{attack}`"))?;
-        model = m;
+    let chain: Vec<String> = a.attacks.iter().map(|x| x.to_string()).collect();
+    bar.set_message(chain.join(" "));
+    let (model, reports) = apply_all(model, &a.attacks, &ctx, |r| {
         if !a.json {
             bar.suspend(|| {
                 eprintln!(
@@ -126,9 +124,8 @@ pub fn run(a: Args) -> Result<()> {
                 )
             });
         }
-        reports.push(r);
         bar.inc(1);
-    }
+    })?;
     bar.finish_and_clear();
     model
         .save(&a.out)

@@ -86,19 +86,24 @@ pub struct Applied {
     pub seconds: f64,
 }
 
-/// Applies `attacks` left to right; the report of each.
+/// Applies `attacks` left to right, each with its own random stream
+/// ([`AttackContext::for_attack`]), after checking them all; `each` hears of every attack
+/// as it is done (a command's progress). The report of each.
 pub fn apply_all(
     mut model: Model,
     attacks: &[Attack],
     ctx: &AttackContext,
+    mut each: impl FnMut(&Applied),
 ) -> Result<(Model, Vec<Applied>)> {
     for a in attacks {
         a.check(ctx)?;
     }
     let mut reports = Vec::with_capacity(attacks.len());
     for (i, a) in attacks.iter().enumerate() {
-        let (m, r) = apply(model, a, &ctx.for_attack(i))?;
+        let (m, r) = apply(model, a, &ctx.for_attack(i))
+            .map_err(|e| ngp::error::Error::Other(format!("attack `{a}`: {e}")))?;
         model = m;
+        each(&r);
         reports.push(r);
     }
     Ok((model, reports))

@@ -334,11 +334,11 @@ fn a_chain_is_deterministic_for_a_seed() {
         seed: 9,
         ..AttackContext::default()
     };
-    let (a, ra) = apply_all(model(), &chain, &ctx).unwrap();
-    let (b, _) = apply_all(model(), &chain, &ctx).unwrap();
+    let (a, ra) = apply_all(model(), &chain, &ctx, |_| {}).unwrap();
+    let (b, _) = apply_all(model(), &chain, &ctx, |_| {}).unwrap();
     assert_eq!(a.params(), b.params());
     assert_eq!(ra.len(), 4);
-    let (c, _) = apply_all(model(), &chain, &AttackContext::default()).unwrap();
+    let (c, _) = apply_all(model(), &chain, &AttackContext::default(), |_| {}).unwrap();
     assert_ne!(a.params(), c.params());
 }
 

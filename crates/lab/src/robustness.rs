@@ -19,6 +19,7 @@ use super::setup::{
 };
 use super::store::read_stored;
 use attack::{Attack, AttackContext, apply};
+use ngp::choice::Choice;
 use ngp::data::LoadOptions;
 use ngp::error::{Error, Result};
 use ngp::eval::EvalResult;
@@ -40,10 +41,10 @@ pub enum Mode {
     Robust,
 }
 
-impl Mode {
-    pub const ALL: [Mode; 4] = [Mode::Plain, Mode::Default, Mode::Stealth, Mode::Robust];
+impl Choice for Mode {
+    const ALL: &'static [Mode] = &[Mode::Plain, Mode::Default, Mode::Stealth, Mode::Robust];
 
-    pub fn name(self) -> &'static str {
+    fn name(self) -> &'static str {
         match self {
             Mode::Plain => "plain",
             Mode::Default => "default",
@@ -52,6 +53,17 @@ impl Mode {
         }
     }
 
+    fn help(self) -> &'static str {
+        match self {
+            Mode::Plain => "no hidden scene: the cover's own cost of each attack",
+            Mode::Default => "a hidden scene trained as `train --hidden` trains it",
+            Mode::Stealth => "as `train --stealth`",
+            Mode::Robust => "as `train --robust`",
+        }
+    }
+}
+
+impl Mode {
     fn hides(self) -> bool {
         self != Mode::Plain
     }
@@ -75,20 +87,6 @@ impl Mode {
             Mode::Stealth => [0.15, 0.45, 0.85],
             Mode::Robust => [0.1, 0.65, 0.25],
         }
-    }
-}
-
-impl std::str::FromStr for Mode {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Self> {
-        Mode::ALL
-            .into_iter()
-            .find(|m| m.name() == s)
-            .ok_or_else(|| {
-                Error::Config(format!(
-                    "mode `{s}`: one of plain, default, stealth, robust"
-                ))
-            })
     }
 }
 

@@ -32,7 +32,7 @@ pub fn run_experiment(name: Experiment, cfg: &ExpConfig) -> Result<Report> {
         let opts = super::robustness::RobustnessOptions {
             pairs: super::pairs::cover_with_each(&cfg.cover, &cfg.hidden),
             attacks: super::robustness::default_attacks(),
-            modes: super::robustness::Mode::ALL.to_vec(),
+            modes: <super::robustness::Mode as ngp::choice::Choice>::ALL.to_vec(),
             render_side: 200,
         };
         return super::robustness::run_robustness(cfg, &opts);

@@ -13,9 +13,11 @@ use stegongp::experiments::{
     cover_with_each, default_attacks, read_pairs_file, run_detectability, run_experiment,
     run_pairs, run_robustness,
 };
+use stegongp::ngp::choice::Choice;
 use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
 use stegongp::stego::SchemeKind;
+use stegongp::stego::options::choice;
 use stegongp::stego::recipe::{HiddenOptions, SaveEvery};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
@@ -118,11 +120,11 @@ pub struct Args {
     /// [default: every attack at the field's strengths: noise σ 0.0005–0.01, pruning
     /// 5–50 %, int8 and int4, purify, purify-contribution 1e-8–1e-6, purify-mlp=100,
     /// finetune and finetune-renders 100/500/2000 steps, redistil=2000].
-    #[arg(long = "attack", value_name = "ATTACK", value_parser = parse_attack)]
+    #[arg(long = "attack", value_name = "ATTACK", value_parser = crate::cli::attack::parse_attack)]
     pub attacks: Vec<stegongp::attack::Attack>,
     /// robustness: the modes compared (comma-separated) [default: plain,default,stealth,robust].
-    #[arg(long, value_delimiter = ',', value_parser = parse_mode)]
-    pub modes: Vec<stegongp::experiments::Mode>,
+    #[arg(long, value_delimiter = ',', value_parser = choice::<Mode>())]
+    pub modes: Vec<Mode>,
     /// robustness: the long side of the cover's renders that finetune-renders, purify-mlp,
     /// redistil and purify-contribution use.
     #[arg(long, default_value_t = 200)]
@@ -136,14 +138,6 @@ pub struct Args {
     /// inside the model it was training; `off` for never.
     #[arg(long, value_name = "N|Mm|off", default_value = "10m", value_parser = parse_state_every)]
     pub save_every: StateEvery,
-}
-
-fn parse_attack(s: &str) -> std::result::Result<stegongp::attack::Attack, String> {
-    s.parse().map_err(|e: stegongp::Error| e.to_string())
-}
-
-fn parse_mode(s: &str) -> std::result::Result<stegongp::experiments::Mode, String> {
-    s.parse().map_err(|e: stegongp::Error| e.to_string())
 }
 
 /// `--save-every`: how often, or never.
@@ -224,14 +218,9 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
     if !robust_exp && (!a.attacks.is_empty() || !a.modes.is_empty()) {
         bail!("--attack and --modes belong to `experiment robustness`");
     }
-    if robust_exp && a.training.stealth.enabled {
+    if robust_exp && (a.training.stealth.enabled || a.training.robust) {
         bail!(
-            "robustness trains plain, default, --stealth and --robust models itself (--modes picks them): leave out --stealth"
-        );
-    }
-    if robust_exp && a.training.robust {
-        bail!(
-            "robustness trains plain, default, --stealth and --robust models itself (--modes picks them): leave out --robust"
+            "robustness trains plain, default, --stealth and --robust models itself (--modes picks them): leave out --stealth and --robust"
         );
     }
     if explicit_pairs && (a.cover.is_some() || !a.hidden.is_empty()) {

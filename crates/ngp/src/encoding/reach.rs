@@ -105,6 +105,21 @@ impl EntrySet {
     }
 }
 
+/// [`reachable_entries`] through the reference index: the entries the standard (keyless)
+/// index reaches from `grid`'s occupied cells, what an analyst computes from a file.
+pub fn reference_reachable(
+    layout: &GridLayout,
+    grid: &OccupancyGrid,
+    aabb_scale: u32,
+) -> Vec<EntrySet> {
+    reachable_entries(
+        layout,
+        grid,
+        aabb_scale,
+        &super::index::reference_indices(layout),
+    )
+}
+
 /// Network-space (`[0,1]³`) boxes of the coarsest cascade's occupied cells, clipped to the
 /// box; empty when no cell is occupied.
 pub fn occupied_boxes(grid: &OccupancyGrid, aabb_scale: u32) -> Vec<([f32; 3], [f32; 3])> {

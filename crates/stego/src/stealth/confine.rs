@@ -16,8 +16,8 @@
 
 use crate::keys::Key;
 use crate::steganalysis::INIT_BOUND;
-use ngp::encoding::reach::{EntrySet, reachable_entries};
-use ngp::encoding::{GridLayout, LevelIndex, LevelIndices, reference_indices};
+use ngp::encoding::reach::{EntrySet, reference_reachable};
+use ngp::encoding::{GridLayout, LevelIndex, LevelIndices};
 use ngp::network::NerfLayout;
 use ngp::occupancy::OccupancyGrid;
 use std::sync::Arc;
@@ -161,12 +161,7 @@ impl ConfineTo {
 /// [`OccupancyGrid::as_stored`] in training, the loaded grid after). A level the grid
 /// reaches nowhere keeps one entry, as [`cover_entries`] does before the cover moved any.
 pub fn reachable_cover_entries(layout: &NerfLayout, grid: &OccupancyGrid) -> Vec<EntrySet> {
-    let mut sets = reachable_entries(
-        &layout.grid,
-        grid,
-        layout.config.aabb_scale,
-        &reference_indices(&layout.grid),
-    );
+    let mut sets = reference_reachable(&layout.grid, grid, layout.config.aabb_scale);
     for set in &mut sets {
         if set.is_empty() {
             set.insert(0);

@@ -63,7 +63,7 @@ pub use stats::{
     mlp_stats,
 };
 
-use ngp::encoding::reach::reachable_entries;
+use ngp::encoding::reach::reference_reachable;
 use ngp::encoding::reference_indices;
 use ngp::error::{Error, Result};
 use ngp::network::NerfLayout;
@@ -212,14 +212,9 @@ pub fn analyse_snapshot(snap: &Snapshot) -> Result<Analysis> {
         )));
     }
     let grid = OccupancyGrid::from_density(snap.density_grid.clone());
-    let reach = grid.as_ref().map(|g| {
-        reachable_entries(
-            &layout.grid,
-            g,
-            snap.config.aabb_scale,
-            &reference_indices(&layout.grid),
-        )
-    });
+    let reach = grid
+        .as_ref()
+        .map(|g| reference_reachable(&layout.grid, g, snap.config.aabb_scale));
     let g = &layout.grid.config;
     Ok(Analysis {
         path: String::new(),
