@@ -1,12 +1,13 @@
 use super::common::{DeviceArg, check_model_path, check_parent_dir, progress};
 use super::keygen;
 use anyhow::{Context, Result, bail};
+use indicatif::ProgressBar;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
-use stegongp::backend::DeviceReport;
+use stegongp::backend::{Device, DeviceReport};
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
-use stegongp::ngp::encoding::reference_indices;
+use stegongp::ngp::encoding::{GridLayout, reference_indices};
 use stegongp::ngp::eval::{Protocol, evaluate_under, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
@@ -15,7 +16,7 @@ use stegongp::ngp::render::image::{Background, RenderOptions};
 use stegongp::stego::options::choice;
 use stegongp::stego::recipe::{
     Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, SaveEvery, StepOptions, StoredLoss,
-    Totals,
+    Totals, Training,
 };
 
 #[derive(clap::Args, Debug)]
@@ -303,7 +304,15 @@ struct Phase {
     ms: f64,
 }
 
-pub fn run(a: Args) -> Result<()> {
+/// What `--resume` read before anything else: the state's bytes and the seconds reading took.
+struct ResumeBytes {
+    bytes: Vec<u8>,
+    read_seconds: f64,
+}
+
+/// Every option that can be checked before an image is read (the recipe checks them again
+/// with the scenes and keys), and the state `--resume` names, read.
+fn check_args(a: &Args) -> Result<Option<ResumeBytes>> {
     check_model_path(&a.out)?;
     if a.hidden.len() != a.key.len() {
         bail!(
@@ -315,17 +324,17 @@ pub fn run(a: Args) -> Result<()> {
     if a.downscale == 0 || a.hidden_downscale == 0 {
         bail!("--downscale and --hidden-downscale must be at least 1");
     }
-    // The options first, before any image is read; the recipe checks them again with the
-    // scenes and keys.
     a.training.check()?;
     let t_read = std::time::Instant::now();
-    let resume_bytes = match &a.resume {
-        Some(p) => Some(std::fs::read(p).with_context(|| format!("reading {}", p.display()))?),
+    let resume = match &a.resume {
+        Some(p) => Some(ResumeBytes {
+            bytes: std::fs::read(p).with_context(|| format!("reading {}", p.display()))?,
+            read_seconds: t_read.elapsed().as_secs_f64(),
+        }),
         None => None,
     };
-    let read_seconds = t_read.elapsed().as_secs_f64();
     if a.save_every.is_some() {
-        let sp = state_path(&a);
+        let sp = state_path(a);
         if a.hidden.is_empty() {
             // A plain run's state is a snapshot: refuse a name the writer would refuse at
             // the first save, after the steps before it were spent.
@@ -340,6 +349,12 @@ pub fn run(a: Args) -> Result<()> {
             );
         }
     }
+    Ok(resume)
+}
+
+/// The recipe of the scenes and keys the options name, checked (a `--robust` run's keys
+/// then record the mode), and the test views `--checkpoints` scores.
+fn load_recipe(a: &Args) -> Result<(Recipe, Option<Dataset>)> {
     let opts = LoadOptions {
         downscale: a.downscale,
         images: a.images.clone(),
@@ -398,31 +413,47 @@ pub fn run(a: Args) -> Result<()> {
                 .context("loading test views for --checkpoints")?,
         )
     };
-    let device = a.device.open()?;
-    let occupancy_budget = recipe.occupancy_budget(&device);
-    let mut training = recipe.start(&device)?;
-    let mut resume_seconds = 0.0;
-    let mut resumed_at = None;
-    if let (Some(bytes), Some(p)) = (&resume_bytes, &a.resume) {
-        let t0 = std::time::Instant::now();
-        if stegongp::stego::recipe::is_run_state(bytes) {
-            training.restore_state(bytes, p)?;
-        } else {
-            let snap = stegongp::ngp::snapshot::from_bytes(bytes)
-                .map_err(|m| stegongp::ngp::error::Error::format(p, m))?;
-            training.restore_checkpoint(snap, p)?;
-        }
-        resume_seconds = t0.elapsed().as_secs_f64() + read_seconds;
-        resumed_at = Some(training.totals().steps);
-        if !a.json {
-            eprintln!(
-                "resumed from {} at step {} ({:.1} s trained)",
-                p.display(),
-                training.totals().steps,
-                training.totals().seconds
-            );
-        }
+    Ok((recipe, eval_data))
+}
+
+/// Where `--resume` went on from: the seconds it took (reading included) and the step.
+#[derive(Default)]
+struct Resumed {
+    seconds: f64,
+    at: Option<u32>,
+}
+
+/// Goes on from the state `--resume` read: a stego run's state, or a plain run's
+/// checkpoint snapshot.
+fn resume(a: &Args, training: &mut Training, state: Option<ResumeBytes>) -> Result<Resumed> {
+    let (Some(state), Some(p)) = (state, &a.resume) else {
+        return Ok(Resumed::default());
+    };
+    let t0 = std::time::Instant::now();
+    if stegongp::stego::recipe::is_run_state(&state.bytes) {
+        training.restore_state(&state.bytes, p)?;
+    } else {
+        let snap = stegongp::ngp::snapshot::from_bytes(&state.bytes)
+            .map_err(|m| stegongp::ngp::error::Error::format(p, m))?;
+        training.restore_checkpoint(snap, p)?;
     }
+    let totals = training.totals();
+    if !a.json {
+        eprintln!(
+            "resumed from {} at step {} ({:.1} s trained)",
+            p.display(),
+            totals.steps,
+            totals.seconds
+        );
+    }
+    Ok(Resumed {
+        seconds: t0.elapsed().as_secs_f64() + state.read_seconds,
+        at: Some(totals.steps),
+    })
+}
+
+/// `--half-grid` and `--profile-every` on the device that trains.
+fn configure_device(a: &Args, training: &mut Training, device: &Device) -> Result<()> {
     if a.half_grid {
         training.trainer_mut().half_grid()?;
     }
@@ -432,51 +463,59 @@ pub fn run(a: Args) -> Result<()> {
             device.report()
         );
     }
-    if !a.json {
-        eprintln!("device: {}", device.report());
+    Ok(())
+}
+
+/// What the run is about to do: the device, how the occupancy grid updates and rays march,
+/// the scenes, and the hidden scenes' mode.
+fn describe(a: &Args, recipe: &Recipe, training: &Training, device: &Device) {
+    eprintln!("device: {}", device.report());
+    eprintln!(
+        "occupancy updates: {}",
+        match (recipe.occupancy_budget(device), a.step.occupancy_budget) {
+            (Some(r), None) => format!(
+                "the reference's steps, each sized to {r} density evaluation(s) per trained sample (this device's default; --occupancy-budget 0 for the reference's)"
+            ),
+            (Some(r), Some(_)) => format!(
+                "the reference's steps, each sized to {r} density evaluation(s) per trained sample"
+            ),
+            (None, _) => "the reference's schedule".to_string(),
+        }
+    );
+    eprintln!(
+        "training march: {}",
+        match recipe.coarse_march(device) {
+            Some(s) => format!(
+                "coarser (2, 4 or 8 steps a sample) while rays reach the loss with ≥ {} samples at the reference's step (--coarse-march 0 for the reference's)",
+                2 * s
+            ),
+            None => "the reference's step".to_string(),
+        }
+    );
+    let trainer = training.trainer();
+    for i in 0..trainer.n_scenes() {
+        let d = trainer.dataset(i);
+        let role = if i == 0 { "cover" } else { "hidden" };
         eprintln!(
-            "occupancy updates: {}",
-            match (occupancy_budget, a.step.occupancy_budget) {
-                (Some(r), None) => format!(
-                    "the reference's steps, each sized to {r} density evaluation(s) per trained sample (this device's default; --occupancy-budget 0 for the reference's)"
-                ),
-                (Some(r), Some(_)) => format!(
-                    "the reference's steps, each sized to {r} density evaluation(s) per trained sample"
-                ),
-                (None, _) => "the reference's schedule".to_string(),
-            }
+            "{role}: {} images of {}×{}",
+            d.frames.len(),
+            d.width,
+            d.height
         );
-        eprintln!(
-            "training march: {}",
-            match recipe.coarse_march(&device) {
-                Some(s) => format!(
-                    "coarser (2, 4 or 8 steps a sample) while rays reach the loss with ≥ {} samples at the reference's step (--coarse-march 0 for the reference's)",
-                    2 * s
-                ),
-                None => "the reference's step".to_string(),
-            }
-        );
-        let trainer = training.trainer();
-        for i in 0..trainer.n_scenes() {
-            let d = trainer.dataset(i);
-            let role = if i == 0 { "cover" } else { "hidden" };
-            eprintln!(
-                "{role}: {} images of {}×{}",
-                d.frames.len(),
-                d.width,
-                d.height
-            );
-        }
-        if a.training.stealth.enabled {
-            eprintln!("{}", a.training.stealth.describe());
-        }
-        if a.training.robust {
-            eprintln!(
-                "robust: hidden scenes confined to the table entries the cover's occupancy grid reaches"
-            );
-        }
     }
-    let pb = match budget {
+    if a.training.stealth.enabled {
+        eprintln!("{}", a.training.stealth.describe());
+    }
+    if a.training.robust {
+        eprintln!(
+            "robust: hidden scenes confined to the table entries the cover's occupancy grid reaches"
+        );
+    }
+}
+
+/// The bar, in seconds or steps as the budget counts.
+fn progress_bar(budget: Budget) -> ProgressBar {
+    match budget {
         Budget::Seconds(s) => progress(
             s.ceil() as u64,
             "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len}s {msg}",
@@ -485,156 +524,251 @@ pub fn run(a: Args) -> Result<()> {
             n as u64,
             "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} steps {msg}",
         ),
-    };
-    let mut checkpoints = Vec::new();
-    // A resumed run evaluates only the checkpoints still ahead of it.
-    let done_seconds = training.totals().seconds;
-    let mut pending: Vec<f64> = a
-        .checkpoints
-        .iter()
-        .copied()
-        .filter(|m| m * 60.0 > done_seconds)
-        .collect();
-    pending.sort_by(|x, y| x.total_cmp(y));
-    let state_file = state_path(&a);
-    let mut saved_at = done_seconds;
-    let (mut state_saves, mut state_save_seconds) = (0u32, 0.0f64);
-    let mut saved_step = None;
-    let mut save_state = |training: &stegongp::stego::recipe::Training| -> Result<()> {
+    }
+}
+
+fn show_progress(pb: &ProgressBar, budget: Budget, training: &Training) {
+    let t = training.totals();
+    match budget {
+        Budget::Seconds(_) => pb.set_position(t.seconds as u64),
+        Budget::Steps(_) => pb.set_position(t.steps as u64),
+    }
+    pb.set_message(format!(
+        "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s {}",
+        t.steps,
+        training.shown_loss(),
+        t.steps_per_second(),
+        t.samples_per_second() / 1e3,
+        t.phase_split()
+    ));
+}
+
+/// `--save-every`'s cadence: when a state is due, where it goes, and what saving cost.
+struct StateSaver {
+    every: Option<SaveEvery>,
+    file: PathBuf,
+    /// A plain run saves a checkpoint snapshot, a stego run its secret state.
+    plain: bool,
+    saved_at: f64,
+    saved_step: Option<u32>,
+    saves: u32,
+    seconds: f64,
+}
+
+impl StateSaver {
+    fn new(a: &Args, training: &Training) -> Self {
+        StateSaver {
+            every: a.save_every,
+            file: state_path(a),
+            plain: a.hidden.is_empty(),
+            saved_at: training.totals().seconds,
+            saved_step: None,
+            saves: 0,
+            seconds: 0.0,
+        }
+    }
+
+    /// Saves the state if one is due after this step.
+    fn after_step(&mut self, training: &Training) -> Result<()> {
+        let t = training.totals();
+        if self.every.is_some_and(|e| e.due(t, self.saved_at)) {
+            self.save(training)?;
+            self.saved_at = t.seconds;
+        }
+        Ok(())
+    }
+
+    fn save(&mut self, training: &Training) -> Result<()> {
         let step = training.totals().steps;
-        if saved_step == Some(step) {
+        if self.saved_step == Some(step) {
             return Ok(()); // the end of a run that just saved
         }
-        saved_step = Some(step);
+        self.saved_step = Some(step);
         let t0 = std::time::Instant::now();
-        let saved = if a.hidden.is_empty() {
-            training.save_checkpoint(&state_file)
+        let saved = if self.plain {
+            training.save_checkpoint(&self.file)
         } else {
-            training.save_state_to(&state_file)
+            training.save_state_to(&self.file)
         };
-        saved.with_context(|| format!("saving the training state to {}", state_file.display()))?;
-        state_saves += 1;
-        state_save_seconds += t0.elapsed().as_secs_f64();
+        saved.with_context(|| format!("saving the training state to {}", self.file.display()))?;
+        self.saves += 1;
+        self.seconds += t0.elapsed().as_secs_f64();
         Ok(())
-    };
-    let grid = NerfLayout::new(model)?.grid;
-    let mut last_checkpoint: Option<Totals> = None;
-    while training.step()?.is_some() {
-        let t = *training.totals();
-        match budget {
-            Budget::Seconds(_) => pb.set_position(t.seconds as u64),
-            Budget::Steps(_) => pb.set_position(t.steps as u64),
+    }
+
+    /// The run's last state (with `--save-every`), and where it is.
+    fn finish(&mut self, training: &Training, quiet: bool) -> Result<()> {
+        if self.every.is_none() {
+            return Ok(());
         }
-        pb.set_message(format!(
-            "step {} loss {:.5} {:.2} steps/s {:.0}k samples/s {}",
-            t.steps,
-            training.shown_loss(),
-            t.steps_per_second(),
-            t.samples_per_second() / 1e3,
-            t.phase_split()
-        ));
-        let save_due = a.save_every.is_some_and(|e| e.due(&t, saved_at));
-        if save_due {
-            save_state(&training)?;
-            saved_at = t.seconds;
+        self.save(training)?;
+        if quiet {
+            return Ok(());
         }
-        while let Some(&m) = pending.first() {
-            if t.seconds < m * 60.0 {
+        if self.plain {
+            eprintln!(
+                "training state: {} (a snapshot with its optimizer state: --resume goes on from it, instant-ngp loads it)",
+                self.file.display()
+            );
+        } else {
+            eprintln!(
+                "training state: {} (owner-only; --resume goes on from it; it describes the hidden scenes: keep it like the keys, delete it when done)",
+                self.file.display()
+            );
+        }
+        Ok(())
+    }
+}
+
+/// `--checkpoints`: scores the cover's test views at the minutes asked, on the device.
+struct CheckpointScorer<'a> {
+    a: &'a Args,
+    data: Option<Dataset>,
+    /// The minutes still ahead, soonest first (a resumed run scores only those).
+    pending: Vec<f64>,
+    grid: GridLayout,
+    last: Option<Totals>,
+    done: Vec<Checkpoint>,
+}
+
+impl<'a> CheckpointScorer<'a> {
+    fn new(
+        a: &'a Args,
+        data: Option<Dataset>,
+        recipe: &Recipe,
+        training: &Training,
+    ) -> Result<Self> {
+        let done_seconds = training.totals().seconds;
+        let mut pending: Vec<f64> = a
+            .checkpoints
+            .iter()
+            .copied()
+            .filter(|m| m * 60.0 > done_seconds)
+            .collect();
+        pending.sort_by(|x, y| x.total_cmp(y));
+        Ok(CheckpointScorer {
+            a,
+            data,
+            pending,
+            grid: NerfLayout::new(recipe.model)?.grid,
+            last: None,
+            done: Vec::new(),
+        })
+    }
+
+    /// Scores every checkpoint the run's time has reached.
+    fn after_step(&mut self, training: &Training, device: &Device, pb: &ProgressBar) -> Result<()> {
+        while let Some(&m) = self.pending.first() {
+            if training.totals().seconds < m * 60.0 {
                 break;
             }
-            pending.remove(0);
-            let data = eval_data.as_ref().expect("loaded with checkpoints");
-            let t_eval = std::time::Instant::now();
-            let model = training.model()?;
-            let idx = reference_indices(&grid);
-            let mut renderer = device.renderer(&model, &idx, &model.grid)?;
-            let opts = RenderOptions {
-                background: a.background.rgb(),
-                ..Default::default()
-            };
-            let which = spread_views(data.frames.len(), a.eval_views);
-            let r = evaluate_under(
-                a.eval_protocol,
-                renderer.as_mut(),
-                data,
-                &opts,
-                Some(&which),
-                Some(Lpips::embedded()),
-                |_, _, _| {},
-            )?;
-            let eval_seconds = t_eval.elapsed().as_secs_f64();
-            let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
-            let eval_samples_per_ray =
-                r.views.iter().map(|v| v.samples_per_ray).sum::<f64>() / r.n_views.max(1) as f64;
-            let lpips = r.lpips.map_or(String::new(), |l| format!(" LPIPS {l:.4}"));
-            let stride = training.trainer().march_stride(0);
-            let march = MarchSince::new(&t, last_checkpoint.as_ref(), &model.grid, stride);
-            let line = format!(
-                "checkpoint {m} min: step {} test PSNR ({}) {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s and {:.0} samples a ray a view); {}; {}",
-                t.steps,
-                r.protocol,
-                r.psnr,
-                r.ssim,
-                r.n_views,
-                seconds_per_view,
-                eval_samples_per_ray,
-                t.phase_split(),
-                march.note()
-            );
-            last_checkpoint = Some(t);
+            self.pending.remove(0);
+            let line = self.score(m, training, device)?;
             // A hidden bar (no terminal) swallows println: write the line ourselves.
             if pb.is_hidden() {
                 eprintln!("{line}");
             } else {
                 pb.println(line);
             }
-            checkpoints.push(Checkpoint {
-                minutes: m,
-                protocol: r.protocol,
-                step: t.steps,
-                psnr: r.psnr,
-                ssim: r.ssim,
-                lpips: r.lpips,
-                train_seconds: t.seconds,
-                samples: t.samples,
-                marched: t.marched,
-                network: t.network,
-                rays: t.rays,
-                rays_per_step: march.rays_per_step,
-                samples_per_ray: march.samples_per_ray,
-                marched_per_ray: march.marched_per_ray,
-                occupied_per_cascade: march.occupied,
-                occupancy_threshold: march.threshold,
-                march_stride: stride,
-                occupancy_seconds: t.occupancy_seconds,
-                rays_seconds: t.rays_seconds,
-                optimizer_seconds: t.optimizer_seconds,
-                wait_seconds: t.wait_seconds,
-                occupancy_updates: t.occupancy_updates,
-                occupancy_evaluations: t.occupancy_evaluations,
-                eval_seconds,
-                seconds_per_view,
-                eval_samples_per_ray,
-            });
         }
+        Ok(())
+    }
+
+    /// Scores the checkpoint at `m` minutes; returns the line that says so.
+    fn score(&mut self, m: f64, training: &Training, device: &Device) -> Result<String> {
+        let a = self.a;
+        let t = *training.totals();
+        let data = self.data.as_ref().expect("loaded with checkpoints");
+        let t_eval = std::time::Instant::now();
+        let model = training.model()?;
+        let idx = reference_indices(&self.grid);
+        let mut renderer = device.renderer(&model, &idx, &model.grid)?;
+        let opts = RenderOptions {
+            background: a.background.rgb(),
+            ..Default::default()
+        };
+        let which = spread_views(data.frames.len(), a.eval_views);
+        let r = evaluate_under(
+            a.eval_protocol,
+            renderer.as_mut(),
+            data,
+            &opts,
+            Some(&which),
+            Some(Lpips::embedded()),
+            |_, _, _| {},
+        )?;
+        let eval_seconds = t_eval.elapsed().as_secs_f64();
+        let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
+        let eval_samples_per_ray =
+            r.views.iter().map(|v| v.samples_per_ray).sum::<f64>() / r.n_views.max(1) as f64;
+        let lpips = r.lpips.map_or(String::new(), |l| format!(" LPIPS {l:.4}"));
+        let stride = training.trainer().march_stride(0);
+        let march = MarchSince::new(&t, self.last.as_ref(), &model.grid, stride);
+        let line = format!(
+            "checkpoint {m} min: step {} test PSNR ({}) {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s and {:.0} samples a ray a view); {}; {}",
+            t.steps,
+            r.protocol,
+            r.psnr,
+            r.ssim,
+            r.n_views,
+            seconds_per_view,
+            eval_samples_per_ray,
+            t.phase_split(),
+            march.note()
+        );
+        self.last = Some(t);
+        self.done.push(Checkpoint {
+            minutes: m,
+            protocol: r.protocol,
+            step: t.steps,
+            psnr: r.psnr,
+            ssim: r.ssim,
+            lpips: r.lpips,
+            train_seconds: t.seconds,
+            samples: t.samples,
+            marched: t.marched,
+            network: t.network,
+            rays: t.rays,
+            rays_per_step: march.rays_per_step,
+            samples_per_ray: march.samples_per_ray,
+            marched_per_ray: march.marched_per_ray,
+            occupied_per_cascade: march.occupied,
+            occupancy_threshold: march.threshold,
+            march_stride: stride,
+            occupancy_seconds: t.occupancy_seconds,
+            rays_seconds: t.rays_seconds,
+            optimizer_seconds: t.optimizer_seconds,
+            wait_seconds: t.wait_seconds,
+            occupancy_updates: t.occupancy_updates,
+            occupancy_evaluations: t.occupancy_evaluations,
+            eval_seconds,
+            seconds_per_view,
+            eval_samples_per_ray,
+        });
+        Ok(line)
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let state = check_args(&a)?;
+    let (recipe, eval_data) = load_recipe(&a)?;
+    let device = a.device.open()?;
+    let mut training = recipe.start(&device)?;
+    let resumed = resume(&a, &mut training, state)?;
+    configure_device(&a, &mut training, &device)?;
+    if !a.json {
+        describe(&a, &recipe, &training, &device);
+    }
+    let pb = progress_bar(recipe.budget);
+    let mut saver = StateSaver::new(&a, &training);
+    let mut scorer = CheckpointScorer::new(&a, eval_data, &recipe, &training)?;
+    while training.step()?.is_some() {
+        show_progress(&pb, recipe.budget, &training);
+        saver.after_step(&training)?;
+        scorer.after_step(&training, &device, &pb)?;
     }
     pb.finish_and_clear();
-    if a.save_every.is_some() {
-        save_state(&training)?;
-        if !a.json {
-            if a.hidden.is_empty() {
-                eprintln!(
-                    "training state: {} (a snapshot with its optimizer state: --resume goes on from it, instant-ngp loads it)",
-                    state_file.display()
-                );
-            } else {
-                eprintln!(
-                    "training state: {} (owner-only; --resume goes on from it; it describes the hidden scenes: keep it like the keys, delete it when done)",
-                    state_file.display()
-                );
-            }
-        }
-    }
+    saver.finish(&training, a.json)?;
     let device_phases_ms: Vec<Phase> = training
         .trainer()
         .device_profile()
@@ -653,10 +787,10 @@ pub fn run(a: Args) -> Result<()> {
         device: device.report(),
         steps: t.steps,
         train_seconds: t.seconds,
-        state_saves,
-        state_save_seconds,
-        resume_seconds,
-        resumed_at,
+        state_saves: saver.saves,
+        state_save_seconds: saver.seconds,
+        resume_seconds: resumed.seconds,
+        resumed_at: resumed.at,
         final_loss: trained.model.loss,
         samples_per_second: t.samples as f64 / t.seconds,
         marched_samples_per_second: t.marched as f64 / t.seconds,
@@ -673,29 +807,33 @@ pub fn run(a: Args) -> Result<()> {
         wait_seconds: t.wait_seconds,
         occupancy_updates: t.occupancy_updates,
         occupancy_evaluations: t.occupancy_evaluations,
-        occupancy_budget,
+        occupancy_budget: recipe.occupancy_budget(&device),
         coarse_march: recipe.coarse_march(&device),
         half_grid: a.half_grid,
-        checkpoints,
+        checkpoints: scorer.done,
         device_phases_ms,
     };
+    report(&summary, &t, &a)
+}
+
+fn report(summary: &Summary, t: &Totals, a: &Args) -> Result<()> {
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&summary)?);
-    } else {
-        for p in &summary.device_phases_ms {
-            eprintln!("device {:>8.3} ms a step  {}", p.ms, p.phase);
-        }
-        eprintln!(
-            "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s; {}), loss {:.5}; wrote {}",
-            summary.steps,
-            summary.device.kind,
-            summary.train_seconds,
-            summary.steps_per_second,
-            summary.samples_per_second / 1e3,
-            t.phase_split(),
-            summary.final_loss,
-            a.out.display()
-        );
+        println!("{}", serde_json::to_string_pretty(summary)?);
+        return Ok(());
     }
+    for p in &summary.device_phases_ms {
+        eprintln!("device {:>8.3} ms a step  {}", p.ms, p.phase);
+    }
+    eprintln!(
+        "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s; {}), loss {:.5}; wrote {}",
+        summary.steps,
+        summary.device.kind,
+        summary.train_seconds,
+        summary.steps_per_second,
+        summary.samples_per_second / 1e3,
+        t.phase_split(),
+        summary.final_loss,
+        a.out.display()
+    );
     Ok(())
 }
