@@ -134,16 +134,8 @@ impl Rgb8 {
 
     /// PNG bytes (fast compression: the viewer sends one per frame).
     pub fn png(&self) -> Vec<u8> {
-        let mut out = Vec::new();
-        let mut enc = png::Encoder::new(&mut out, self.width, self.height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        enc.set_compression(png::Compression::Fast);
-        // Writing into memory cannot fail for a well-formed image.
-        if let Ok(mut w) = enc.write_header() {
-            let _ = w.write_image_data(&self.data);
-        }
-        out
+        // Encoding into memory cannot fail for a well-formed image.
+        ngp::data::png_bytes(self.width, self.height, 3, &self.data, true).unwrap_or_default()
     }
 
     /// PSNR (dB) against another image of the same size, over 8-bit codes.

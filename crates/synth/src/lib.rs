@@ -375,15 +375,7 @@ pub(crate) fn render_rgba(
 }
 
 pub(crate) fn encode_png(w: u32, h: u32, rgba: &[u8]) -> std::io::Result<Vec<u8>> {
-    let mut buf = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut buf, w, h);
-        enc.set_color(png::ColorType::Rgba);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut wr = enc.write_header().map_err(std::io::Error::other)?;
-        wr.write_image_data(rgba).map_err(std::io::Error::other)?;
-    }
-    Ok(buf)
+    ngp::data::png_bytes(w, h, 4, rgba, false)
 }
 
 /// Renders the scene of `opts` into `out_dir` (created if needed). Images are written

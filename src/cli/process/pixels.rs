@@ -105,27 +105,12 @@ pub fn resize_area(src: &[u8], ch: usize, w: usize, h: usize, nw: usize, nh: usi
 /// Writes 8-bit RGB (`ch` = 3) or RGBA (4) pixels as a PNG, synced: the whole output folder
 /// is renamed into place at the end, and must be on disk when it is.
 pub fn write_png(path: &Path, w: u32, h: u32, ch: usize, px: &[u8]) -> Result<()> {
-    let file = std::fs::File::create(path)
+    use std::io::Write;
+    let bytes = stegongp::ngp::data::png_bytes(w, h, ch, px, true)
+        .with_context(|| format!("{}: encoding", path.display()))?;
+    let mut file = std::fs::File::create(path)
         .with_context(|| format!("{}: cannot create", path.display()))?;
-    let mut buf = std::io::BufWriter::new(file);
-    {
-        let mut enc = png::Encoder::new(&mut buf, w, h);
-        enc.set_color(if ch == 4 {
-            png::ColorType::Rgba
-        } else {
-            png::ColorType::Rgb
-        });
-        enc.set_depth(png::BitDepth::Eight);
-        enc.set_compression(png::Compression::Fast);
-        let mut wr = enc
-            .write_header()
-            .with_context(|| format!("{}: PNG header", path.display()))?;
-        wr.write_image_data(px)
-            .with_context(|| format!("{}: writing", path.display()))?;
-    }
-    let file = buf
-        .into_inner()
-        .map_err(|e| e.into_error())
+    file.write_all(&bytes)
         .with_context(|| format!("{}: writing", path.display()))?;
     file.sync_all()
         .with_context(|| format!("{}: syncing", path.display()))?;

@@ -393,16 +393,45 @@ fn decode_jpeg(path: &Path, bytes: &[u8]) -> Result<Image> {
     Image::from_rgba8(w, h, rgba)
 }
 
-fn encode_png(path: &Path, w: u32, h: u32, color: png::ColorType, data: &[u8]) -> Result<()> {
-    crate::util::write_atomic_with(path, |file| {
-        let mut enc = png::Encoder::new(std::io::BufWriter::new(file), w, h);
-        enc.set_color(color);
-        enc.set_depth(png::BitDepth::Eight);
-        let to_io = |e: png::EncodingError| std::io::Error::other(e.to_string());
-        let mut writer = enc.write_header().map_err(to_io)?;
-        writer.write_image_data(data).map_err(to_io)?;
-        writer.finish().map_err(to_io)
-    })
+/// A PNG of 8-bit pixels, grey (`channels` = 1), RGB (3) or RGBA (4), in memory: the one
+/// encoder every writer of the workspace uses. `fast`: the encoder's fast compression (a
+/// viewer's frames, a capture's staged photos), else its default.
+pub fn png_bytes(
+    w: u32,
+    h: u32,
+    channels: usize,
+    data: &[u8],
+    fast: bool,
+) -> std::io::Result<Vec<u8>> {
+    let color = match channels {
+        1 => png::ColorType::Grayscale,
+        3 => png::ColorType::Rgb,
+        4 => png::ColorType::Rgba,
+        n => {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                format!("a PNG of {n} channels (1, 3 or 4 are written)"),
+            ));
+        }
+    };
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(&mut out, w, h);
+    enc.set_color(color);
+    enc.set_depth(png::BitDepth::Eight);
+    if fast {
+        enc.set_compression(png::Compression::Fast);
+    }
+    let mut writer = enc.write_header().map_err(std::io::Error::other)?;
+    writer
+        .write_image_data(data)
+        .map_err(std::io::Error::other)?;
+    writer.finish().map_err(std::io::Error::other)?;
+    Ok(out)
+}
+
+fn encode_png(path: &Path, w: u32, h: u32, channels: usize, data: &[u8]) -> Result<()> {
+    let bytes = png_bytes(w, h, channels, data, false).map_err(|e| Error::io(path, e))?;
+    crate::util::write_atomic(path, &bytes)
 }
 
 #[inline]
@@ -421,7 +450,7 @@ pub fn save_png_rgb(path: &Path, w: u32, h: u32, rgb: &[f32]) -> Result<()> {
         ));
     }
     let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
-    encode_png(path, w, h, png::ColorType::Rgb, &bytes)
+    encode_png(path, w, h, 3, &bytes)
 }
 
 /// Writes a greyscale PNG of `v / max` clipped to [0,1] (depth or opacity pictures).
@@ -438,7 +467,7 @@ pub fn save_png_gray(path: &Path, w: u32, h: u32, v: &[f32], max: f32) -> Result
         0.0
     };
     let bytes: Vec<u8> = v.iter().map(|&x| to_u8(x * inv)).collect();
-    encode_png(path, w, h, png::ColorType::Grayscale, &bytes)
+    encode_png(path, w, h, 1, &bytes)
 }
 
 /// Reads a PNG as interleaved RGB floats in [0,1] (8-bit codes / 255, no transfer function;

@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 
 pub use color::{linear_to_srgb, srgb_to_linear};
-pub use image::{Image, image_size, load_png_rgb, save_png_gray, save_png_rgb};
+pub use image::{Image, image_size, load_png_rgb, png_bytes, save_png_gray, save_png_rgb};
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
