@@ -734,6 +734,49 @@ fn draw_roc(path: &Path, curves: &[Vec<(f64, f64)>]) -> Result<()> {
 /// `cfg.cover`, `cfg.hidden`, `cfg.scheme`, `cfg.schedule` and `cfg.stealth` are not used:
 /// the experiment generates its scenes and cycles through the schemes and schedules itself.
 pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report> {
+    check_options(opts)?;
+    let out = &cfg.out;
+    let models_dir = out.join("models");
+    std::fs::create_dir_all(&models_dir).map_err(|e| Error::io(&models_dir, e))?;
+    let arms = arms(opts);
+    let t_all = Instant::now();
+    let models = train_population(cfg, opts, &arms, &models_dir)?;
+    if !cfg.jobs.scores() {
+        return Ok(Report::default());
+    }
+    let wall = t_all.elapsed().as_secs_f64();
+    let pop = Population::new(arms, models, opts.models.div_ceil(2));
+    let mut report = Report {
+        name: Experiment::Detectability.to_string(),
+        setup: setup(cfg, opts, &pop),
+        ..Default::default()
+    };
+    report.tables.push(fidelity_table(&pop));
+    let stats = per_statistic(&pop);
+    let control_max = stats.control_max(&pop.arms);
+    let summary = summary_table(&pop, &stats, control_max);
+    // Writes detector_<arm>.json; a detector that cannot be fitted is a note, not an error.
+    let detectors = combined_detectors(out, &pop, opts.stealth_arm, &mut report.notes)?;
+    let (curves, legend) = roc_curves(&pop, &stats, &detectors);
+    let stego_detector = detectors.stego();
+    let per_model = per_model_table(&pop, stego_detector);
+    report
+        .notes
+        .extend(closing_notes(opts, &pop, control_max, stego_detector));
+    // The report's order: fidelity (above), detectors, arms, statistics, models.
+    report.tables.push(detectors.table);
+    report.tables.push(summary);
+    report.tables.push(stats.table);
+    report.tables.push(per_model);
+    report.figures.push(roc_figure(out, &curves, &legend)?);
+    report.run_notes.push(timing_note(&pop, wall));
+    write_features(out, &pop.models)?;
+    report.missing_jobs = cfg.jobs.missing_jobs();
+    report.write(out)?;
+    Ok(report)
+}
+
+fn check_options(opts: &DetectOptions) -> Result<()> {
     if opts.models < 2 {
         return Err(Error::Config(format!(
             "detectability needs at least 2 models per arm (one to fit the detector on, one to score), got {}",
@@ -745,13 +788,11 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             "detectability needs train and test views".into(),
         ));
     }
-    let out = &cfg.out;
-    let models_dir = out.join("models");
-    std::fs::create_dir_all(&models_dir).map_err(|e| Error::io(&models_dir, e))?;
-    let scenes_dir = out.join("scenes").join(format!(
-        "s{}_r{}_v{}-{}",
-        cfg.seed, opts.res, opts.n_train_views, opts.n_test_views
-    ));
+    Ok(())
+}
+
+/// The arms `opts` asks for, plain first: every comparison is plain against another arm.
+fn arms(opts: &DetectOptions) -> Vec<Arm> {
     let mut arms = vec![Arm::Plain, Arm::Stego];
     if opts.stealth_arm {
         arms.push(Arm::Stealth);
@@ -759,7 +800,21 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     if opts.control_arm {
         arms.push(Arm::Control);
     }
-    let t_all = Instant::now();
+    arms
+}
+
+/// Generates every pair's scenes and trains (or reuses) each arm's model of it, pair by
+/// pair.
+fn train_population(
+    cfg: &ExpConfig,
+    opts: &DetectOptions,
+    arms: &[Arm],
+    models_dir: &Path,
+) -> Result<Vec<ModelRecord>> {
+    let scenes_dir = cfg.out.join("scenes").join(format!(
+        "s{}_r{}_v{}-{}",
+        cfg.seed, opts.res, opts.n_train_views, opts.n_test_views
+    ));
     let mut models: Vec<ModelRecord> = Vec::new();
     for i in 0..opts.models {
         let seed = pair_seed(cfg.seed, i);
@@ -778,75 +833,133 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
                 sc.name()
             );
         }
-        for &arm in &arms {
+        for &arm in arms {
             let scenes = (cover_dir.as_path(), hidden_dir.as_path());
-            models.extend(model(cfg, arm, i, scenes, &hidden_kind, &models_dir)?);
+            models.extend(model(cfg, arm, i, scenes, &hidden_kind, models_dir)?);
         }
     }
-    if !cfg.jobs.scores() {
-        return Ok(Report::default());
-    }
-    let wall = t_all.elapsed().as_secs_f64();
-    let n_fit = opts.models.div_ceil(2);
-    let of = |a: Arm| models.iter().filter(move |m| m.arm == a);
-    let mut report = Report {
-        name: Experiment::Detectability.to_string(),
-        setup: json!({
-            "models_per_arm": opts.models, "stealth_mlp": if cfg.training.stealth.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.training.hidden_from, "hidden_loss_weight": cfg.training.hidden_weight, "density_cap": cfg.training.stealth.density_cap, "arms": arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
-            "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
-            "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
-            "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
-            "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
-            "log2_hashmap_size": cfg.grid.log2_hashmap_size,
-            "combinations": "pair i: key prf if i even else primes; schedule mixed if (i/2) even else random-scene",
-            "detector": "logistic regression on standardised features (L2 = 1, Newton/IRLS)",
-            "fit_pairs": n_fit, "scored_pairs": opts.models - n_fit,
-        }),
-        ..Default::default()
-    };
+    Ok(models)
+}
 
-    // Fidelity per arm: what the stego and stealth models cost the scenes.
-    let mut fid = Table::new(
-        "Fidelity per arm: mean PSNR (dB) and LPIPS on held-out views, the cover without a key and the hidden scene with its key",
-    );
-    for &a in &arms {
-        let mut row = json!({
-            "arm": a.name(), "models": of(a).count(),
-            "cover_psnr": num(mean(of(a).map(|m| m.cover_psnr))),
-            "cover_lpips": num(mean(of(a).filter_map(|m| m.cover_lpips))),
-        });
-        if a.hides() {
-            row["hidden_psnr"] = num(mean(of(a).filter_map(|m| m.hidden_psnr)));
-            row["hidden_lpips"] = num(mean(of(a).filter_map(|m| m.hidden_lpips)));
+/// The scored population: its models and their statistics as one matrix.
+struct Population {
+    arms: Vec<Arm>,
+    models: Vec<ModelRecord>,
+    /// Pairs `0..n_fit` fit the reported detectors; the rest score them.
+    n_fit: usize,
+    /// The statistics' names, and per model (in `models`' order) its value of each.
+    names: Vec<String>,
+    rows: Vec<Vec<f64>>,
+}
+
+impl Population {
+    fn new(arms: Vec<Arm>, models: Vec<ModelRecord>, n_fit: usize) -> Self {
+        let samples: Vec<Vec<(String, f64)>> = models.iter().map(|m| m.features.clone()).collect();
+        let (names, rows) = feature_matrix(&samples);
+        Population {
+            arms,
+            models,
+            n_fit,
+            names,
+            rows,
         }
-        fid.push(row);
     }
-    report.tables.push(fid);
 
-    // Per statistic, over all models of each arm.
-    let samples: Vec<Vec<(String, f64)>> = models.iter().map(|m| m.features.clone()).collect();
-    let (names, rows) = feature_matrix(&samples);
-    let column = |j: usize, a: Arm| -> Vec<f64> {
-        models
+    /// The models of arm `a`.
+    fn of(&self, a: Arm) -> impl Iterator<Item = &ModelRecord> {
+        self.models.iter().filter(move |m| m.arm == a)
+    }
+
+    /// Statistic `j` over the models of arm `a`.
+    fn column(&self, j: usize, a: Arm) -> Vec<f64> {
+        self.models
             .iter()
-            .zip(&rows)
+            .zip(&self.rows)
             .filter(|(m, _)| m.arm == a)
             .map(|(_, r)| r[j])
             .collect()
-    };
-    let mut per_stat = Table::new(
+    }
+}
+
+fn setup(cfg: &ExpConfig, opts: &DetectOptions, pop: &Population) -> Value {
+    json!({
+        "models_per_arm": opts.models, "stealth_mlp": if cfg.training.stealth.cover_only_mlp { "the cover's alone" } else { "shared" }, "hidden_from_step": cfg.training.hidden_from, "hidden_loss_weight": cfg.training.hidden_weight, "density_cap": cfg.training.stealth.density_cap, "arms": pop.arms.iter().map(|a| a.name()).collect::<Vec<_>>(),
+        "scene_res": opts.res, "train_views": opts.n_train_views, "test_views": opts.n_test_views,
+        "steps": cfg.steps, "batch_samples_per_scene": cfg.batch, "seed": cfg.seed,
+        "eval_views": cfg.eval_views, "occupancy_fraction": cfg.occupancy_fraction,
+        "levels": cfg.grid.n_levels, "features": cfg.grid.n_features,
+        "log2_hashmap_size": cfg.grid.log2_hashmap_size,
+        "combinations": "pair i: key prf if i even else primes; schedule mixed if (i/2) even else random-scene",
+        "detector": "logistic regression on standardised features (L2 = 1, Newton/IRLS)",
+        "fit_pairs": pop.n_fit, "scored_pairs": opts.models - pop.n_fit,
+    })
+}
+
+/// Fidelity per arm: what the stego and stealth models cost the scenes.
+fn fidelity_table(pop: &Population) -> Table {
+    let mut fid = Table::new(
+        "Fidelity per arm: mean PSNR (dB) and LPIPS on held-out views, the cover without a key and the hidden scene with its key",
+    );
+    for &a in &pop.arms {
+        let mut row = json!({
+            "arm": a.name(), "models": pop.of(a).count(),
+            "cover_psnr": num(mean(pop.of(a).map(|m| m.cover_psnr))),
+            "cover_lpips": num(mean(pop.of(a).filter_map(|m| m.cover_lpips))),
+        });
+        if a.hides() {
+            row["hidden_psnr"] = num(mean(pop.of(a).filter_map(|m| m.hidden_psnr)));
+            row["hidden_lpips"] = num(mean(pop.of(a).filter_map(|m| m.hidden_lpips)));
+        }
+        fid.push(row);
+    }
+    fid
+}
+
+/// Every statistic on its own, plain against each other arm over all models.
+struct StatScan {
+    /// One row per statistic.
+    table: Table,
+    /// Per arm (as `Population::arms`): the largest AUC, its statistic and whether it is
+    /// higher in the arm; NaN where no statistic has an AUC (always so for plain).
+    best: Vec<(f64, usize, bool)>,
+    /// Per arm: (AUC, p, statistic) of every statistic defined on both sides.
+    per_arm: Vec<Vec<(f64, f64, usize)>>,
+}
+
+impl StatScan {
+    /// The control arm's largest AUC: what chance gives the largest of this many statistics
+    /// on this many models.
+    fn control_max(&self, arms: &[Arm]) -> Option<f64> {
+        arms.iter()
+            .position(|&a| a == Arm::Control)
+            .map(|k| self.best[k].0)
+            .filter(|c| c.is_finite())
+    }
+}
+
+fn direction(up: bool) -> &'static str {
+    if up {
+        "higher in stego"
+    } else {
+        "lower in stego"
+    }
+}
+
+/// Per statistic, over all models of each arm.
+fn per_statistic(pop: &Population) -> StatScan {
+    let arms = &pop.arms;
+    let mut table = Table::new(
         "Per statistic: ROC AUC of plain vs each arm over all models, as max(AUC, 1 − AUC) with the direction that gives it",
     );
     let mut best: Vec<(f64, usize, bool)> = vec![(f64::NAN, 0, true); arms.len()];
-    // Per arm: (AUC, p, statistic) of every statistic defined on both sides.
     let mut per_arm: Vec<Vec<(f64, f64, usize)>> = vec![Vec::new(); arms.len()];
-    for (j, name) in names.iter().enumerate() {
-        let plain = column(j, Arm::Plain);
+    for (j, name) in pop.names.iter().enumerate() {
+        let plain = pop.column(j, Arm::Plain);
         let mut row = serde_json::Map::new();
         row.insert("statistic".into(), json!(name));
         row.insert("plain_mean".into(), num(mean(plain.iter().copied())));
         for (k, &a) in arms.iter().enumerate().skip(1) {
-            let vals = column(j, a);
+            let vals = pop.column(j, a);
             let (auc, up, p) = directed_auc(&vals, &plain);
             row.insert(
                 format!("{}_mean", a.name()),
@@ -857,108 +970,143 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             if auc.is_finite() {
                 per_arm[k].push((auc, p, j));
             }
-            row.insert(
-                format!("{}_direction", a.name()),
-                json!(if up {
-                    "higher in stego"
-                } else {
-                    "lower in stego"
-                }),
-            );
+            row.insert(format!("{}_direction", a.name()), json!(direction(up)));
             if auc.is_finite() && (best[k].0.is_nan() || auc > best[k].0) {
                 best[k] = (auc, j, up);
             }
         }
-        per_stat.push(Value::Object(row));
+        table.push(Value::Object(row));
     }
+    StatScan {
+        table,
+        best,
+        per_arm,
+    }
+}
 
-    // Per arm, what the statistics add up to; the control arm's largest AUC is what chance
-    // gives the largest of this many statistics on this many models.
-    let control_max = arms
-        .iter()
-        .position(|&a| a == Arm::Control)
-        .map(|k| best[k].0)
-        .filter(|c| c.is_finite());
+/// Per arm, what the statistics add up to, read against the control arm's largest AUC
+/// where there is one.
+fn summary_table(pop: &Population, stats: &StatScan, control_max: Option<f64>) -> Table {
     let mut summary = Table::new(
         "Statistics per arm (plain vs the arm, all models): the largest AUC, how many statistics reach at most 0.6, their mean AUC, how many are significant after a Bonferroni correction (two-sided p < 0.05 / statistics) and, with a control arm, how many lie above its largest AUC",
     );
-    for (k, &a) in arms.iter().enumerate().skip(1) {
-        let stats = &per_arm[k];
-        let n = stats.len();
-        let (largest, j, _) = best[k];
+    for (k, &a) in pop.arms.iter().enumerate().skip(1) {
+        let arm_stats = &stats.per_arm[k];
+        let n = arm_stats.len();
+        let (largest, j, _) = stats.best[k];
         let mut row = json!({
             "arm": a.name(), "statistics": n,
             "largest_auc": num(largest),
-            "largest_statistic": if largest.is_finite() { names[j].as_str() } else { "-" },
-            "at_most_0_6": stats.iter().filter(|x| x.0 <= 0.6).count(),
-            "mean_auc": num(mean(stats.iter().map(|x| x.0))),
-            "significant": stats.iter().filter(|x| x.1 < 0.05 / n.max(1) as f64).count(),
+            "largest_statistic": if largest.is_finite() { pop.names[j].as_str() } else { "-" },
+            "at_most_0_6": arm_stats.iter().filter(|x| x.0 <= 0.6).count(),
+            "mean_auc": num(mean(arm_stats.iter().map(|x| x.0))),
+            "significant": arm_stats.iter().filter(|x| x.1 < 0.05 / n.max(1) as f64).count(),
         });
         if let Some(c) = control_max {
-            row["above_control_max"] = json!(stats.iter().filter(|x| x.0 > c).count());
+            row["above_control_max"] = json!(arm_stats.iter().filter(|x| x.0 > c).count());
         }
         summary.push(row);
     }
+    summary
+}
 
-    // Combined detectors, fitted on the first half of the pairs, scored on the rest.
-    let mut comb = Table::new(
+/// The combined detectors, one per arm against plain.
+struct Detectors {
+    table: Table,
+    fitted: Vec<(Arm, Combined)>,
+    /// With a stealth arm: the plain vs stego detector's held-out scores on plain vs
+    /// stealth models, (stealth, plain).
+    stego_on_stealth: Option<(Vec<f64>, Vec<f64>)>,
+}
+
+impl Detectors {
+    /// The plain vs stego detector, when it could be fitted.
+    fn stego(&self) -> Option<&Detector> {
+        self.fitted
+            .iter()
+            .find(|(a, _)| *a == Arm::Stego)
+            .map(|(_, c)| &c.detector)
+    }
+}
+
+/// Combined detectors, fitted on the first half of the pairs, scored on the rest, each
+/// saved as `out/detector_<arm>.json`; one that cannot be fitted is said in `notes`.
+fn combined_detectors(
+    out: &Path,
+    pop: &Population,
+    stealth_arm: bool,
+    notes: &mut Vec<String>,
+) -> Result<Detectors> {
+    let (models, n_fit) = (&pop.models, pop.n_fit);
+    let mut table = Table::new(
         "Combined detector (logistic regression): fitted on pairs 0..n_fit, ROC AUC on the held-out pairs; auc_second_fold: fitted on the held-out pairs, scored on the first; auc_cross_fitted: every model scored by the detector fitted on the other half",
     );
-    let mut curves: Vec<Vec<(f64, f64)>> = Vec::new();
-    let mut legend: Vec<String> = Vec::new();
     let mut fitted: Vec<(Arm, Combined)> = Vec::new();
-    for &a in arms.iter().skip(1) {
-        match fit_combined(&models, a, n_fit, Fold::First) {
+    for &a in pop.arms.iter().skip(1) {
+        match fit_combined(models, a, n_fit, Fold::First) {
             Ok(c) => {
                 let path = out.join(format!("detector_{}.json", a.name()));
                 c.detector.save(&path)?;
-                let mut row = json!({
-                    "fitted_on": format!("plain vs {}", a.name()), "scored": format!("plain vs {}", a.name()),
-                    "auc": num(c.auc), "p": num(auc_p_value(c.auc, c.held_out.0.len(), c.held_out.1.len())),
-                    "scored_models": c.held_out.0.len() + c.held_out.1.len(),
-                    "features_used": c.detector.features.len(),
-                });
-                // The other fold, and every model scored by the detector that did not see it.
-                if let Ok(c2) = fit_combined(&models, a, n_fit, Fold::Second) {
-                    let pos: Vec<f64> =
-                        c.held_out.0.iter().chain(&c2.held_out.0).copied().collect();
-                    let neg: Vec<f64> =
-                        c.held_out.1.iter().chain(&c2.held_out.1).copied().collect();
-                    let cross = roc_auc(&pos, &neg);
-                    row["auc_second_fold"] = num(c2.auc);
-                    row["auc_cross_fitted"] = num(cross);
-                    row["p_cross_fitted"] = num(auc_p_value(cross, pos.len(), neg.len()));
-                }
-                comb.push(row);
+                table.push(combined_row(models, a, n_fit, &c));
                 fitted.push((a, c));
             }
-            Err(e) => report.notes.push(format!(
+            Err(e) => notes.push(format!(
                 "The plain vs {} detector could not be fitted: {e}.",
                 a.name()
             )),
         }
     }
+    let mut detectors = Detectors {
+        table,
+        fitted,
+        stego_on_stealth: None,
+    };
     // An analyst who only knows default stego models, facing stealth ones.
-    let stego_detector = fitted
-        .iter()
-        .find(|(a, _)| *a == Arm::Stego)
-        .map(|(_, c)| &c.detector);
-    let stego_on_stealth = stego_detector.filter(|_| opts.stealth_arm).map(|d| {
-        (
-            d,
-            score_held_out(d, &models, Arm::Stealth, n_fit, Fold::First),
-        )
-    });
-    if let Some((d, (p, n))) = &stego_on_stealth {
-        let auc = roc_auc(p, n);
-        comb.push(json!({
+    if let Some(d) = detectors.stego().filter(|_| stealth_arm) {
+        let (p, n) = score_held_out(d, models, Arm::Stealth, n_fit, Fold::First);
+        let auc = roc_auc(&p, &n);
+        let row = json!({
             "fitted_on": "plain vs stego", "scored": "plain vs stealth",
             "auc": num(auc), "p": num(auc_p_value(auc, p.len(), n.len())),
             "scored_models": p.len() + n.len(),
             "features_used": d.features.len(),
-        }));
+        });
+        detectors.table.push(row);
+        detectors.stego_on_stealth = Some((p, n));
     }
-    for (a, c) in &fitted {
+    Ok(detectors)
+}
+
+/// The row of the detector `c` fitted on the first fold for plain vs `a`.
+fn combined_row(models: &[ModelRecord], a: Arm, n_fit: usize, c: &Combined) -> Value {
+    let mut row = json!({
+        "fitted_on": format!("plain vs {}", a.name()), "scored": format!("plain vs {}", a.name()),
+        "auc": num(c.auc), "p": num(auc_p_value(c.auc, c.held_out.0.len(), c.held_out.1.len())),
+        "scored_models": c.held_out.0.len() + c.held_out.1.len(),
+        "features_used": c.detector.features.len(),
+    });
+    // The other fold, and every model scored by the detector that did not see it.
+    if let Ok(c2) = fit_combined(models, a, n_fit, Fold::Second) {
+        let pos: Vec<f64> = c.held_out.0.iter().chain(&c2.held_out.0).copied().collect();
+        let neg: Vec<f64> = c.held_out.1.iter().chain(&c2.held_out.1).copied().collect();
+        let cross = roc_auc(&pos, &neg);
+        row["auc_second_fold"] = num(c2.auc);
+        row["auc_cross_fitted"] = num(cross);
+        row["p_cross_fitted"] = num(auc_p_value(cross, pos.len(), neg.len()));
+    }
+    row
+}
+
+/// The ROC figure's curves and their legends, in drawing order: the combined detectors,
+/// each arm's best single statistic, the stego detector on stealth models.
+fn roc_curves(
+    pop: &Population,
+    stats: &StatScan,
+    detectors: &Detectors,
+) -> (Vec<Vec<(f64, f64)>>, Vec<String>) {
+    let mut curves: Vec<Vec<(f64, f64)>> = Vec::new();
+    let mut legend: Vec<String> = Vec::new();
+    for (a, c) in &detectors.fitted {
         curves.push(roc_points(&c.held_out.0, &c.held_out.1));
         legend.push(format!(
             "combined detector, plain vs {} (held-out pairs, AUC {:.3})",
@@ -966,73 +1114,83 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             c.auc
         ));
     }
-    for (k, &a) in arms.iter().enumerate().skip(1) {
-        let (auc, j, up) = best[k];
+    for (k, &a) in pop.arms.iter().enumerate().skip(1) {
+        let (auc, j, up) = stats.best[k];
         if auc.is_finite() {
+            // Oriented so that the arm scores higher: the curve runs above the diagonal.
             let sign = if up { 1.0 } else { -1.0 };
-            let pos: Vec<f64> = column(j, a)
-                .iter()
-                .map(|v| sign * v)
-                .filter(|v| v.is_finite())
-                .collect();
-            let neg: Vec<f64> = column(j, Arm::Plain)
-                .iter()
-                .map(|v| sign * v)
-                .filter(|v| v.is_finite())
-                .collect();
-            curves.push(roc_points(&pos, &neg));
+            let oriented = |arm: Arm| -> Vec<f64> {
+                pop.column(j, arm)
+                    .iter()
+                    .map(|v| sign * v)
+                    .filter(|v| v.is_finite())
+                    .collect()
+            };
+            curves.push(roc_points(&oriented(a), &oriented(Arm::Plain)));
             legend.push(format!(
                 "best single statistic for {}: {} ({}, all models, AUC {auc:.3})",
                 a.name(),
-                names[j],
-                if up {
-                    "higher in stego"
-                } else {
-                    "lower in stego"
-                }
+                pop.names[j],
+                direction(up)
             ));
         }
     }
-    if let Some((_, (p, n))) = &stego_on_stealth {
+    if let Some((p, n)) = &detectors.stego_on_stealth {
         curves.push(roc_points(p, n));
         legend.push(format!(
             "stego-fitted detector scored on plain vs stealth (held-out pairs, AUC {:.3})",
             roc_auc(p, n)
         ));
     }
-    report.tables.push(comb);
-    report.tables.push(summary);
-    report.tables.push(per_stat);
+    (curves, legend)
+}
 
-    // Per model, for inspection.
+/// Per model, for inspection.
+fn per_model_table(pop: &Population, stego_detector: Option<&Detector>) -> Table {
     let mut per_model = Table::new("Models");
-    for m in &models {
+    for m in &pop.models {
         per_model.push(json!({
             "arm": m.arm.name(), "pair": m.index, "key": m.scheme.map(SchemeKind::name).unwrap_or("-"),
             "schedule": if m.arm.hides() { m.schedule.name() } else { "-" },
             "hidden": if m.arm.hides() { m.hidden_kind.as_str() } else { "-" },
             "cover_psnr": num(m.cover_psnr), "hidden_psnr": m.hidden_psnr.map(num).unwrap_or(json!("-")),
-            "half": if m.index < n_fit { "fit" } else { "scored" },
+            "half": if m.index < pop.n_fit { "fit" } else { "scored" },
             "stego_detector_score": stego_detector.map(|d| num(d.score(&m.features))).unwrap_or(Value::Null),
         }));
     }
-    report.tables.push(per_model);
+    per_model
+}
 
-    draw_roc(&out.join("roc.png"), &curves)?;
+/// Draws `out/roc.png` and returns the report's figure entry for it.
+fn roc_figure(
+    out: &Path,
+    curves: &[Vec<(f64, f64)>],
+    legend: &[String],
+) -> Result<(String, String)> {
+    draw_roc(&out.join("roc.png"), curves)?;
     let legend_text: Vec<String> = legend
         .iter()
         .zip(COLOURS)
         .map(|(l, (c, _))| format!("{c}: {l}"))
         .collect();
-    report.figures.push((
+    Ok((
         "roc.png".into(),
         format!(
             "ROC curves (x: false positive rate, y: true positive rate, grid every 0.1, ticks every 0.25; dashed grey: chance). {}",
             legend_text.join("; ")
         ),
-    ));
+    ))
+}
 
-    report.notes.push(format!(
+/// The report's notes after the detectors': the population, how to read the figures, the
+/// control arm, the cost of stealth and the stego detector's largest weights.
+fn closing_notes(
+    opts: &DetectOptions,
+    pop: &Population,
+    control_max: Option<f64>,
+    stego_detector: Option<&Detector>,
+) -> Vec<String> {
+    let mut notes = vec![format!(
         "{} pairs of generated scenes; each pair is one cover (a random tabletop of primitives) and one hidden scene (3D text or another random tabletop, alternating), with one seed and one key, shared by its plain, stego{} models{}. Stego pairs cycle through the key schemes (prf, primes) and schedules (mixed, random-scene). Every model is analysed from its .ingp file alone.",
         opts.models,
         if opts.stealth_arm { " and stealth" } else { "" },
@@ -1041,12 +1199,12 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         } else {
             ""
         }
-    ));
-    report.notes.push(
+    )];
+    notes.push(
         "Per-statistic AUC is max(AUC, 1 − AUC) over all models, with the direction (larger or smaller in stego models) that gives it: an analyst picks the direction from data, so a statistic that separates the classes either way counts, and 0.5 is the floor. This is optimistic for the statistic (the direction is chosen on the same models it is scored on); its p-value (`<arm>_p`) is two-sided for that reason, exact (Mann–Whitney). The combined detector is honest: fitted on the first half of the pairs, its AUC is measured on the second half, covers and hidden scenes it never saw; its p is the chance that a detector that knows nothing scores at least that AUC on those models. The detectors are saved as detector_<arm>.json.".into(),
     );
     if opts.control_arm {
-        report.notes.push(format!(
+        notes.push(format!(
             "The control arm is plain models of the same covers trained from another seed, scored as if they hid something: every figure it gets is chance at this population's size{}. Read the other arms against it, not against 0.5.",
             control_max
                 .map(|c| format!(" (its largest statistic reaches AUC {c:.3})"))
@@ -1055,7 +1213,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
     }
     if opts.stealth_arm {
         let m = |a: Arm, hidden: bool| {
-            mean(of(a).filter_map(|x| {
+            mean(pop.of(a).filter_map(|x| {
                 if hidden {
                     x.hidden_psnr
                 } else {
@@ -1063,7 +1221,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
                 }
             }))
         };
-        report.notes.push(format!(
+        notes.push(format!(
             "Cost of stealth: cover {:+.2} dB (stealth − stego; stego − plain {:+.2} dB), hidden {:+.2} dB (stealth − stego).",
             m(Arm::Stealth, false) - m(Arm::Stego, false),
             m(Arm::Stego, false) - m(Arm::Plain, false),
@@ -1078,30 +1236,39 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
             .take(5)
             .map(|f| format!("{} {:+.2}", f.name, f.weight))
             .collect();
-        report.notes.push(format!(
+        notes.push(format!(
             "Largest weights of the plain vs stego detector (standardised units): {}.",
             top.join(", ")
         ));
     }
-    let timing: Vec<String> = arms
+    notes
+}
+
+/// The run note of mean times per model; `wall`: this run's seconds.
+fn timing_note(pop: &Population, wall: f64) -> String {
+    let timing: Vec<String> = pop
+        .arms
         .iter()
         .map(|&a| {
             format!(
                 "{} {:.1} s training, {:.1} s scoring, {:.2} s analysis",
                 a.name(),
-                mean(of(a).map(|m| m.train_s)),
-                mean(of(a).map(|m| m.eval_s)),
-                mean(of(a).map(|m| m.analyse_s))
+                mean(pop.of(a).map(|m| m.train_s)),
+                mean(pop.of(a).map(|m| m.eval_s)),
+                mean(pop.of(a).map(|m| m.analyse_s))
             )
         })
         .collect();
-    report.run_notes.push(format!(
+    format!(
         "Mean per model (training time as recorded when the model was trained): {}. This run: {wall:.0} s for {} models, {} threads.",
         timing.join("; "),
-        models.len(),
+        pop.models.len(),
         rayon::current_num_threads()
-    ));
+    )
+}
 
+/// `out/features.json`: every model's statistics.
+fn write_features(out: &Path, models: &[ModelRecord]) -> Result<()> {
     let feats: Vec<Value> = models
         .iter()
         .map(|m| {
@@ -1114,10 +1281,7 @@ pub fn run_detectability(cfg: &ExpConfig, opts: &DetectOptions) -> Result<Report
         })
         .collect();
     let text = serde_json::to_string_pretty(&feats).map_err(|e| Error::Other(e.to_string()))?;
-    write_atomic(&out.join("features.json"), text.as_bytes())?;
-    report.missing_jobs = cfg.jobs.missing_jobs();
-    report.write(out)?;
-    Ok(report)
+    write_atomic(&out.join("features.json"), text.as_bytes())
 }
 
 #[cfg(test)]
