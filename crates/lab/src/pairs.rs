@@ -472,22 +472,7 @@ fn score_scene(
 
 /// Runs the pairs experiment and writes its report into `cfg.out`.
 pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
-    if opts.pairs.is_empty() {
-        return Err(Error::Config("pairs: no cover/hidden pair given".into()));
-    }
-    if let Some(m) = opts.minutes
-        && !(m > 0.0 && m.is_finite())
-    {
-        return Err(Error::Config(format!(
-            "--minutes must be positive, not {m}"
-        )));
-    }
-    // Every scene must exist before hours of training start.
-    let pairs = opts
-        .pairs
-        .iter()
-        .map(|p| Ok((canonical(&p.cover)?, canonical(&p.hidden)?)))
-        .collect::<Result<Vec<_>>>()?;
+    let pairs = checked_pairs(opts)?;
     let models_dir = cfg.out.join("models");
     std::fs::create_dir_all(&models_dir).map_err(|e| Error::io(&models_dir, e))?;
     let lp = opts.lpips.then(Lpips::embedded);
@@ -498,273 +483,38 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
         trained: 0,
         reused: 0,
     };
-    let pi = Key::reference();
-    let mut per_pair = Table::new("Per pair: held-out views against ground truth");
-    let mut imperceptibility = Table::new(
-        "Stego against plain: the stego model's renders scored against the plain model's",
-    );
-    let mut budgets = Table::new("Budget and training time per model");
+    let mut tally = Tally::new();
     let mut report = Report {
         name: Experiment::Pairs.to_string(),
         ..Default::default()
     };
-    // Sums for Table 1: [plain cover, stego cover, plain hidden, stego hidden, plain hidden
-    // through a key holder's grid].
-    let mut table1 = [Scores::default(); 5];
     let t_all = std::time::Instant::now();
     for (k, (cover_dir, hidden_dir)) in pairs.iter().enumerate() {
-        let (cl, hl) = (scene_label(cover_dir), scene_label(hidden_dir));
         if cfg.verbose {
+            let (cl, hl) = (scene_label(cover_dir), scene_label(hidden_dir));
             eprintln!("pair {}/{}: {cl} : {hl}", k + 1, pairs.len());
         }
-        let cover = load_scene(cover_dir, cfg.downscale, None)?;
-        let box_scale = cover.train.aabb_scale;
-        let hidden = load_scene(hidden_dir, cfg.hidden_downscale, Some(box_scale))?;
-        let config = ModelConfig {
-            grid: cfg.grid,
-            aabb_scale: box_scale,
-        };
-        models.current = Some((config, cover.train.clone()));
-        let base = models.base_config(box_scale);
-        let budget_json = match opts.minutes {
-            Some(m) => json!({"minutes": m.to_string()}),
-            None => json!({"steps": cfg.steps}),
-        };
-        let plain_c_config = json!({"base": base, "role": "plain", "scene": cover_dir, "downscale": cfg.downscale, "budget": budget_json});
-        let job = |stem: String,
-                   id_key: Value,
-                   label: String,
-                   inputs: Vec<PathBuf>,
-                   after: Vec<String>,
-                   scenes: u64| PairJob {
-            stem,
-            id_key,
-            label,
-            inputs,
-            after,
-            steps: opts.minutes.is_none().then_some(cfg.steps as u64 * scenes),
-            steps_per_scene: opts.minutes.is_none().then_some(cfg.steps),
-            seconds: opts.minutes.map(|m| m * 60.0 * scenes as f64),
-        };
-        let plain_c_job = job(
-            format!("plain-{cl}"),
-            plain_c_config.clone(),
-            format!("plain {cl}"),
-            vec![cover_dir.clone()],
-            vec![],
-            1,
-        );
-        // A --minutes budget is the steps the plain cover reaches: its pair's other models
-        // wait for it.
-        let after: Vec<String> = opts.minutes.map(|_| plain_c_job.id()).into_iter().collect();
-        let plain_c = models.get(plain_c_job, plain_c_config, |state| {
-            let budget = match opts.minutes {
-                Some(m) => Budget::Seconds(m * 60.0),
-                None => Budget::Steps(cfg.steps),
-            };
-            let t = train_scenes(
-                cfg,
-                config,
-                &[(&cover, &pi)],
-                budget,
-                &format!("plain {cl}"),
-                state,
-            )?;
-            Ok((t.model, t.steps, t.seconds))
-        })?;
-        let steps = plain_c.steps;
-        if steps == 0 {
-            return Err(Error::Other(format!(
-                "the plain model of {} has no recorded step count; delete it to retrain",
-                cover_dir.display()
-            )));
-        }
-        let plain_h_config = json!({"base": base, "role": "plain", "scene": hidden_dir, "downscale": cfg.hidden_downscale, "steps": steps});
-        // Named by its budget, never by a measured step count (which a job that passes over
-        // the cover's model does not have).
-        let mut id_key = plain_h_config.clone();
-        id_key["steps"] = match opts.minutes {
-            // Its steps are those the cover reaches: a model per cover.
-            Some(_) => json!({"budget": budget_json, "of": cover_dir}),
-            None => json!({"budget": budget_json}),
-        };
-        let plain_h = models.get(
-            job(
-                format!("plain-{hl}"),
-                id_key,
-                format!("plain {hl}"),
-                vec![hidden_dir.clone()],
-                after.clone(),
-                1,
-            ),
-            plain_h_config,
-            |state| {
-                let t = train_scenes(
-                    cfg,
-                    config,
-                    &[(&hidden, &pi)],
-                    Budget::Steps(steps),
-                    &format!("plain {hl}"),
-                    state,
-                )?;
-                Ok((t.model, t.steps, t.seconds))
-            },
-        )?;
-        // The key is a function of the pair and the seed, so reordering pairs reuses models.
-        let which = fnv64(&format!(
-            "{}\0{}",
-            cover_dir.display(),
-            hidden_dir.display()
-        ));
-        let key = experiment_key(cfg.scheme, 1, cfg.seed, which, &hidden)?;
-        let mut stego_config = json!({"base": base, "role": "stego", "cover": cover_dir, "hidden": hidden_dir,
-        "steps": steps, "scheme": cfg.scheme.name(), "key": which,
-        "schedule": format!("{:?}", cfg.training.schedule),
-        // A stealth model trained before stealth paced the table, before its optimizer
-        // kept the cover's clock, or before the cover's density was capped, is not reused.
-        "stealth": match (cfg.stealth(), cfg.trains_cover_only_mlp()) {
-            (false, _) => json!(false),
-            (true, false) => json!("paced on the cover's clock, density capped, left entries bounded"),
-            (true, true) => json!(
-                "paced on the cover's clock, density capped, left entries bounded, cover-only MLP"
-            ),
-        }});
-        cfg.record_hidden_options(&mut stego_config);
-        if cfg.stealth() {
-            cfg.record_density_cap(&mut stego_config);
-        }
-        let mut id_key = stego_config.clone();
-        id_key["steps"] = json!({"budget": budget_json});
-        let stego_job = job(
-            format!("stego-{cl}-{hl}"),
-            id_key,
-            format!("stego {cl} + {hl}"),
-            vec![cover_dir.clone(), hidden_dir.clone()],
-            after,
-            2,
-        );
-        let stego = models.get(stego_job, stego_config, |state| {
-            let t = train_scenes(
-                cfg,
-                config,
-                &[(&cover, &pi), (&hidden, &key)],
-                Budget::Steps(steps),
-                &format!("stego {cl} + {hl}"),
-                state,
-            )?;
-            Ok((t.model, t.steps, t.seconds))
-        })?;
+        let pair = Pair::load(cfg, opts, &mut models, cover_dir, hidden_dir)?;
+        let trained = pair.train(&mut models)?;
         if !cfg.jobs.scores() {
             continue;
         }
-        if [&plain_c, &plain_h, &stego]
+        if [&trained.plain_c, &trained.plain_h, &trained.stego]
             .iter()
             .any(|m| is_placeholder(&m.model))
         {
             // A partial report: this pair's models are not all there.
             continue;
         }
-        let t_eval = std::time::Instant::now();
-        let sc = score_scene(cfg, &cover, &plain_c.model, &stego.model, &pi, lp)?;
-        let sh = score_scene(cfg, &hidden, &plain_h.model, &stego.model, &key, lp)?;
-        let eval_s = t_eval.elapsed().as_secs_f64();
-        for (acc, s) in table1.iter_mut().zip([
-            &sc.plain,
-            &sc.stego,
-            &sh.plain,
-            &sh.stego,
-            &sh.plain_rebuilt,
-        ]) {
-            acc.push_means(s);
-        }
-        let row = |label: &str, s: &Scores| {
-            let m = s.mean();
-            json!({"pair": format!("{cl} : {hl}"), "scene": label,
-                   "PSNR": m["psnr"], "SSIM": m["ssim"], "LPIPS": m["lpips"], "views": s.n})
-        };
-        per_pair.push(row("cover, plain", &sc.plain));
-        per_pair.push(row("cover, stego", &sc.stego));
-        per_pair.push(row("hidden, plain", &sh.plain));
-        per_pair.push(row("hidden, plain, key holder's grid", &sh.plain_rebuilt));
-        per_pair.push(row("hidden, stego", &sh.stego));
-        imperceptibility.push(row("cover", &sc.stego_vs_plain));
-        imperceptibility.push(row("hidden", &sh.stego_vs_plain));
-        for (label, m) in [
-            ("plain cover", &plain_c),
-            ("plain hidden", &plain_h),
-            ("stego", &stego),
-        ] {
-            budgets.push(json!({"pair": format!("{cl} : {hl}"), "model": label,
-                "steps per scene": m.steps, "train s": round(m.train_s, 1),
-                "reused": m.reused}));
-        }
-        budgets.push(
-            json!({"pair": format!("{cl} : {hl}"), "model": "scoring (all four scenes)",
-            "train s": round(eval_s, 1)}),
-        );
-        for (scene, s) in [("cover", &sc), ("hidden", &sh)] {
-            let file = format!("pair{}_{scene}.png", k + 1);
-            save_grid(&cfg.out.join(&file), &s.tiles, s.size.0, s.size.1, 3)?;
-            report.figures.push((
-                file,
-                format!(
-                    "pair {} ({cl} : {hl}), {scene}: ground truth | plain | stego",
-                    k + 1
-                ),
-            ));
-        }
+        pair.score(k, &trained, lp, &mut tally, &mut report.figures)?;
     }
     if !cfg.jobs.scores() {
         return Ok(report);
     }
-    let mut t1 = Table::new("Table 1: averages over pairs (held-out views, against ground truth)");
-    for (method, c, h) in [
-        ("Instant-NGP (plain)", Some(&table1[0]), &table1[2]),
-        (
-            "Instant-NGP (plain), hidden through a key holder's grid",
-            None,
-            &table1[4],
-        ),
-        ("StegoNGP", Some(&table1[1]), &table1[3]),
-    ] {
-        // The cover is never rebuilt: that row has no cover of its own.
-        let cm = c.map_or(
-            json!({"psnr": null, "ssim": null, "lpips": null}),
-            Scores::mean,
-        );
-        let hm = h.mean();
-        t1.push(json!({"method": method,
-            "cover PSNR": cm["psnr"], "cover SSIM": cm["ssim"], "cover LPIPS": cm["lpips"],
-            "hidden PSNR": hm["psnr"], "hidden SSIM": hm["ssim"], "hidden LPIPS": hm["lpips"],
-            "pairs": h.n}));
-    }
-    report.setup = json!({
-        "pairs": pairs.iter().map(|(c, h)| json!({"cover": c, "hidden": h})).collect::<Vec<_>>(),
-        "budget": match opts.minutes { Some(m) => json!({"minutes_of_plain_cover": m}), None => json!({"steps_per_scene": cfg.steps}) },
-        "batch_samples_per_scene": cfg.batch, "seed": cfg.seed, "eval_views": cfg.eval_views,
-        "occupancy_fraction": cfg.occupancy_fraction, "levels": cfg.grid.n_levels,
-        "features": cfg.grid.n_features, "log2_hashmap_size": cfg.grid.log2_hashmap_size,
-        "scheme": cfg.scheme.name(), "schedule": format!("{:?}", cfg.training.schedule),
-        "stealth": cfg.stealth(), "hidden_from_step": cfg.training.hidden_from,
-        "hidden_loss_weight": cfg.training.hidden_weight, "lpips": opts.lpips,
-        "models_trained": models.trained, "models_reused": models.reused,
-        "seconds": round(t_all.elapsed().as_secs_f64(), 1),
-        "threads": rayon::current_num_threads(),
-    });
-    report.notes.push(format!(
-        "Every pair: a plain model of the cover, a plain model of the hidden scene (in the \
-         cover's box) and a stego model of both, {} per scene; the cover is scored without a \
-         key, the hidden scene through its key ({} m = 1, occupancy grid rebuilt as a key \
-         holder does). The plain hidden model is scored through its stored grid and, in the \
-         middle row of Table 1, through a grid rebuilt as the key holder's is: the stego \
-         model's hidden scene against the latter is the price of sharing the table alone. \
-         LPIPS: AlexNet, v0.1 linear layers.",
-        match opts.minutes {
-            Some(m) => format!("the steps the plain cover reached in {m} min"),
-            None => format!("{} steps", cfg.steps),
-        },
-        cfg.scheme.name(),
-    ));
+    let t1 = tally.table1();
+    let seconds = t_all.elapsed().as_secs_f64();
+    report.setup = setup(cfg, opts, &pairs, &models, seconds);
+    report.notes.push(budget_note(cfg, opts));
     report.run_notes.push(format!(
         "This run: {} models trained, {} reused.",
         models.trained, models.reused
@@ -780,9 +530,430 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
     .map(String::from)
     .to_vec();
     report.missing_jobs = cfg.jobs.missing_jobs();
-    report.tables = vec![t1, per_pair, imperceptibility, budgets];
+    report.tables = vec![t1, tally.per_pair, tally.imperceptibility, tally.budgets];
     report.write(&cfg.out)?;
     Ok(report)
+}
+
+/// The pairs' scene folders, canonical: every scene must exist before hours of training
+/// start.
+fn checked_pairs(opts: &PairsOptions) -> Result<Vec<(PathBuf, PathBuf)>> {
+    if opts.pairs.is_empty() {
+        return Err(Error::Config("pairs: no cover/hidden pair given".into()));
+    }
+    if let Some(m) = opts.minutes
+        && !(m > 0.0 && m.is_finite())
+    {
+        return Err(Error::Config(format!(
+            "--minutes must be positive, not {m}"
+        )));
+    }
+    opts.pairs
+        .iter()
+        .map(|p| Ok((canonical(&p.cover)?, canonical(&p.hidden)?)))
+        .collect()
+}
+
+/// One pair: its scenes and what configures and names its three models.
+struct Pair<'a> {
+    cfg: &'a ExpConfig,
+    opts: &'a PairsOptions,
+    cover_dir: &'a Path,
+    hidden_dir: &'a Path,
+    /// The scenes' labels in file names and tables.
+    cl: String,
+    hl: String,
+    cover: Scene,
+    hidden: Scene,
+    config: ModelConfig,
+    /// [`Models::base_config`] in the cover's box.
+    base: Value,
+    /// The budget as the models' configurations record it.
+    budget_json: Value,
+    /// The key of the cover (and of a plain model's only scene).
+    pi: Key,
+}
+
+/// A pair's three models and the stego model's key of the hidden scene.
+struct PairModels {
+    plain_c: Stored,
+    plain_h: Stored,
+    stego: Stored,
+    key: Key,
+}
+
+impl<'a> Pair<'a> {
+    /// Loads the pair's scenes (the hidden scene in the cover's box) and makes the cover's
+    /// the one `models` takes placeholders' size and cameras from.
+    fn load(
+        cfg: &'a ExpConfig,
+        opts: &'a PairsOptions,
+        models: &mut Models,
+        cover_dir: &'a Path,
+        hidden_dir: &'a Path,
+    ) -> Result<Self> {
+        let cover = load_scene(cover_dir, cfg.downscale, None)?;
+        let box_scale = cover.train.aabb_scale;
+        let hidden = load_scene(hidden_dir, cfg.hidden_downscale, Some(box_scale))?;
+        let config = ModelConfig {
+            grid: cfg.grid,
+            aabb_scale: box_scale,
+        };
+        models.current = Some((config, cover.train.clone()));
+        let base = models.base_config(box_scale);
+        let budget_json = match opts.minutes {
+            Some(m) => json!({"minutes": m.to_string()}),
+            None => json!({"steps": cfg.steps}),
+        };
+        Ok(Pair {
+            cfg,
+            opts,
+            cover_dir,
+            hidden_dir,
+            cl: scene_label(cover_dir),
+            hl: scene_label(hidden_dir),
+            cover,
+            hidden,
+            config,
+            base,
+            budget_json,
+            pi: Key::reference(),
+        })
+    }
+
+    /// Trains (or reuses) the plain cover, then the plain hidden scene and the stego model
+    /// at the steps the cover's model took.
+    fn train(&self, models: &mut Models) -> Result<PairModels> {
+        let (plain_c, after) = self.plain_cover(models)?;
+        let steps = plain_c.steps;
+        if steps == 0 {
+            return Err(Error::Other(format!(
+                "the plain model of {} has no recorded step count; delete it to retrain",
+                self.cover_dir.display()
+            )));
+        }
+        let plain_h = self.plain_hidden(models, steps, after.clone())?;
+        let (stego, key) = self.stego(models, steps, after)?;
+        Ok(PairModels {
+            plain_c,
+            plain_h,
+            stego,
+            key,
+        })
+    }
+
+    /// One of the pair's models as a job; `scenes`: how many it trains.
+    fn job(
+        &self,
+        stem: String,
+        id_key: Value,
+        label: String,
+        inputs: Vec<PathBuf>,
+        after: Vec<String>,
+        scenes: u64,
+    ) -> PairJob {
+        let (cfg, minutes) = (self.cfg, self.opts.minutes);
+        PairJob {
+            stem,
+            id_key,
+            label,
+            inputs,
+            after,
+            steps: minutes.is_none().then_some(cfg.steps as u64 * scenes),
+            steps_per_scene: minutes.is_none().then_some(cfg.steps),
+            seconds: minutes.map(|m| m * 60.0 * scenes as f64),
+        }
+    }
+
+    /// Trains a model of `scenes` (the first its cover) in the pair's box.
+    fn train_model(
+        &self,
+        scenes: &[(&Scene, &Key)],
+        budget: Budget,
+        label: &str,
+        state: Option<&mut ModelState>,
+    ) -> Result<(Model, u32, f64)> {
+        let t = train_scenes(self.cfg, self.config, scenes, budget, label, state)?;
+        Ok((t.model, t.steps, t.seconds))
+    }
+
+    /// The plain model of the cover, and the jobs the pair's other models wait for.
+    fn plain_cover(&self, models: &mut Models) -> Result<(Stored, Vec<String>)> {
+        let (cfg, minutes, cl) = (self.cfg, self.opts.minutes, &self.cl);
+        let config = json!({"base": self.base, "role": "plain", "scene": self.cover_dir, "downscale": cfg.downscale, "budget": self.budget_json});
+        let job = self.job(
+            format!("plain-{cl}"),
+            config.clone(),
+            format!("plain {cl}"),
+            vec![self.cover_dir.to_path_buf()],
+            vec![],
+            1,
+        );
+        // A --minutes budget is the steps the plain cover reaches: its pair's other models
+        // wait for it.
+        let after: Vec<String> = minutes.map(|_| job.id()).into_iter().collect();
+        let stored = models.get(job, config, |state| {
+            let budget = match minutes {
+                Some(m) => Budget::Seconds(m * 60.0),
+                None => Budget::Steps(cfg.steps),
+            };
+            let scenes = [(&self.cover, &self.pi)];
+            self.train_model(&scenes, budget, &format!("plain {cl}"), state)
+        })?;
+        Ok((stored, after))
+    }
+
+    /// The plain model of the hidden scene, `steps` steps.
+    fn plain_hidden(&self, models: &mut Models, steps: u32, after: Vec<String>) -> Result<Stored> {
+        let hl = &self.hl;
+        let config = json!({"base": self.base, "role": "plain", "scene": self.hidden_dir, "downscale": self.cfg.hidden_downscale, "steps": steps});
+        // Named by its budget, never by a measured step count (which a job that passes over
+        // the cover's model does not have).
+        let mut id_key = config.clone();
+        id_key["steps"] = match self.opts.minutes {
+            // Its steps are those the cover reaches: a model per cover.
+            Some(_) => json!({"budget": self.budget_json, "of": self.cover_dir}),
+            None => json!({"budget": self.budget_json}),
+        };
+        let job = self.job(
+            format!("plain-{hl}"),
+            id_key,
+            format!("plain {hl}"),
+            vec![self.hidden_dir.to_path_buf()],
+            after,
+            1,
+        );
+        models.get(job, config, |state| {
+            let scenes = [(&self.hidden, &self.pi)];
+            self.train_model(&scenes, Budget::Steps(steps), &format!("plain {hl}"), state)
+        })
+    }
+
+    /// The stego model of both scenes, `steps` steps each, and its key of the hidden scene.
+    fn stego(&self, models: &mut Models, steps: u32, after: Vec<String>) -> Result<(Stored, Key)> {
+        let (cfg, cl, hl) = (self.cfg, &self.cl, &self.hl);
+        // The key is a function of the pair and the seed, so reordering pairs reuses models.
+        let which = fnv64(&format!(
+            "{}\0{}",
+            self.cover_dir.display(),
+            self.hidden_dir.display()
+        ));
+        let key = experiment_key(cfg.scheme, 1, cfg.seed, which, &self.hidden)?;
+        let config = self.stego_config(steps, which);
+        let mut id_key = config.clone();
+        id_key["steps"] = json!({"budget": self.budget_json});
+        let job = self.job(
+            format!("stego-{cl}-{hl}"),
+            id_key,
+            format!("stego {cl} + {hl}"),
+            vec![self.cover_dir.to_path_buf(), self.hidden_dir.to_path_buf()],
+            after,
+            2,
+        );
+        let stored = models.get(job, config, |state| {
+            let scenes = [(&self.cover, &self.pi), (&self.hidden, &key)];
+            let label = format!("stego {cl} + {hl}");
+            self.train_model(&scenes, Budget::Steps(steps), &label, state)
+        })?;
+        Ok((stored, key))
+    }
+
+    /// What the stego model depends on; `which`: its key's number.
+    fn stego_config(&self, steps: u32, which: u64) -> Value {
+        let cfg = self.cfg;
+        let mut config = json!({"base": self.base, "role": "stego", "cover": self.cover_dir, "hidden": self.hidden_dir,
+        "steps": steps, "scheme": cfg.scheme.name(), "key": which,
+        "schedule": format!("{:?}", cfg.training.schedule),
+        // A stealth model trained before stealth paced the table, before its optimizer
+        // kept the cover's clock, or before the cover's density was capped, is not reused.
+        "stealth": match (cfg.stealth(), cfg.trains_cover_only_mlp()) {
+            (false, _) => json!(false),
+            (true, false) => json!("paced on the cover's clock, density capped, left entries bounded"),
+            (true, true) => json!(
+                "paced on the cover's clock, density capped, left entries bounded, cover-only MLP"
+            ),
+        }});
+        cfg.record_hidden_options(&mut config);
+        if cfg.stealth() {
+            cfg.record_density_cap(&mut config);
+        }
+        config
+    }
+
+    /// Scores pair `k`'s models into `tally` and saves its image grids (`figures`).
+    fn score(
+        &self,
+        k: usize,
+        m: &PairModels,
+        lp: Option<&Lpips>,
+        tally: &mut Tally,
+        figures: &mut Vec<(String, String)>,
+    ) -> Result<()> {
+        let (cfg, cl, hl) = (self.cfg, &self.cl, &self.hl);
+        let t_eval = std::time::Instant::now();
+        let sc = score_scene(
+            cfg,
+            &self.cover,
+            &m.plain_c.model,
+            &m.stego.model,
+            &self.pi,
+            lp,
+        )?;
+        let sh = score_scene(
+            cfg,
+            &self.hidden,
+            &m.plain_h.model,
+            &m.stego.model,
+            &m.key,
+            lp,
+        )?;
+        let eval_s = t_eval.elapsed().as_secs_f64();
+        tally.add(&format!("{cl} : {hl}"), &sc, &sh, m, eval_s);
+        for (scene, s) in [("cover", &sc), ("hidden", &sh)] {
+            let file = format!("pair{}_{scene}.png", k + 1);
+            save_grid(&cfg.out.join(&file), &s.tiles, s.size.0, s.size.1, 3)?;
+            figures.push((
+                file,
+                format!(
+                    "pair {} ({cl} : {hl}), {scene}: ground truth | plain | stego",
+                    k + 1
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The report's tables as the pairs fill them.
+struct Tally {
+    per_pair: Table,
+    imperceptibility: Table,
+    budgets: Table,
+    /// Sums for Table 1: [plain cover, stego cover, plain hidden, stego hidden, plain
+    /// hidden through a key holder's grid].
+    table1: [Scores; 5],
+}
+
+impl Tally {
+    fn new() -> Self {
+        Tally {
+            per_pair: Table::new("Per pair: held-out views against ground truth"),
+            imperceptibility: Table::new(
+                "Stego against plain: the stego model's renders scored against the plain model's",
+            ),
+            budgets: Table::new("Budget and training time per model"),
+            table1: [Scores::default(); 5],
+        }
+    }
+
+    /// Pair `pair`'s scores of its cover (`sc`) and hidden scene (`sh`), its models'
+    /// budgets, and `eval_s`, the seconds scoring took.
+    fn add(&mut self, pair: &str, sc: &SceneScores, sh: &SceneScores, m: &PairModels, eval_s: f64) {
+        for (acc, s) in self.table1.iter_mut().zip([
+            &sc.plain,
+            &sc.stego,
+            &sh.plain,
+            &sh.stego,
+            &sh.plain_rebuilt,
+        ]) {
+            acc.push_means(s);
+        }
+        let row = |label: &str, s: &Scores| {
+            let m = s.mean();
+            json!({"pair": pair, "scene": label,
+                   "PSNR": m["psnr"], "SSIM": m["ssim"], "LPIPS": m["lpips"], "views": s.n})
+        };
+        self.per_pair.push(row("cover, plain", &sc.plain));
+        self.per_pair.push(row("cover, stego", &sc.stego));
+        self.per_pair.push(row("hidden, plain", &sh.plain));
+        self.per_pair
+            .push(row("hidden, plain, key holder's grid", &sh.plain_rebuilt));
+        self.per_pair.push(row("hidden, stego", &sh.stego));
+        self.imperceptibility.push(row("cover", &sc.stego_vs_plain));
+        self.imperceptibility
+            .push(row("hidden", &sh.stego_vs_plain));
+        for (label, s) in [
+            ("plain cover", &m.plain_c),
+            ("plain hidden", &m.plain_h),
+            ("stego", &m.stego),
+        ] {
+            self.budgets.push(json!({"pair": pair, "model": label,
+                "steps per scene": s.steps, "train s": round(s.train_s, 1),
+                "reused": s.reused}));
+        }
+        self.budgets
+            .push(json!({"pair": pair, "model": "scoring (all four scenes)",
+            "train s": round(eval_s, 1)}));
+    }
+
+    /// Table 1: the pairs' averages.
+    fn table1(&self) -> Table {
+        let t = &self.table1;
+        let mut t1 =
+            Table::new("Table 1: averages over pairs (held-out views, against ground truth)");
+        for (method, c, h) in [
+            ("Instant-NGP (plain)", Some(&t[0]), &t[2]),
+            (
+                "Instant-NGP (plain), hidden through a key holder's grid",
+                None,
+                &t[4],
+            ),
+            ("StegoNGP", Some(&t[1]), &t[3]),
+        ] {
+            // The cover is never rebuilt: that row has no cover of its own.
+            let cm = c.map_or(
+                json!({"psnr": null, "ssim": null, "lpips": null}),
+                Scores::mean,
+            );
+            let hm = h.mean();
+            t1.push(json!({"method": method,
+                "cover PSNR": cm["psnr"], "cover SSIM": cm["ssim"], "cover LPIPS": cm["lpips"],
+                "hidden PSNR": hm["psnr"], "hidden SSIM": hm["ssim"], "hidden LPIPS": hm["lpips"],
+                "pairs": h.n}));
+        }
+        t1
+    }
+}
+
+/// The report's setup; `seconds`: the run's so far.
+fn setup(
+    cfg: &ExpConfig,
+    opts: &PairsOptions,
+    pairs: &[(PathBuf, PathBuf)],
+    models: &Models,
+    seconds: f64,
+) -> Value {
+    json!({
+        "pairs": pairs.iter().map(|(c, h)| json!({"cover": c, "hidden": h})).collect::<Vec<_>>(),
+        "budget": match opts.minutes { Some(m) => json!({"minutes_of_plain_cover": m}), None => json!({"steps_per_scene": cfg.steps}) },
+        "batch_samples_per_scene": cfg.batch, "seed": cfg.seed, "eval_views": cfg.eval_views,
+        "occupancy_fraction": cfg.occupancy_fraction, "levels": cfg.grid.n_levels,
+        "features": cfg.grid.n_features, "log2_hashmap_size": cfg.grid.log2_hashmap_size,
+        "scheme": cfg.scheme.name(), "schedule": format!("{:?}", cfg.training.schedule),
+        "stealth": cfg.stealth(), "hidden_from_step": cfg.training.hidden_from,
+        "hidden_loss_weight": cfg.training.hidden_weight, "lpips": opts.lpips,
+        "models_trained": models.trained, "models_reused": models.reused,
+        "seconds": round(seconds, 1),
+        "threads": rayon::current_num_threads(),
+    })
+}
+
+/// The note on what every pair trains and how it is scored.
+fn budget_note(cfg: &ExpConfig, opts: &PairsOptions) -> String {
+    format!(
+        "Every pair: a plain model of the cover, a plain model of the hidden scene (in the \
+         cover's box) and a stego model of both, {} per scene; the cover is scored without a \
+         key, the hidden scene through its key ({} m = 1, occupancy grid rebuilt as a key \
+         holder does). The plain hidden model is scored through its stored grid and, in the \
+         middle row of Table 1, through a grid rebuilt as the key holder's is: the stego \
+         model's hidden scene against the latter is the price of sharing the table alone. \
+         LPIPS: AlexNet, v0.1 linear layers.",
+        match opts.minutes {
+            Some(m) => format!("the steps the plain cover reached in {m} min"),
+            None => format!("{} steps", cfg.steps),
+        },
+        cfg.scheme.name(),
+    )
 }
 
 #[cfg(test)]
