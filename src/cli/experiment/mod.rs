@@ -7,6 +7,7 @@ use super::common::{DeviceArg, ensure_locked_dir};
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use std::sync::Arc;
+use stegongp::backend::Device;
 use stegongp::experiments::report::Report;
 use stegongp::experiments::{
     DetectOptions, ExpConfig, Experiment, JobMode, Mode, PairSpec, PairsOptions, RobustnessOptions,
@@ -205,10 +206,46 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
     if a.random_scene {
         a.training.schedule = Schedule::RandomScene;
     }
+    check_scope(&a, name)?;
+    let steps = checked_steps(&a, name)?;
+    let detect = name == Experiment::Detectability;
+    let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
+    // Held until the run ends: its scenes (OUT/data), models and reports would otherwise be
+    // interleaved with another run's into the same folder.
+    let _lock = if lock {
+        Some(ensure_locked_dir(&a.out)?)
+    } else {
+        None
+    };
+    if a.paper_scale {
+        paper::generate_logos(&a.out)?;
+    }
+    let (cover, hidden) = scenes(&a, name, res)?;
+    // A plan trains nothing: it is made on whatever machine submits it, GPU or not.
+    let device = if matches!(*jobs, JobMode::Plan(_)) {
+        Device::open(stegongp::backend::DeviceRequest::Cpu)?
+    } else {
+        a.device.open()?
+    };
+    eprintln!("device: {}", device.report());
+    let cfg = exp_config(&a, name, steps, (cover, hidden), device, jobs);
+    let report = run_named(name, &a, &cfg, res)?;
+    Ok((cfg, report))
+}
+
+impl Args {
+    /// Whether the scenes come as --pair / --pairs.
+    fn explicit_pairs(&self) -> bool {
+        !self.pairs.is_empty() || self.pairs_file.is_some()
+    }
+}
+
+/// Refuses options that do not belong to experiment `name`, or contradict each other.
+fn check_scope(a: &Args, name: Experiment) -> Result<()> {
     let detect = name == Experiment::Detectability;
     let pairs_exp = name == Experiment::Pairs;
     let robust_exp = name == Experiment::Robustness;
-    let explicit_pairs = !a.pairs.is_empty() || a.pairs_file.is_some();
+    let explicit_pairs = a.explicit_pairs();
     if !pairs_exp && a.minutes.is_some() {
         bail!("--minutes belongs to `experiment pairs`");
     }
@@ -248,7 +285,13 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
              --no-stealth-arm leaves out"
         );
     }
-    // The options as the recipe checks them; detectability's stealth options are its arm's.
+    Ok(())
+}
+
+/// The training options checked as the recipe checks them, and the steps per model.
+fn checked_steps(a: &Args, name: Experiment) -> Result<u32> {
+    let detect = name == Experiment::Detectability;
+    // Detectability's stealth options are its stealth arm's.
     let mut checked = a.training;
     checked.stealth.enabled |= detect;
     checked.check()?;
@@ -259,17 +302,12 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
     if a.minutes.is_none() {
         a.training.check_steps(steps)?;
     }
-    let res = a.res.unwrap_or(if detect { DETECT_RES } else { 64 });
-    // Held until the run ends: its scenes (OUT/data), models and reports would otherwise be
-    // interleaved with another run's into the same folder.
-    let _lock = if lock {
-        Some(ensure_locked_dir(&a.out)?)
-    } else {
-        None
-    };
-    if a.paper_scale {
-        paper::generate_logos(&a.out)?;
-    }
+    Ok(steps)
+}
+
+/// The cover and hidden scenes: as given, else generated under OUT/data where `name`
+/// needs them (detectability makes its own; pairs given as --pair need none).
+fn scenes(a: &Args, name: Experiment, res: u32) -> Result<(PathBuf, Vec<PathBuf>)> {
     let data = a.out.join("data");
     let gen_scene = |name: &str, kind: SceneKind, seed: u64| -> Result<PathBuf> {
         let dir = data.join(name);
@@ -289,7 +327,8 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
         }
         Ok(dir)
     };
-    let needs_scenes = name != Experiment::KeyStrength && !detect && !explicit_pairs;
+    let needs_scenes =
+        name != Experiment::KeyStrength && name != Experiment::Detectability && !a.explicit_pairs();
     let cover = match &a.cover {
         Some(c) => c.clone(),
         None if needs_scenes => gen_scene("cover_object", SceneKind::Object, 1)?,
@@ -310,19 +349,25 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
                 10 + i as u64,
             )?);
         }
-        if pairs_exp {
+        if name == Experiment::Pairs {
             // The paper hides two different logos; ours: a text and a logo.
             hidden.push(gen_scene("hidden_logo_1", SceneKind::Logo, 20)?);
         }
     }
-    // A plan trains nothing: it is made on whatever machine submits it, GPU or not.
-    let device = if matches!(*jobs, JobMode::Plan(_)) {
-        stegongp::backend::Device::open(stegongp::backend::DeviceRequest::Cpu)?
-    } else {
-        a.device.open()?
-    };
-    eprintln!("device: {}", device.report());
-    let cfg = ExpConfig {
+    Ok((cover, hidden))
+}
+
+/// The configuration `a` asks for, with the defaults of experiment `name`.
+fn exp_config(
+    a: &Args,
+    name: Experiment,
+    steps: u32,
+    (cover, hidden): (PathBuf, Vec<PathBuf>),
+    device: Device,
+    jobs: Arc<JobMode>,
+) -> ExpConfig {
+    let detect = name == Experiment::Detectability;
+    ExpConfig {
         out: a.out.join(name.name()),
         cover,
         hidden,
@@ -349,21 +394,26 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
         training: a.training,
         lpips: !a.no_lpips,
         verbose: true,
-        device: std::sync::Arc::new(device),
+        device: Arc::new(device),
         save_every: a.save_every.0,
         jobs,
-    };
-    let report = if pairs_exp || robust_exp {
-        let mut pairs = a.pairs.clone();
-        if let Some(f) = &a.pairs_file {
-            pairs.extend(read_pairs_file(f)?);
-        }
-        if pairs.is_empty() {
-            pairs = cover_with_each(&cfg.cover, &cfg.hidden);
-        }
-        if robust_exp {
+    }
+}
+
+/// Runs experiment `name` on `cfg`, with the options of its own that `a` gives.
+fn run_named(name: Experiment, a: &Args, cfg: &ExpConfig, res: u32) -> Result<Report> {
+    Ok(match name {
+        Experiment::Pairs => run_pairs(
+            cfg,
+            &PairsOptions {
+                pairs: pair_specs(a, cfg)?,
+                minutes: a.minutes,
+                lpips: cfg.lpips,
+            },
+        )?,
+        Experiment::Robustness => {
             let opts = RobustnessOptions {
-                pairs,
+                pairs: pair_specs(a, cfg)?,
                 attacks: if a.attacks.is_empty() {
                     default_attacks()
                 } else {
@@ -376,26 +426,31 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
                 },
                 render_side: a.render_side,
             };
-            run_robustness(&cfg, &opts)?
-        } else {
-            let opts = PairsOptions {
-                pairs,
-                minutes: a.minutes,
-                lpips: cfg.lpips,
-            };
-            run_pairs(&cfg, &opts)?
+            run_robustness(cfg, &opts)?
         }
-    } else if detect {
-        let opts = DetectOptions {
-            models: a.models,
-            stealth_arm: !a.no_stealth_arm,
-            control_arm: !a.no_control_arm,
-            res,
-            ..DetectOptions::default()
-        };
-        run_detectability(&cfg, &opts)?
-    } else {
-        run_experiment(name, &cfg)?
-    };
-    Ok((cfg, report))
+        Experiment::Detectability => {
+            let opts = DetectOptions {
+                models: a.models,
+                stealth_arm: !a.no_stealth_arm,
+                control_arm: !a.no_control_arm,
+                res,
+                ..DetectOptions::default()
+            };
+            run_detectability(cfg, &opts)?
+        }
+        _ => run_experiment(name, cfg)?,
+    })
+}
+
+/// The pairs of pairs and robustness: --pair, then --pairs' file; without either, the
+/// cover with each hidden scene.
+fn pair_specs(a: &Args, cfg: &ExpConfig) -> Result<Vec<PairSpec>> {
+    let mut pairs = a.pairs.clone();
+    if let Some(f) = &a.pairs_file {
+        pairs.extend(read_pairs_file(f)?);
+    }
+    if pairs.is_empty() {
+        pairs = cover_with_each(&cfg.cover, &cfg.hidden);
+    }
+    Ok(pairs)
 }
