@@ -16,7 +16,7 @@ use stegongp::show::path::{
     CameraPath, DEFAULT_FPS, MAX_FRAMES, NerfFrame, PathCamera, SceneRig, model_cameras,
     model_frame_size, read_path, write_nerfstudio,
 };
-use stegongp::show::video::Mp4Video;
+use stegongp::show::video::{Mp4Video, VideoSummary};
 use stegongp::stego::options::choice;
 use stegongp::stego::{Key, open_scene_on};
 
@@ -165,18 +165,7 @@ pub fn make_path(spec: &str, frames: Option<usize>, rig: &Rig) -> Result<CameraP
 }
 
 pub fn run(a: Args) -> Result<()> {
-    if a.out.is_none() && a.frames_dir.is_none() {
-        bail!("say where the frames go: --out VIDEO.mp4 and/or --frames-dir DIR");
-    }
-    if let Some(out) = &a.out {
-        if out.extension().and_then(|e| e.to_str()) != Some("mp4") {
-            bail!("{}: the video file must end in .mp4", out.display());
-        }
-        check_parent_dir(out)?;
-    }
-    if let Some(p) = &a.write_path {
-        check_parent_dir(p)?;
-    }
+    check_outputs(&a)?;
     let model = Model::load(&a.model)?;
     let rig = a.cameras.open(&model)?;
     let path = make_path(&a.path, a.frames, &rig)?;
@@ -190,18 +179,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let device = a.device.open()?;
     eprintln!("device: {}", device.report());
-    // Scenes: the one asked for, or cover / key / wrong key side by side.
-    let mut keys: Vec<(Option<Key>, &str)> = Vec::new();
-    let key = a.key.load(&model)?;
-    if a.side_by_side {
-        let k = key.clone().expect("clap requires --key");
-        let wrong = Key::wrong(a.seed ^ 0x5eed, &k);
-        keys.push((None, "cover (no key)"));
-        keys.push((Some(k), "hidden scene (key)"));
-        keys.push((Some(wrong), "wrong key"));
-    } else {
-        keys.push((key, ""));
-    }
+    let keys = panel_keys(&a, &model)?;
     let labels: Vec<&str> = if a.side_by_side {
         keys.iter().map(|(_, l)| *l).collect()
     } else {
@@ -224,7 +202,110 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(p) = &a.write_path {
         write_nerfstudio(p, &path, w, h, &rig.frame)?;
     }
-    let n = path.cameras.len();
+    let render = |camera: &Camera| render_frame(&mut renderers, &labels, camera, &opts);
+    let rendered = render_path(&a, &path.cameras, (w, h), fps, render)?;
+    if a.json {
+        let n = rendered.frames;
+        let summary = &rendered.video;
+        let report = serde_json::json!({
+            "model": a.model,
+            "device": device.report(),
+            "frames": n,
+            "width": w,
+            "height": h,
+            "fps": fps,
+            "side_by_side": a.side_by_side,
+            "video": summary,
+            "frames_dir": a.frames_dir,
+            "seconds": rendered.seconds,
+            "render_seconds_per_frame": rendered.render_seconds / n as f64,
+            "encode_seconds_per_frame": summary.as_ref().map(|s| s.encode_seconds / n as f64),
+        });
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        rendered.tell(a.frames_dir.as_deref());
+    }
+    Ok(())
+}
+
+/// Refuses a run with nowhere to write, or a video or path file whose folder is not there,
+/// before the model is read.
+fn check_outputs(a: &Args) -> Result<()> {
+    if a.out.is_none() && a.frames_dir.is_none() {
+        bail!("say where the frames go: --out VIDEO.mp4 and/or --frames-dir DIR");
+    }
+    if let Some(out) = &a.out {
+        if out.extension().and_then(|e| e.to_str()) != Some("mp4") {
+            bail!("{}: the video file must end in .mp4", out.display());
+        }
+        check_parent_dir(out)?;
+    }
+    if let Some(p) = &a.write_path {
+        check_parent_dir(p)?;
+    }
+    Ok(())
+}
+
+/// The keys of the panels, with their labels: the one asked for (unlabelled), or cover,
+/// key and wrong key side by side.
+fn panel_keys(a: &Args, model: &Model) -> Result<Vec<(Option<Key>, &'static str)>> {
+    let mut keys: Vec<(Option<Key>, &str)> = Vec::new();
+    let key = a.key.load(model)?;
+    if a.side_by_side {
+        let k = key.clone().expect("clap requires --key");
+        let wrong = Key::wrong(a.seed ^ 0x5eed, &k);
+        keys.push((None, "cover (no key)"));
+        keys.push((Some(k), "hidden scene (key)"));
+        keys.push((Some(wrong), "wrong key"));
+    } else {
+        keys.push((key, ""));
+    }
+    Ok(keys)
+}
+
+/// What rendering a path took and wrote.
+struct Rendered {
+    frames: usize,
+    /// The MP4, when one was asked for.
+    video: Option<VideoSummary>,
+    /// Seconds in all, and rendering alone.
+    seconds: f64,
+    render_seconds: f64,
+}
+
+impl Rendered {
+    /// Says on stderr what was written.
+    fn tell(&self, frames_dir: Option<&Path>) {
+        let n = self.frames;
+        if let Some(s) = &self.video {
+            eprintln!(
+                "wrote {} ({} frames, {}x{}, {} fps, {:.1} MB): {:.2} s/frame rendering, {:.3} s/frame encoding",
+                s.path.display(),
+                s.frames,
+                s.width,
+                s.height,
+                s.fps,
+                s.bytes as f64 / 1e6,
+                self.render_seconds / n as f64,
+                s.encode_seconds / n as f64
+            );
+        }
+        if let Some(dir) = frames_dir {
+            eprintln!("wrote {n} frames into {}", dir.display());
+        }
+    }
+}
+
+/// Renders every camera of `cameras` at `w`×`h` with `render` into the video and/or the
+/// frame folder that `a` names, with a progress bar.
+fn render_path(
+    a: &Args,
+    cameras: &[PathCamera],
+    (w, h): (u32, u32),
+    fps: u32,
+    mut render: impl FnMut(&Camera) -> Result<Rgb8>,
+) -> Result<Rendered> {
+    let n = cameras.len();
     let panel_w = if a.side_by_side { 3 * w + 2 * GAP } else { w };
     let (vw, vh) = (panel_w.next_multiple_of(2), h.next_multiple_of(2));
     let mut video = match &a.out {
@@ -237,10 +318,10 @@ pub fn run(a: Args) -> Result<()> {
     );
     let t0 = std::time::Instant::now();
     let mut render_seconds = 0.0;
-    for (i, pc) in path.cameras.iter().enumerate() {
+    for (i, pc) in cameras.iter().enumerate() {
         let camera = pc.camera(w, h);
         let tr = std::time::Instant::now();
-        let frame = render_frame(&mut renderers, &labels, &camera, &opts)?;
+        let frame = render(&camera)?;
         render_seconds += tr.elapsed().as_secs_f64();
         if let Some(dir) = &a.frames_dir {
             let p = dir.join(format!("frame_{i:05}.png"));
@@ -256,46 +337,16 @@ pub fn run(a: Args) -> Result<()> {
         ));
     }
     pb.finish_and_clear();
-    let summary = match video {
+    let video = match video {
         Some(v) => Some(v.finish()?),
         None => None,
     };
-    let total = t0.elapsed().as_secs_f64();
-    if a.json {
-        let report = serde_json::json!({
-            "model": a.model,
-            "device": device.report(),
-            "frames": n,
-            "width": w,
-            "height": h,
-            "fps": fps,
-            "side_by_side": a.side_by_side,
-            "video": summary,
-            "frames_dir": a.frames_dir,
-            "seconds": total,
-            "render_seconds_per_frame": render_seconds / n as f64,
-            "encode_seconds_per_frame": summary.as_ref().map(|s| s.encode_seconds / n as f64),
-        });
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        if let Some(s) = &summary {
-            eprintln!(
-                "wrote {} ({} frames, {}x{}, {} fps, {:.1} MB): {:.2} s/frame rendering, {:.3} s/frame encoding",
-                s.path.display(),
-                s.frames,
-                s.width,
-                s.height,
-                s.fps,
-                s.bytes as f64 / 1e6,
-                render_seconds / n as f64,
-                s.encode_seconds / n as f64
-            );
-        }
-        if let Some(dir) = &a.frames_dir {
-            eprintln!("wrote {n} frames into {}", dir.display());
-        }
-    }
-    Ok(())
+    Ok(Rendered {
+        frames: n,
+        video,
+        seconds: t0.elapsed().as_secs_f64(),
+        render_seconds,
+    })
 }
 
 /// Black pixels between side-by-side panels.
