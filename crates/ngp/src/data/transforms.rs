@@ -369,32 +369,115 @@ pub fn parse_transforms_value(
             return Err(ctx.err(format!("{key}: Mitsuba scenes are not supported")));
         }
     }
+    let placement = ctx.placement(obj)?;
+    let top = ctx.intrinsics(obj, "")?;
+    let base = base_dir.to_path_buf();
+    let mut raw = ctx.listed_frames(obj)?;
+    let dropped = ctx.sharpness_filter(obj, &base, &mut raw)?;
+    let mut frames = Vec::with_capacity(raw.len());
+    for r in raw {
+        let where_ = format!("frames[{}] ({}): ", r.idx, r.file_path);
+        let nerf_pose = ctx.pose(r.obj, &where_)?;
+        let own = ctx.intrinsics(r.obj, &where_)?;
+        frames.push(FrameSpec {
+            json_index: r.idx,
+            image_path: resolve_image_path(&base, &r.file_path),
+            file_path: r.file_path,
+            nerf_pose,
+            top: top.clone(),
+            own,
+        });
+    }
+    Ok(Transforms {
+        json_path: json_path.to_path_buf(),
+        scale: placement.scale,
+        offset: placement.offset,
+        aabb_scale: placement.aabb_scale,
+        frames,
+        dropped,
+    })
+}
 
-    let mut scale = NERF_SCALE;
-    let mut offset = NERF_OFFSET;
-    if let Some(s) = ctx.num(obj, "scale", "")? {
-        scale = s as f32;
-    }
-    let mut aabb_scale = 1u32;
-    if let Some(a) = obj.get("aabb_scale") {
-        let v = a.as_f64().unwrap_or(f64::NAN);
-        let ok = v.fract() == 0.0 && (1.0..=128.0).contains(&v) && (v as u32).is_power_of_two();
-        if !ok {
-            return Err(ctx.err(format!(
-                "aabb_scale: {a} is not a power of two between 1 and 128"
-            )));
+/// Where the scene sits in the unit cube: the file's `scale`, `offset` (or `aabb`, which
+/// overrides both) and `aabb_scale`.
+struct Placement {
+    scale: f32,
+    offset: [f32; 3],
+    aabb_scale: u32,
+}
+
+/// A `frames` entry before its pose and intrinsics are read.
+struct RawFrame<'a> {
+    /// Its index in the JSON array.
+    idx: usize,
+    obj: &'a Map<String, Value>,
+    file_path: String,
+}
+
+impl Ctx<'_> {
+    /// The top-level `scale`, `aabb_scale`, `offset` and `aabb`, in the reference's order.
+    fn placement(&self, obj: &Map<String, Value>) -> Result<Placement> {
+        let mut scale = NERF_SCALE;
+        let mut offset = NERF_OFFSET;
+        if let Some(s) = self.num(obj, "scale", "")? {
+            scale = s as f32;
         }
-        aabb_scale = v as u32;
+        let mut aabb_scale = 1u32;
+        if let Some(a) = obj.get("aabb_scale") {
+            let v = a.as_f64().unwrap_or(f64::NAN);
+            let ok = v.fract() == 0.0 && (1.0..=128.0).contains(&v) && (v as u32).is_power_of_two();
+            if !ok {
+                return Err(self.err(format!(
+                    "aabb_scale: {a} is not a power of two between 1 and 128"
+                )));
+            }
+            aabb_scale = v as u32;
+        }
+        if let Some(o) = obj.get("offset") {
+            offset = self.offset(o)?;
+        }
+        if let Some(a) = obj.get("aabb") {
+            // [[min],[max]] mapped isotropically into the unit cube, centred at 0.5.
+            let mut b = [[0f32; 3]; 2];
+            for (i, bi) in b.iter_mut().enumerate() {
+                for (k, v) in bi.iter_mut().enumerate() {
+                    *v = a
+                        .get(i)
+                        .and_then(|r| r.get(k))
+                        .and_then(Value::as_f64)
+                        .filter(|x| x.is_finite())
+                        .ok_or_else(|| self.err(format!("aabb[{i}][{k}]: expected a number")))?
+                        as f32;
+                }
+            }
+            let len = (0..3)
+                .map(|k| (b[1][k] - b[0][k]).abs())
+                .fold(0.000_001f32, f32::max);
+            scale = 1.0 / len;
+            for k in 0..3 {
+                offset[k] = (b[1][k] + b[0][k]) * 0.5 * -scale + 0.5;
+            }
+        }
+        if !(scale.is_finite() && scale > 0.0) {
+            return Err(self.err(format!("scale: {scale} is not positive")));
+        }
+        Ok(Placement {
+            scale,
+            offset,
+            aabb_scale,
+        })
     }
-    if let Some(o) = obj.get("offset") {
-        offset = match o {
+
+    /// `offset`: three numbers, or one for all three axes.
+    fn offset(&self, o: &Value) -> Result<[f32; 3]> {
+        Ok(match o {
             Value::Array(a) if a.len() == 3 => {
                 let mut r = [0f32; 3];
                 for (k, v) in a.iter().enumerate() {
                     r[k] = v
                         .as_f64()
                         .filter(|x| x.is_finite())
-                        .ok_or_else(|| ctx.err(format!("offset[{k}]: not a finite number")))?
+                        .ok_or_else(|| self.err(format!("offset[{k}]: not a finite number")))?
                         as f32;
                 }
                 r
@@ -403,84 +486,66 @@ pub fn parse_transforms_value(
                 let v = o
                     .as_f64()
                     .filter(|x| x.is_finite())
-                    .ok_or_else(|| ctx.err("offset: expected a number or 3 numbers"))?;
+                    .ok_or_else(|| self.err("offset: expected a number or 3 numbers"))?;
                 [v as f32; 3]
             }
-        };
+        })
     }
-    if let Some(a) = obj.get("aabb") {
-        // [[min],[max]] mapped isotropically into the unit cube, centred at 0.5.
-        let mut b = [[0f32; 3]; 2];
-        for (i, bi) in b.iter_mut().enumerate() {
-            for (k, v) in bi.iter_mut().enumerate() {
-                *v = a
-                    .get(i)
-                    .and_then(|r| r.get(k))
-                    .and_then(Value::as_f64)
-                    .filter(|x| x.is_finite())
-                    .ok_or_else(|| ctx.err(format!("aabb[{i}][{k}]: expected a number")))?
-                    as f32;
+
+    /// The `frames` entries with their `file_path`s, in natural order of the paths, the
+    /// first `n_frames` where that is given.
+    fn listed_frames<'a>(&self, obj: &'a Map<String, Value>) -> Result<Vec<RawFrame<'a>>> {
+        let frames_v = obj
+            .get("frames")
+            .ok_or_else(|| self.err("frames: missing"))?
+            .as_array()
+            .ok_or_else(|| self.err("frames: not an array"))?;
+        let mut raw = Vec::with_capacity(frames_v.len());
+        for (idx, f) in frames_v.iter().enumerate() {
+            let fo = f
+                .as_object()
+                .ok_or_else(|| self.err(format!("frames[{idx}]: not an object")))?;
+            let file_path = fo
+                .get("file_path")
+                .ok_or_else(|| self.err(format!("frames[{idx}].file_path: missing")))?
+                .as_str()
+                .ok_or_else(|| self.err(format!("frames[{idx}].file_path: not a string")))?
+                .to_string();
+            if file_path.is_empty() {
+                return Err(self.err(format!("frames[{idx}].file_path: empty")));
             }
+            raw.push(RawFrame {
+                idx,
+                obj: fo,
+                file_path,
+            });
         }
-        let len = (0..3)
-            .map(|k| (b[1][k] - b[0][k]).abs())
-            .fold(0.000_001f32, f32::max);
-        scale = 1.0 / len;
-        for k in 0..3 {
-            offset[k] = (b[1][k] + b[0][k]) * 0.5 * -scale + 0.5;
-        }
-    }
-    if !(scale.is_finite() && scale > 0.0) {
-        return Err(ctx.err(format!("scale: {scale} is not positive")));
-    }
-    let top = ctx.intrinsics(obj, "")?;
-
-    let frames_v = obj
-        .get("frames")
-        .ok_or_else(|| ctx.err("frames: missing"))?
-        .as_array()
-        .ok_or_else(|| ctx.err("frames: not an array"))?;
-    let base = base_dir.to_path_buf();
-    struct Raw<'a> {
-        idx: usize,
-        obj: &'a Map<String, Value>,
-        file_path: String,
-    }
-    let mut raw = Vec::with_capacity(frames_v.len());
-    for (idx, f) in frames_v.iter().enumerate() {
-        let fo = f
-            .as_object()
-            .ok_or_else(|| ctx.err(format!("frames[{idx}]: not an object")))?;
-        let file_path = fo
-            .get("file_path")
-            .ok_or_else(|| ctx.err(format!("frames[{idx}].file_path: missing")))?
-            .as_str()
-            .ok_or_else(|| ctx.err(format!("frames[{idx}].file_path: not a string")))?
-            .to_string();
-        if file_path.is_empty() {
-            return Err(ctx.err(format!("frames[{idx}].file_path: empty")));
-        }
-        raw.push(Raw {
-            idx,
-            obj: fo,
-            file_path,
+        raw.sort_by(|a, b| {
+            natural_cmp(
+                &a.file_path.replace('\\', "/"),
+                &b.file_path.replace('\\', "/"),
+            )
         });
-    }
-    raw.sort_by(|a, b| {
-        natural_cmp(
-            &a.file_path.replace('\\', "/"),
-            &b.file_path.replace('\\', "/"),
-        )
-    });
-    if let Some(n) = ctx.num(obj, "n_frames", "")? {
-        raw.truncate(n.max(0.0) as usize);
+        if let Some(n) = self.num(obj, "n_frames", "")? {
+            raw.truncate(n.max(0.0) as usize);
+        }
+        Ok(raw)
     }
 
-    // The reference keeps only frames whose image exists (and that are sharp enough) when
-    // the first frame has a "sharpness" entry: that is how fox's 67 frames become 50.
-    let mut dropped = Vec::new();
-    if raw.first().is_some_and(|r| r.obj.contains_key("sharpness")) {
-        let threshold = ctx
+    /// The reference keeps only frames whose image exists (and that are sharp enough) when
+    /// the first frame has a "sharpness" entry: that is how fox's 67 frames become 50.
+    /// Drops the others from `raw` and returns their `file_path`s.
+    fn sharpness_filter(
+        &self,
+        obj: &Map<String, Value>,
+        base: &Path,
+        raw: &mut Vec<RawFrame>,
+    ) -> Result<Vec<String>> {
+        let mut dropped = Vec::new();
+        if !raw.first().is_some_and(|r| r.obj.contains_key("sharpness")) {
+            return Ok(dropped);
+        }
+        let threshold = self
             .num(obj, "sharpness_discard_threshold", "")?
             .unwrap_or(0.0);
         let sharp: Vec<f64> = raw
@@ -503,7 +568,7 @@ pub fn parse_transforms_value(
                 } else {
                     sharp[i]
                 };
-                resolve_image_path(&base, &raw[i].file_path).exists() && sharp[i] > threshold * mean
+                resolve_image_path(base, &raw[i].file_path).exists() && sharp[i] > threshold * mean
             })
             .collect();
         let mut k = 0;
@@ -515,30 +580,8 @@ pub fn parse_transforms_value(
             }
             kept
         });
+        Ok(dropped)
     }
-
-    let mut frames = Vec::with_capacity(raw.len());
-    for r in raw {
-        let where_ = format!("frames[{}] ({}): ", r.idx, r.file_path);
-        let nerf_pose = ctx.pose(r.obj, &where_)?;
-        let own = ctx.intrinsics(r.obj, &where_)?;
-        frames.push(FrameSpec {
-            json_index: r.idx,
-            image_path: resolve_image_path(&base, &r.file_path),
-            file_path: r.file_path,
-            nerf_pose,
-            top: top.clone(),
-            own,
-        });
-    }
-    Ok(Transforms {
-        json_path: json_path.to_path_buf(),
-        scale,
-        offset,
-        aabb_scale,
-        frames,
-        dropped,
-    })
 }
 
 #[cfg(test)]

@@ -7,7 +7,7 @@ use super::march::Marcher;
 use crate::camera::Camera;
 use crate::encoding::LevelIndices;
 use crate::encoding::grid::GridTable;
-use crate::network::nerf::{CHUNK, NerfNetwork};
+use crate::network::nerf::{CHUNK, NerfNetwork, Workspace};
 use crate::occupancy::{OccupancyGrid, RefineReport};
 use rayon::prelude::*;
 use std::time::Instant;
@@ -194,7 +194,12 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
     let mut depth = vec![0.0f32; n];
     let mut opacity = vec![0.0f32; n];
     let rows = ROWS_PER_TASK as usize * w as usize;
-    let table = view.grid_table();
+    let render = Render {
+        view,
+        table: view.grid_table(),
+        cam,
+        opts,
+    };
     let profiles: Vec<(u64, RenderProfile)> = rgb
         .par_chunks_mut(rows * 3)
         .zip(depth.par_chunks_mut(rows))
@@ -203,123 +208,12 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
         .map_init(
             || (view.net.inference_workspace(), WaveBuffers::default()),
             |(ws, b), (task, ((rgb, depth), opacity))| {
-                let mut prof = RenderProfile::default();
-                let first = task * rows;
-                b.live.clear();
-                for k in 0..depth.len() {
-                    let p = first + k;
-                    let (x, y) = ((p % w as usize) as f32 + 0.5, (p / w as usize) as f32 + 0.5);
-                    let ray = cam.ray(x, y);
-                    if let Some((t0, _)) = view.marcher.intersect(ray.o, ray.d) {
-                        // Start half a step inside the box: the entry point itself may
-                        // round to just outside it and end the ray at once (the reference
-                        // also starts at a fractional step).
-                        let t = view.marcher.advance(t0, 0.5);
-                        b.live.push(LiveRay {
-                            pixel: k,
-                            o: ray.o,
-                            d: ray.d,
-                            t,
-                            tr: 1.0,
-                            rgb: [0.0; 3],
-                            depth: 0.0,
-                        });
-                    }
-                    rgb[k * 3..k * 3 + 3].copy_from_slice(&opts.background);
-                }
-                let n_rays = b.live.len();
-                prof.n_rays = n_rays as u64;
-                let mut n_samples = 0u64;
-                while !b.live.is_empty() {
-                    let t_march = Instant::now();
-                    let per_ray = opts.samples_per_wave.max(1);
-                    let WaveBuffers {
-                        live,
-                        pos,
-                        dir,
-                        dts,
-                        dist,
-                        raw,
-                        owner,
-                        done,
-                    } = b;
-                    pos.clear();
-                    dir.clear();
-                    dts.clear();
-                    dist.clear();
-                    owner.clear();
-                    done.clear();
-                    done.resize(live.len(), false);
-                    for (li, r) in live.iter_mut().enumerate() {
-                        let start = pos.len();
-                        let next = view
-                            .marcher
-                            .march(view.grid, r.o, r.d, r.t, per_ray, pos, dts, dist);
-                        let got = pos.len() - start;
-                        dir.extend(std::iter::repeat_n(r.d, got));
-                        owner.push((li, start, got));
-                        match next {
-                            Some(t) => r.t = t,
-                            None => done[li] = true,
-                        }
-                    }
-                    let t_net = Instant::now();
-                    raw.resize(pos.len(), [0.0f32; 4]);
-                    for (k, (p, d)) in pos.chunks(CHUNK).zip(dir.chunks(CHUNK)).enumerate() {
-                        let s = k * CHUNK;
-                        view.net.forward_with(
-                            view.params,
-                            table,
-                            view.indices,
-                            p,
-                            d,
-                            ws,
-                            &mut raw[s..s + p.len()],
-                        );
-                    }
-                    let t_comp = Instant::now();
-                    n_samples += pos.len() as u64;
-                    for &(li, start, got) in owner.iter() {
-                        let r = &mut live[li];
-                        let s = start..start + got;
-                        let c = composite(
-                            &raw[s.clone()],
-                            &dts[s.clone()],
-                            &dist[s],
-                            r.tr,
-                            opts.min_transmittance,
-                        );
-                        for k in 0..3 {
-                            r.rgb[k] += c.rgb[k];
-                        }
-                        r.depth += c.depth;
-                        r.tr = c.transmittance;
-                        if r.tr < opts.min_transmittance {
-                            done[li] = true;
-                        }
-                    }
-                    let mut li = 0;
-                    live.retain(|r| {
-                        let keep = !done[li];
-                        li += 1;
-                        if !keep {
-                            let k = r.pixel;
-                            let a = 1.0 - r.tr;
-                            for c in 0..3 {
-                                rgb[k * 3 + c] = r.rgb[c] + r.tr * opts.background[c];
-                            }
-                            opacity[k] = a;
-                            depth[k] = if a > 0.0 { r.depth / a } else { 0.0 };
-                        }
-                        keep
-                    });
-                    let t_end = Instant::now();
-                    prof.n_waves += 1;
-                    prof.march_seconds += (t_net - t_march).as_secs_f64();
-                    prof.network_seconds += (t_comp - t_net).as_secs_f64();
-                    prof.composite_seconds += (t_end - t_comp).as_secs_f64();
-                }
-                (n_samples, prof)
+                let mut out = Pixels {
+                    rgb,
+                    depth,
+                    opacity,
+                };
+                render.task(task * rows, ws, b, &mut out)
             },
         )
         .collect();
@@ -338,6 +232,82 @@ pub fn render_image(view: &SceneView, cam: &Camera, opts: &RenderOptions) -> Ren
     }
 }
 
+/// What every task of one [`render_image`] reads.
+struct Render<'a> {
+    view: &'a SceneView<'a>,
+    table: GridTable<'a>,
+    cam: &'a Camera,
+    opts: &'a RenderOptions,
+}
+
+/// A task's pixels (a band of whole rows) in the image's buffers.
+struct Pixels<'a> {
+    rgb: &'a mut [f32],
+    depth: &'a mut [f32],
+    opacity: &'a mut [f32],
+}
+
+impl Render<'_> {
+    /// Renders the pixels `out` holds, the first of them pixel `first` of the image, in
+    /// waves until every ray has stopped: the samples it evaluated and its profile.
+    fn task(
+        &self,
+        first: usize,
+        ws: &mut Workspace,
+        b: &mut WaveBuffers,
+        out: &mut Pixels,
+    ) -> (u64, RenderProfile) {
+        let mut prof = RenderProfile::default();
+        self.start_rays(first, b, out);
+        let n_rays = b.live.len();
+        prof.n_rays = n_rays as u64;
+        let mut n_samples = 0u64;
+        while !b.live.is_empty() {
+            let t_march = Instant::now();
+            b.march(self.view, self.opts.samples_per_wave.max(1));
+            let t_net = Instant::now();
+            b.evaluate(self.view, self.table, ws);
+            let t_comp = Instant::now();
+            n_samples += b.pos.len() as u64;
+            b.composite(self.opts, out);
+            let t_end = Instant::now();
+            prof.n_waves += 1;
+            prof.march_seconds += (t_net - t_march).as_secs_f64();
+            prof.network_seconds += (t_comp - t_net).as_secs_f64();
+            prof.composite_seconds += (t_end - t_comp).as_secs_f64();
+        }
+        (n_samples, prof)
+    }
+
+    /// The task's rays that enter the box, into `b.live`; every pixel starts as the
+    /// background.
+    fn start_rays(&self, first: usize, b: &mut WaveBuffers, out: &mut Pixels) {
+        let (view, w) = (self.view, self.cam.width as usize);
+        b.live.clear();
+        for k in 0..out.depth.len() {
+            let p = first + k;
+            let (x, y) = ((p % w) as f32 + 0.5, (p / w) as f32 + 0.5);
+            let ray = self.cam.ray(x, y);
+            if let Some((t0, _)) = view.marcher.intersect(ray.o, ray.d) {
+                // Start half a step inside the box: the entry point itself may
+                // round to just outside it and end the ray at once (the reference
+                // also starts at a fractional step).
+                let t = view.marcher.advance(t0, 0.5);
+                b.live.push(LiveRay {
+                    pixel: k,
+                    o: ray.o,
+                    d: ray.d,
+                    t,
+                    tr: 1.0,
+                    rgb: [0.0; 3],
+                    depth: 0.0,
+                });
+            }
+            out.rgb[k * 3..k * 3 + 3].copy_from_slice(&self.opts.background);
+        }
+    }
+}
+
 /// A rendering thread's buffers, reused from wave to wave and task to task.
 #[derive(Default)]
 struct WaveBuffers {
@@ -350,6 +320,109 @@ struct WaveBuffers {
     /// (live ray, first sample, samples) of the wave.
     owner: Vec<(usize, usize, usize)>,
     done: Vec<bool>,
+}
+
+impl WaveBuffers {
+    /// A wave's samples: up to `per_ray` from each live ray, which moves on past them
+    /// (and is marked done where it leaves the grid).
+    fn march(&mut self, view: &SceneView, per_ray: usize) {
+        let WaveBuffers {
+            live,
+            pos,
+            dir,
+            dts,
+            dist,
+            raw: _,
+            owner,
+            done,
+        } = self;
+        pos.clear();
+        dir.clear();
+        dts.clear();
+        dist.clear();
+        owner.clear();
+        done.clear();
+        done.resize(live.len(), false);
+        for (li, r) in live.iter_mut().enumerate() {
+            let start = pos.len();
+            let next = view
+                .marcher
+                .march(view.grid, r.o, r.d, r.t, per_ray, pos, dts, dist);
+            let got = pos.len() - start;
+            dir.extend(std::iter::repeat_n(r.d, got));
+            owner.push((li, start, got));
+            match next {
+                Some(t) => r.t = t,
+                None => done[li] = true,
+            }
+        }
+    }
+
+    /// The network's outputs for the wave's samples, into `raw`.
+    fn evaluate(&mut self, view: &SceneView, table: GridTable, ws: &mut Workspace) {
+        let (pos, dir, raw) = (&self.pos, &self.dir, &mut self.raw);
+        raw.resize(pos.len(), [0.0f32; 4]);
+        for (k, (p, d)) in pos.chunks(CHUNK).zip(dir.chunks(CHUNK)).enumerate() {
+            let s = k * CHUNK;
+            view.net.forward_with(
+                view.params,
+                table,
+                view.indices,
+                p,
+                d,
+                ws,
+                &mut raw[s..s + p.len()],
+            );
+        }
+    }
+
+    /// Composites each live ray's samples of the wave onto it, then writes out and drops
+    /// the rays that are done (out of the grid or below the transmittance threshold).
+    fn composite(&mut self, opts: &RenderOptions, out: &mut Pixels) {
+        let WaveBuffers {
+            live,
+            dts,
+            dist,
+            raw,
+            owner,
+            done,
+            ..
+        } = self;
+        for &(li, start, got) in owner.iter() {
+            let r = &mut live[li];
+            let s = start..start + got;
+            let c = composite(
+                &raw[s.clone()],
+                &dts[s.clone()],
+                &dist[s],
+                r.tr,
+                opts.min_transmittance,
+            );
+            for k in 0..3 {
+                r.rgb[k] += c.rgb[k];
+            }
+            r.depth += c.depth;
+            r.tr = c.transmittance;
+            if r.tr < opts.min_transmittance {
+                done[li] = true;
+            }
+        }
+        let mut li = 0;
+        live.retain(|r| {
+            let keep = !done[li];
+            li += 1;
+            if !keep {
+                let k = r.pixel;
+                let a = 1.0 - r.tr;
+                for c in 0..3 {
+                    out.rgb[k * 3 + c] = r.rgb[c] + r.tr * opts.background[c];
+                }
+                out.opacity[k] = a;
+                out.depth[k] = if a > 0.0 { r.depth / a } else { 0.0 };
+            }
+            keep
+        });
+    }
 }
 
 /// Density samples per cell when a key holder rebuilds a hidden scene's grid. Measured on

@@ -237,6 +237,14 @@ impl<'a> Obj<'a> {
             v => Err(self.bad(key, "a map", v)),
         }
     }
+    /// The map at `key` (named `path` in errors), or `None` where there is no `key`.
+    fn opt_obj(&self, key: &str, path: &'a str) -> R<Option<Obj<'a>>> {
+        match self.get(key) {
+            None => Ok(None),
+            Some(Value::Map(m)) => Ok(Some(Obj { path, m })),
+            Some(v) => Err(self.bad(key, "a map", v)),
+        }
+    }
     fn aabb(&self, key: &str) -> R<Aabb> {
         let p = join(self.path, key);
         let o = self.obj(key, &p)?;
@@ -579,19 +587,58 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
     };
     check_string_keys(&doc)?;
     let root = Obj { path: "", m: top };
-    let snap = match root.get("snapshot") {
-        Some(Value::Map(m)) => Obj {
-            path: "snapshot",
-            m,
-        },
-        Some(v) => return Err(format!("field snapshot: expected a map, found {}", kind(v))),
-        None => {
-            return Err(
-                "not an instant-ngp snapshot: no 'snapshot' field (a network config without weights?)"
-                    .into(),
-            );
-        }
+    let snap = root.opt_obj("snapshot", "snapshot")?.ok_or_else(|| {
+        "not an instant-ngp snapshot: no 'snapshot' field (a network config without weights?)"
+            .to_string()
+    })?;
+    check_version_and_mode(snap)?;
+    let nerf = snap.obj("nerf", "snapshot.nerf")?;
+
+    let grid = config_from_value(top)?;
+    let aabb_scale = nerf_aabb_scale(nerf)?;
+    let ds = nerf_dataset(nerf)?;
+    check_per_level_scale(root, &grid, aabb_scale)?;
+    let config = ModelConfig { grid, aabb_scale };
+    let (pbin, elem) = params_binary(snap, config)?;
+    let (gbin, exact_density) = density_grid(snap, aabb_scale)?;
+    let rgb = nerf.obj("rgb", "snapshot.nerf.rgb")?;
+    let view = view(snap, aabb_scale)?;
+    let cam = match snap.opt_obj("camera", "snapshot.camera")? {
+        Some(c) => camera(c)?,
+        None => SnapshotCamera::default(),
     };
+    let preserved = Preserved {
+        network_config: Some(Value::Map(
+            top.iter()
+                .filter(|(k, _)| k.as_str() != Some("snapshot"))
+                .cloned()
+                .collect(),
+        )),
+        optimizer: snap.get("optimizer").cloned(),
+        cam_pos_offset: nerf.get("cam_pos_offset").cloned(),
+        cam_rot_offset: nerf.get("cam_rot_offset").cloned(),
+        extra_dims_opt: nerf.get("extra_dims_opt").cloned(),
+        run_state: snap.get("stegongp_run_state").cloned(),
+    };
+    Ok(Snapshot {
+        config,
+        params: decode_params(pbin, elem),
+        exact: elem == 4 && exact_density.is_some(),
+        density_grid: exact_density.unwrap_or_else(|| decode_params(gbin, 2)),
+        training_step: snap.u32("training_step")?,
+        loss: snap.f32("loss")?,
+        dataset: ds,
+        rays_per_batch: rgb.u32("rays_per_batch")?,
+        measured_batch_size: rgb.u32("measured_batch_size")?,
+        measured_batch_size_before_compaction: rgb.u32("measured_batch_size_before_compaction")?,
+        camera: cam,
+        view,
+        preserved,
+    })
+}
+
+/// `snapshot.version` (0 where it is missing) must be 1, and `snapshot.mode` NeRF.
+fn check_version_and_mode(snap: Obj) -> R<()> {
     let version = match snap.get("version") {
         Some(_) => snap.int("version", i64::MIN, i64::MAX)?,
         None => 0,
@@ -612,9 +659,11 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
             "the file holds an instant-ngp '{mode}' model; only NeRF snapshots are supported"
         ));
     }
-    let nerf = snap.obj("nerf", "snapshot.nerf")?;
+    Ok(())
+}
 
-    let grid = config_from_value(top)?;
+/// `snapshot.nerf.aabb_scale`: 1 where it is missing, else a power of two ≤ 128.
+fn nerf_aabb_scale(nerf: Obj) -> R<u32> {
     let aabb_scale = nerf.int("aabb_scale", 1, i32::MAX as i64).or_else(|e| {
         if nerf.get("aabb_scale").is_none() {
             Ok(1)
@@ -627,17 +676,13 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
             "field snapshot.nerf.aabb_scale: {aabb_scale} is not a power of two ≤ 128"
         ));
     }
-    let ds = match nerf.get("dataset") {
-        Some(Value::Map(m)) => Some(dataset(Obj {
-            path: "snapshot.nerf.dataset",
-            m,
-        })?),
-        Some(v) => {
-            return Err(format!(
-                "field snapshot.nerf.dataset: expected a map, found {}",
-                kind(v)
-            ));
-        }
+    Ok(aabb_scale)
+}
+
+/// `snapshot.nerf.dataset`, if there is one, without latent dimensions.
+fn nerf_dataset(nerf: Obj) -> R<Option<SnapshotDataset>> {
+    let ds = match nerf.opt_obj("dataset", "snapshot.nerf.dataset")? {
+        Some(d) => Some(dataset(d)?),
         None => None,
     };
     if let Some(d) = &ds
@@ -648,18 +693,28 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
             d.n_extra_learnable_dims
         ));
     }
-    // instant-ngp only derives b when the config leaves it out; a stored one must agree.
+    Ok(ds)
+}
+
+/// instant-ngp only derives b when the config leaves it out; a stored one must agree.
+fn check_per_level_scale(root: Obj, grid: &GridConfig, aabb_scale: u32) -> R<()> {
     let enc = root.obj("encoding", "encoding")?;
     if enc.get("per_level_scale").is_some() {
         let stored = enc.f32("per_level_scale")?;
-        let derived = per_level_scale(&grid, aabb_scale);
+        let derived = per_level_scale(grid, aabb_scale);
         if stored > 0.0 && (stored - derived).abs() > 1e-6 * derived {
             return Err(format!(
                 "encoding.per_level_scale is {stored}, not the {derived} instant-ngp derives for aabb_scale {aabb_scale}; unsupported"
             ));
         }
     }
-    let config = ModelConfig { grid, aabb_scale };
+    Ok(())
+}
+
+/// The weights' bytes and the bytes of one weight (2: fp16, 4: f32), checked against the
+/// parameter count of `config`'s network.
+fn params_binary<'a>(snap: Obj<'a>, config: ModelConfig) -> R<(&'a [u8], usize)> {
+    let ModelConfig { grid, aabb_scale } = config;
     let layout = NerfLayout::new(config).map_err(|e| e.to_string())?;
     let n_params = snap.int("n_params", 0, i64::MAX)? as usize;
     if n_params != layout.n_params {
@@ -689,6 +744,12 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
             pbin.len()
         ));
     }
+    Ok((pbin, elem))
+}
+
+/// The occupancy grid's fp16 bytes (empty: never populated) and, where the file has them,
+/// its exact f32 values.
+fn density_grid<'a>(snap: Obj<'a>, aabb_scale: u32) -> R<(&'a [u8], Option<Vec<f32>>)> {
     let gsize = snap.int("density_grid_size", 0, i64::MAX)?;
     if gsize != DENSITY_GRID_SIZE as i64 {
         return Err(format!(
@@ -720,9 +781,13 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
             Some(decode_params(b, 4))
         }
     };
-    let rgb = nerf.obj("rgb", "snapshot.nerf.rgb")?;
+    Ok((gbin, exact_density))
+}
+
+/// The render settings, with [`SnapshotView::for_scale`]'s where the file has none.
+fn view(snap: Obj, aabb_scale: u32) -> R<SnapshotView> {
     let dv = SnapshotView::for_scale(aabb_scale);
-    let view = SnapshotView {
+    Ok(SnapshotView {
         aabb: if snap.get("aabb").is_some() {
             snap.aabb("aabb")?
         } else {
@@ -743,46 +808,5 @@ pub fn from_msgpack(raw: &[u8]) -> R<Snapshot> {
         sun_dir: snap.floats_or("sun_dir", dv.sun_dir)?,
         exposure: snap.f32_or("exposure", dv.exposure)?,
         background_color: snap.floats_or("background_color", dv.background_color)?,
-    };
-    let cam = match snap.get("camera") {
-        Some(Value::Map(m)) => camera(Obj {
-            path: "snapshot.camera",
-            m,
-        })?,
-        Some(v) => {
-            return Err(format!(
-                "field snapshot.camera: expected a map, found {}",
-                kind(v)
-            ));
-        }
-        None => SnapshotCamera::default(),
-    };
-    let preserved = Preserved {
-        network_config: Some(Value::Map(
-            top.iter()
-                .filter(|(k, _)| k.as_str() != Some("snapshot"))
-                .cloned()
-                .collect(),
-        )),
-        optimizer: snap.get("optimizer").cloned(),
-        cam_pos_offset: nerf.get("cam_pos_offset").cloned(),
-        cam_rot_offset: nerf.get("cam_rot_offset").cloned(),
-        extra_dims_opt: nerf.get("extra_dims_opt").cloned(),
-        run_state: snap.get("stegongp_run_state").cloned(),
-    };
-    Ok(Snapshot {
-        config,
-        params: decode_params(pbin, elem),
-        exact: elem == 4 && exact_density.is_some(),
-        density_grid: exact_density.unwrap_or_else(|| decode_params(gbin, 2)),
-        training_step: snap.u32("training_step")?,
-        loss: snap.f32("loss")?,
-        dataset: ds,
-        rays_per_batch: rgb.u32("rays_per_batch")?,
-        measured_batch_size: rgb.u32("measured_batch_size")?,
-        measured_batch_size_before_compaction: rgb.u32("measured_batch_size_before_compaction")?,
-        camera: cam,
-        view,
-        preserved,
     })
 }
