@@ -374,211 +374,268 @@ pub fn parse_key(path: &Path, text: &str) -> Result<Key> {
     Ok(parse_key_with_warnings(path, text)?.key)
 }
 
-/// Parses 64 hex digits.
-fn parse_secret(v: &Value, field: &str, bad: &dyn Fn(&str, String) -> Error) -> Result<[u8; 32]> {
-    let s = v
-        .as_str()
-        .ok_or_else(|| bad(field, "expected a string of 64 hex digits".into()))?;
-    if s.len() != 64 {
-        return Err(bad(
-            field,
-            format!(
-                "expected 64 hex digits (256 bits), got {} characters",
-                s.len()
-            ),
-        ));
-    }
-    let bytes = unhex(s).ok_or_else(|| bad(field, "not hexadecimal".into()))?;
-    let mut secret = [0u8; 32];
-    secret.copy_from_slice(&bytes);
-    Ok(secret)
-}
-
 /// Parses key-file text, with the version, layout flag and content warnings.
 pub fn parse_key_with_warnings(path: &Path, text: &str) -> Result<LoadedKey> {
-    let bad = |field: &str, msg: String| Error::format(path, format!("field `{field}`: {msg}"));
     let v: Value = serde_json::from_str(text)
         .map_err(|e| Error::format(path, format!("malformed JSON: {e}")))?;
     let o = v
         .as_object()
         .ok_or_else(|| Error::format(path, "key file is not a JSON object"))?;
-    let get = |field: &str| o.get(field).ok_or_else(|| bad(field, "missing".into()));
-    let str_field = |field: &str| -> Result<&str> {
-        get(field)?
-            .as_str()
-            .ok_or_else(|| bad(field, "expected a string".into()))
-    };
-    if let Some(f) = o.get("format")
-        && f.as_str() != Some(FORMAT)
-    {
-        return Err(bad("format", format!("expected \"{FORMAT}\", got {f}")));
-    }
-    let version = get("version")?
-        .as_u64()
-        .ok_or_else(|| bad("version", "expected a non-negative integer".into()))?;
-    if version != VERSION && version != LEGACY_VERSION {
-        return Err(bad(
-            "version",
-            format!(
-                "unsupported version {version} (this build reads versions {LEGACY_VERSION} and {VERSION})"
-            ),
-        ));
-    }
-    let dense = match o.get("dense") {
-        None => DenseMode::default(),
-        Some(d) => d.as_str().and_then(DenseMode::parse).ok_or_else(|| {
-            bad(
-                "dense",
-                format!("expected \"permute\" or \"hash\", got {d}"),
-            )
-        })?,
-    };
-    let m_field = || -> Result<Option<usize>> {
-        let Some(m) = o.get("m") else {
-            return Ok(None);
-        };
-        let m = m
-            .as_u64()
-            .ok_or_else(|| bad("m", "expected a positive integer".into()))?;
-        if !(1..=MAX_GROUPS as u64).contains(&m) {
-            return Err(bad("m", format!("m = {m}, expected 1..={MAX_GROUPS}")));
-        }
-        Ok(Some(m as usize))
-    };
-    let scheme = match str_field("scheme")? {
-        "primes" => {
-            let arr = get("keys")?
-                .as_array()
-                .ok_or_else(|| bad("keys", "expected a list of prime triples".into()))?;
-            if !(1..=MAX_GROUPS).contains(&arr.len()) {
-                return Err(bad(
-                    "keys",
-                    format!("m = {} triples, expected 1..={MAX_GROUPS}", arr.len()),
-                ));
-            }
-            let mut keys = Vec::with_capacity(arr.len());
-            for (j, t) in arr.iter().enumerate() {
-                let f = format!("keys[{j}]");
-                let t = t
-                    .as_array()
-                    .filter(|t| t.len() == 3)
-                    .ok_or_else(|| bad(&f, format!("key {j}: expected 3 integers")))?;
-                let mut triple = [0u64; 3];
-                for (i, x) in t.iter().enumerate() {
-                    triple[i] = x.as_u64().ok_or_else(|| {
-                        bad(&format!("{f}[{i}]"), format!("key {j}: {x} is not a u64"))
-                    })?;
-                }
-                check_file_triple(&triple)
-                    .map_err(|(i, msg)| bad(&format!("{f}[{i}]"), format!("key {j}: {msg}")))?;
-                keys.push(triple);
-            }
-            KeyScheme::Primes { keys }
-        }
-        "prf" if version == LEGACY_VERSION => {
-            let m = m_field()?.ok_or_else(|| bad("m", "missing".into()))?;
-            let secret = parse_secret(get("secret")?, "secret", &bad)?;
-            KeyScheme::PrfShares { secret, m }
-        }
-        "prf" => {
-            let arr = get("secrets")?
-                .as_array()
-                .ok_or_else(|| bad("secrets", "expected a list of 64-hex-digit strings".into()))?;
-            if !(1..=MAX_GROUPS).contains(&arr.len()) {
-                return Err(bad(
-                    "secrets",
-                    format!("m = {} secrets, expected 1..={MAX_GROUPS}", arr.len()),
-                ));
-            }
-            if let Some(m) = m_field()?
-                && m != arr.len()
-            {
-                return Err(bad(
-                    "m",
-                    format!("m = {m} but the file has {} secrets", arr.len()),
-                ));
-            }
-            let secrets = arr
-                .iter()
-                .enumerate()
-                .map(|(j, s)| parse_secret(s, &format!("secrets[{j}]"), &bad))
-                .collect::<Result<Vec<_>>>()?;
-            KeyScheme::Prf { secrets }
-        }
-        other => {
-            return Err(bad(
-                "scheme",
-                format!("unknown scheme \"{other}\" (expected \"primes\" or \"prf\")"),
-            ));
-        }
-    };
-    let kdf = match o.get("kdf") {
-        None => None,
-        Some(k) => {
-            let ko = k
-                .as_object()
-                .ok_or_else(|| bad("kdf", "expected an object".into()))?;
-            let s = |f: &str| {
-                ko.get(f)
-                    .and_then(Value::as_str)
-                    .unwrap_or_default()
-                    .to_string()
-            };
-            let n = |f: &str| ko.get(f).and_then(Value::as_u64).unwrap_or(0) as u32;
-            Some(KdfInfo {
-                algorithm: s("algorithm"),
-                version: n("version"),
-                salt: s("salt"),
-                m_cost_kib: n("m_cost_kib"),
-                t_cost: n("t_cost"),
-                p_cost: n("p_cost"),
-            })
-        }
-    };
-    let groups: Vec<usize> = match o.get("reference_groups") {
-        None => vec![],
-        Some(g) => g
-            .as_array()
-            .and_then(|a| a.iter().map(|x| x.as_u64().map(|v| v as usize)).collect())
-            .ok_or_else(|| {
-                bad(
-                    "reference_groups",
-                    "expected a list of group numbers".into(),
-                )
-            })?,
-    };
-    let scene_box = match o.get("aabb_scale") {
-        None => None,
-        Some(b) => Some(
-            b.as_u64()
-                .filter(|&b| (1..=128).contains(&b) && b.is_power_of_two())
-                .ok_or_else(|| {
-                    bad(
-                        "aabb_scale",
-                        format!("expected a power of two between 1 and 128, got {b}"),
-                    )
-                })? as u32,
-        ),
-    };
-    let robust = match o.get("robust") {
-        None => false,
-        Some(v) => v
-            .as_bool()
-            .ok_or_else(|| bad("robust", format!("expected true or false, got {v}")))?,
-    };
+    let doc = KeyJson { path, o };
+    let version = doc.version()?;
+    let dense = doc.dense()?;
+    let scheme = doc.scheme(version)?;
+    let kdf = doc.kdf()?;
+    let groups = doc.reference_groups()?;
+    let scene_box = doc.scene_box()?;
+    let robust = doc.robust()?;
     let key = Key::new(scheme, dense).map_err(|e| Error::format(path, e.to_string()))?;
     let key = key
         .with_robust(robust)
         .with_kdf(kdf)
         .with_reference_groups(&groups)
-        .map_err(|e| bad("reference_groups", e.to_string()))?
+        .map_err(|e| doc.bad("reference_groups", e.to_string()))?
         .with_scene_box(scene_box)
-        .map_err(|e| bad("aabb_scale", e.to_string()))?;
-    let warnings = check_key_content(&key).map_err(|(field, msg)| bad(&field, msg))?;
+        .map_err(|e| doc.bad("aabb_scale", e.to_string()))?;
+    let warnings = check_key_content(&key).map_err(|(field, msg)| doc.bad(&field, msg))?;
     Ok(LoadedKey {
         legacy_layout: key.is_legacy_layout(),
         key,
         version,
         warnings,
     })
+}
+
+/// A key file's top-level object, read field by field; errors name the file and the field.
+struct KeyJson<'a> {
+    path: &'a Path,
+    o: &'a Map<String, Value>,
+}
+
+impl<'a> KeyJson<'a> {
+    fn bad(&self, field: &str, msg: String) -> Error {
+        Error::format(self.path, format!("field `{field}`: {msg}"))
+    }
+
+    fn get(&self, field: &str) -> Result<&'a Value> {
+        self.o
+            .get(field)
+            .ok_or_else(|| self.bad(field, "missing".into()))
+    }
+
+    fn str_field(&self, field: &str) -> Result<&'a str> {
+        self.get(field)?
+            .as_str()
+            .ok_or_else(|| self.bad(field, "expected a string".into()))
+    }
+
+    /// The file's version, once its `format` (optional) says it is a key file.
+    fn version(&self) -> Result<u64> {
+        if let Some(f) = self.o.get("format")
+            && f.as_str() != Some(FORMAT)
+        {
+            return Err(self.bad("format", format!("expected \"{FORMAT}\", got {f}")));
+        }
+        let version = self
+            .get("version")?
+            .as_u64()
+            .ok_or_else(|| self.bad("version", "expected a non-negative integer".into()))?;
+        if version != VERSION && version != LEGACY_VERSION {
+            return Err(self.bad(
+                "version",
+                format!(
+                    "unsupported version {version} (this build reads versions {LEGACY_VERSION} and {VERSION})"
+                ),
+            ));
+        }
+        Ok(version)
+    }
+
+    fn dense(&self) -> Result<DenseMode> {
+        Ok(match self.o.get("dense") {
+            None => DenseMode::default(),
+            Some(d) => d.as_str().and_then(DenseMode::parse).ok_or_else(|| {
+                self.bad(
+                    "dense",
+                    format!("expected \"permute\" or \"hash\", got {d}"),
+                )
+            })?,
+        })
+    }
+
+    /// The optional `m` of a `prf` key.
+    fn m(&self) -> Result<Option<usize>> {
+        let Some(m) = self.o.get("m") else {
+            return Ok(None);
+        };
+        let m = m
+            .as_u64()
+            .ok_or_else(|| self.bad("m", "expected a positive integer".into()))?;
+        if !(1..=MAX_GROUPS as u64).contains(&m) {
+            return Err(self.bad("m", format!("m = {m}, expected 1..={MAX_GROUPS}")));
+        }
+        Ok(Some(m as usize))
+    }
+
+    /// The key itself, as `scheme` says and `version` lays it out.
+    fn scheme(&self, version: u64) -> Result<KeyScheme> {
+        match self.str_field("scheme")? {
+            "primes" => self.primes(),
+            "prf" if version == LEGACY_VERSION => {
+                let m = self.m()?.ok_or_else(|| self.bad("m", "missing".into()))?;
+                let secret = self.secret(self.get("secret")?, "secret")?;
+                Ok(KeyScheme::PrfShares { secret, m })
+            }
+            "prf" => self.prf(),
+            other => Err(self.bad(
+                "scheme",
+                format!("unknown scheme \"{other}\" (expected \"primes\" or \"prf\")"),
+            )),
+        }
+    }
+
+    /// `keys`: m checked prime triples.
+    fn primes(&self) -> Result<KeyScheme> {
+        let arr = self
+            .get("keys")?
+            .as_array()
+            .ok_or_else(|| self.bad("keys", "expected a list of prime triples".into()))?;
+        if !(1..=MAX_GROUPS).contains(&arr.len()) {
+            return Err(self.bad(
+                "keys",
+                format!("m = {} triples, expected 1..={MAX_GROUPS}", arr.len()),
+            ));
+        }
+        let mut keys = Vec::with_capacity(arr.len());
+        for (j, t) in arr.iter().enumerate() {
+            let f = format!("keys[{j}]");
+            let t = t
+                .as_array()
+                .filter(|t| t.len() == 3)
+                .ok_or_else(|| self.bad(&f, format!("key {j}: expected 3 integers")))?;
+            let mut triple = [0u64; 3];
+            for (i, x) in t.iter().enumerate() {
+                triple[i] = x.as_u64().ok_or_else(|| {
+                    self.bad(&format!("{f}[{i}]"), format!("key {j}: {x} is not a u64"))
+                })?;
+            }
+            check_file_triple(&triple)
+                .map_err(|(i, msg)| self.bad(&format!("{f}[{i}]"), format!("key {j}: {msg}")))?;
+            keys.push(triple);
+        }
+        Ok(KeyScheme::Primes { keys })
+    }
+
+    /// A version-2 `prf` key: `secrets`, as many as `m` says where it is given.
+    fn prf(&self) -> Result<KeyScheme> {
+        let arr = self
+            .get("secrets")?
+            .as_array()
+            .ok_or_else(|| self.bad("secrets", "expected a list of 64-hex-digit strings".into()))?;
+        if !(1..=MAX_GROUPS).contains(&arr.len()) {
+            return Err(self.bad(
+                "secrets",
+                format!("m = {} secrets, expected 1..={MAX_GROUPS}", arr.len()),
+            ));
+        }
+        if let Some(m) = self.m()?
+            && m != arr.len()
+        {
+            return Err(self.bad(
+                "m",
+                format!("m = {m} but the file has {} secrets", arr.len()),
+            ));
+        }
+        let secrets = arr
+            .iter()
+            .enumerate()
+            .map(|(j, s)| self.secret(s, &format!("secrets[{j}]")))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(KeyScheme::Prf { secrets })
+    }
+
+    /// Parses 64 hex digits.
+    fn secret(&self, v: &Value, field: &str) -> Result<[u8; 32]> {
+        let s = v
+            .as_str()
+            .ok_or_else(|| self.bad(field, "expected a string of 64 hex digits".into()))?;
+        if s.len() != 64 {
+            return Err(self.bad(
+                field,
+                format!(
+                    "expected 64 hex digits (256 bits), got {} characters",
+                    s.len()
+                ),
+            ));
+        }
+        let bytes = unhex(s).ok_or_else(|| self.bad(field, "not hexadecimal".into()))?;
+        let mut secret = [0u8; 32];
+        secret.copy_from_slice(&bytes);
+        Ok(secret)
+    }
+
+    /// How a passphrase key was made, if it was: missing entries read as empty or 0.
+    fn kdf(&self) -> Result<Option<KdfInfo>> {
+        let Some(k) = self.o.get("kdf") else {
+            return Ok(None);
+        };
+        let ko = k
+            .as_object()
+            .ok_or_else(|| self.bad("kdf", "expected an object".into()))?;
+        let s = |f: &str| {
+            ko.get(f)
+                .and_then(Value::as_str)
+                .unwrap_or_default()
+                .to_string()
+        };
+        let n = |f: &str| ko.get(f).and_then(Value::as_u64).unwrap_or(0) as u32;
+        Ok(Some(KdfInfo {
+            algorithm: s("algorithm"),
+            version: n("version"),
+            salt: s("salt"),
+            m_cost_kib: n("m_cost_kib"),
+            t_cost: n("t_cost"),
+            p_cost: n("p_cost"),
+        }))
+    }
+
+    fn reference_groups(&self) -> Result<Vec<usize>> {
+        Ok(match self.o.get("reference_groups") {
+            None => vec![],
+            Some(g) => g
+                .as_array()
+                .and_then(|a| a.iter().map(|x| x.as_u64().map(|v| v as usize)).collect())
+                .ok_or_else(|| {
+                    self.bad(
+                        "reference_groups",
+                        "expected a list of group numbers".into(),
+                    )
+                })?,
+        })
+    }
+
+    fn scene_box(&self) -> Result<Option<u32>> {
+        let Some(b) = self.o.get("aabb_scale") else {
+            return Ok(None);
+        };
+        let b = b
+            .as_u64()
+            .filter(|&b| (1..=128).contains(&b) && b.is_power_of_two())
+            .ok_or_else(|| {
+                self.bad(
+                    "aabb_scale",
+                    format!("expected a power of two between 1 and 128, got {b}"),
+                )
+            })?;
+        Ok(Some(b as u32))
+    }
+
+    fn robust(&self) -> Result<bool> {
+        match self.o.get("robust") {
+            None => Ok(false),
+            Some(v) => v
+                .as_bool()
+                .ok_or_else(|| self.bad("robust", format!("expected true or false, got {v}"))),
+        }
+    }
 }

@@ -126,145 +126,15 @@ impl Detector {
         labels: &[bool],
         l2: f64,
     ) -> Result<Detector> {
-        let bad = |m: String| Error::Other(format!("detector fit: {m}"));
-        if rows.len() != labels.len() {
-            return Err(bad(format!(
-                "{} rows but {} labels",
-                rows.len(),
-                labels.len()
-            )));
-        }
-        if let Some((i, r)) = rows
-            .iter()
-            .enumerate()
-            .find(|(_, r)| r.len() != names.len())
-        {
-            return Err(bad(format!(
-                "row {i} has {} values for {} names",
-                r.len(),
-                names.len()
-            )));
-        }
-        let n_pos = labels.iter().filter(|&&y| y).count();
-        if n_pos == 0 || n_pos == labels.len() {
-            return Err(bad(format!(
-                "needs plain and stego models, got {n_pos} stego of {}",
-                labels.len()
-            )));
-        }
-        if !(l2 > 0.0 && l2.is_finite()) {
-            return Err(bad(format!("the L2 penalty must be positive, got {l2}")));
-        }
-        // Standardisation over the values present.
-        let mut feats: Vec<FeatureWeight> = Vec::new();
-        let mut cols: Vec<usize> = Vec::new();
-        for (j, name) in names.iter().enumerate() {
-            let vals: Vec<f64> = rows
-                .iter()
-                .map(|r| r[j])
-                .filter(|v| v.is_finite())
-                .collect();
-            if vals.is_empty() {
-                continue;
-            }
-            let mean = vals.iter().sum::<f64>() / vals.len() as f64;
-            let var = vals.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / vals.len() as f64;
-            let std = var.sqrt();
-            if std == 0.0 || std <= 1e-12 * mean.abs() {
-                continue;
-            }
-            feats.push(FeatureWeight {
-                name: name.clone(),
-                mean,
-                std,
-                weight: 0.0,
-            });
-            cols.push(j);
-        }
-        let p = feats.len() + 1;
-        let x: Vec<Vec<f64>> = rows
-            .iter()
-            .map(|r| {
-                let mut z = Vec::with_capacity(p);
-                z.push(1.0);
-                for (f, &j) in feats.iter().zip(&cols) {
-                    let v = r[j];
-                    z.push(if v.is_finite() {
-                        (v - f.mean) / f.std
-                    } else {
-                        0.0
-                    });
-                }
-                z
-            })
-            .collect();
-        let y: Vec<f64> = labels.iter().map(|&b| if b { 1.0 } else { 0.0 }).collect();
-        let objective = |beta: &[f64]| {
-            let mut nll = 0.0;
-            for (xi, &yi) in x.iter().zip(&y) {
-                let t: f64 = xi.iter().zip(beta).map(|(a, b)| a * b).sum();
-                // log(1 + e^t) − y·t, stably.
-                nll += t.max(0.0) + (-t.abs()).exp().ln_1p() - yi * t;
-            }
-            nll + 0.5 * l2 * beta[1..].iter().map(|b| b * b).sum::<f64>()
+        check_fit_inputs(names, rows, labels, l2)?;
+        let (mut feats, cols) = standardisation(names, rows);
+        let problem = Logistic {
+            x: design_matrix(rows, &feats, &cols),
+            y: labels.iter().map(|&b| if b { 1.0 } else { 0.0 }).collect(),
+            p: feats.len() + 1,
+            l2,
         };
-        let mut beta = vec![0.0; p];
-        let mut obj = objective(&beta);
-        for _ in 0..100 {
-            let mut g = vec![0.0; p];
-            let mut h = vec![0.0; p * p];
-            for (xi, &yi) in x.iter().zip(&y) {
-                let t: f64 = xi.iter().zip(&beta).map(|(a, b)| a * b).sum();
-                let s = sigmoid(t);
-                let w = s * (1.0 - s);
-                for a in 0..p {
-                    g[a] += (s - yi) * xi[a];
-                    for b in 0..=a {
-                        h[a * p + b] += w * xi[a] * xi[b];
-                    }
-                }
-            }
-            for a in 0..p {
-                for b in 0..a {
-                    h[b * p + a] = h[a * p + b];
-                }
-                if a > 0 {
-                    g[a] += l2 * beta[a];
-                    h[a * p + a] += l2;
-                } else {
-                    // The bias is unpenalised; a hair of curvature keeps the system
-                    // definite when every probability saturates.
-                    h[0] += 1e-9;
-                }
-            }
-            let step = cholesky_solve(&h, &g, p)
-                .ok_or_else(|| bad("the Newton system is singular".into()))?;
-            // Newton with step halving: the objective is convex, so some fraction descends.
-            let mut t = 1.0;
-            let mut next = beta.clone();
-            let mut next_obj = obj;
-            for _ in 0..30 {
-                for a in 0..p {
-                    next[a] = beta[a] - t * step[a];
-                }
-                next_obj = objective(&next);
-                if next_obj <= obj {
-                    break;
-                }
-                t *= 0.5;
-            }
-            let moved = (0..p)
-                .map(|a| (next[a] - beta[a]).abs())
-                .fold(0.0, f64::max);
-            if next_obj > obj {
-                break;
-            }
-            beta = next;
-            obj = next_obj;
-            if moved < 1e-10 {
-                break;
-            }
-        }
+        let beta = problem.newton()?;
         for (f, b) in feats.iter_mut().zip(&beta[1..]) {
             f.weight = *b;
         }
@@ -334,6 +204,200 @@ impl Detector {
             include_str!("../../../../assets/detector.json"),
             Path::new("assets/detector.json (built in)"),
         )
+    }
+}
+
+/// An error of [`Detector::fit_with`].
+fn fit_error(m: String) -> Error {
+    Error::Other(format!("detector fit: {m}"))
+}
+
+/// [`Detector::fit_with`]'s checks of its arguments' shapes, classes and penalty.
+fn check_fit_inputs(names: &[String], rows: &[Vec<f64>], labels: &[bool], l2: f64) -> Result<()> {
+    if rows.len() != labels.len() {
+        return Err(fit_error(format!(
+            "{} rows but {} labels",
+            rows.len(),
+            labels.len()
+        )));
+    }
+    if let Some((i, r)) = rows
+        .iter()
+        .enumerate()
+        .find(|(_, r)| r.len() != names.len())
+    {
+        return Err(fit_error(format!(
+            "row {i} has {} values for {} names",
+            r.len(),
+            names.len()
+        )));
+    }
+    let n_pos = labels.iter().filter(|&&y| y).count();
+    if n_pos == 0 || n_pos == labels.len() {
+        return Err(fit_error(format!(
+            "needs plain and stego models, got {n_pos} stego of {}",
+            labels.len()
+        )));
+    }
+    if !(l2 > 0.0 && l2.is_finite()) {
+        return Err(fit_error(format!(
+            "the L2 penalty must be positive, got {l2}"
+        )));
+    }
+    Ok(())
+}
+
+/// Standardisation over the values present: each usable feature's mean and standard
+/// deviation (its weight 0 for now), and its column in `rows`. Features missing everywhere
+/// or constant are left out.
+fn standardisation(names: &[String], rows: &[Vec<f64>]) -> (Vec<FeatureWeight>, Vec<usize>) {
+    let mut feats: Vec<FeatureWeight> = Vec::new();
+    let mut cols: Vec<usize> = Vec::new();
+    for (j, name) in names.iter().enumerate() {
+        let vals: Vec<f64> = rows
+            .iter()
+            .map(|r| r[j])
+            .filter(|v| v.is_finite())
+            .collect();
+        if vals.is_empty() {
+            continue;
+        }
+        let mean = vals.iter().sum::<f64>() / vals.len() as f64;
+        let var = vals.iter().map(|v| (v - mean) * (v - mean)).sum::<f64>() / vals.len() as f64;
+        let std = var.sqrt();
+        if std == 0.0 || std <= 1e-12 * mean.abs() {
+            continue;
+        }
+        feats.push(FeatureWeight {
+            name: name.clone(),
+            mean,
+            std,
+            weight: 0.0,
+        });
+        cols.push(j);
+    }
+    (feats, cols)
+}
+
+/// One row a model: 1 (the bias's input), then its standardised features (0, the mean,
+/// where one is missing).
+fn design_matrix(rows: &[Vec<f64>], feats: &[FeatureWeight], cols: &[usize]) -> Vec<Vec<f64>> {
+    let p = feats.len() + 1;
+    rows.iter()
+        .map(|r| {
+            let mut z = Vec::with_capacity(p);
+            z.push(1.0);
+            for (f, &j) in feats.iter().zip(cols) {
+                let v = r[j];
+                z.push(if v.is_finite() {
+                    (v - f.mean) / f.std
+                } else {
+                    0.0
+                });
+            }
+            z
+        })
+        .collect()
+}
+
+/// The penalised logistic regression [`Detector::fit_with`] solves: design rows `x` of
+/// `p` values (the bias's input first), labels `y` (1 = stego), and the L2 penalty `l2` on
+/// all coefficients but the bias.
+struct Logistic {
+    x: Vec<Vec<f64>>,
+    y: Vec<f64>,
+    p: usize,
+    l2: f64,
+}
+
+impl Logistic {
+    /// The penalised negative log-likelihood at `beta`.
+    fn objective(&self, beta: &[f64]) -> f64 {
+        let mut nll = 0.0;
+        for (xi, &yi) in self.x.iter().zip(&self.y) {
+            let t: f64 = xi.iter().zip(beta).map(|(a, b)| a * b).sum();
+            // log(1 + e^t) − y·t, stably.
+            nll += t.max(0.0) + (-t.abs()).exp().ln_1p() - yi * t;
+        }
+        nll + 0.5 * self.l2 * beta[1..].iter().map(|b| b * b).sum::<f64>()
+    }
+
+    /// The objective's gradient and Hessian (row-major `p`×`p`) at `beta`.
+    fn gradient_hessian(&self, beta: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let p = self.p;
+        let mut g = vec![0.0; p];
+        let mut h = vec![0.0; p * p];
+        for (xi, &yi) in self.x.iter().zip(&self.y) {
+            let t: f64 = xi.iter().zip(beta).map(|(a, b)| a * b).sum();
+            let s = sigmoid(t);
+            let w = s * (1.0 - s);
+            for a in 0..p {
+                g[a] += (s - yi) * xi[a];
+                for b in 0..=a {
+                    h[a * p + b] += w * xi[a] * xi[b];
+                }
+            }
+        }
+        for a in 0..p {
+            for b in 0..a {
+                h[b * p + a] = h[a * p + b];
+            }
+            if a > 0 {
+                g[a] += self.l2 * beta[a];
+                h[a * p + a] += self.l2;
+            } else {
+                // The bias is unpenalised; a hair of curvature keeps the system
+                // definite when every probability saturates.
+                h[0] += 1e-9;
+            }
+        }
+        (g, h)
+    }
+
+    /// Newton with step halving: `beta − t·step` for t = 1, 1/2, … until the objective
+    /// (`obj` at `beta`) does not grow, which it must for some t as it is convex. The last
+    /// point tried and its objective (above `obj` when 30 halvings found none).
+    fn line_search(&self, beta: &[f64], step: &[f64], obj: f64) -> (Vec<f64>, f64) {
+        let mut t = 1.0;
+        let mut next = beta.to_vec();
+        let mut next_obj = obj;
+        for _ in 0..30 {
+            for a in 0..self.p {
+                next[a] = beta[a] - t * step[a];
+            }
+            next_obj = self.objective(&next);
+            if next_obj <= obj {
+                break;
+            }
+            t *= 0.5;
+        }
+        (next, next_obj)
+    }
+
+    /// The coefficients (bias first) minimising the objective, from zero: at most 100
+    /// Newton steps, until one moves no coefficient by 1e-10 or fails to descend.
+    fn newton(&self) -> Result<Vec<f64>> {
+        let p = self.p;
+        let mut beta = vec![0.0; p];
+        let mut obj = self.objective(&beta);
+        for _ in 0..100 {
+            let (g, h) = self.gradient_hessian(&beta);
+            let step = cholesky_solve(&h, &g, p)
+                .ok_or_else(|| fit_error("the Newton system is singular".into()))?;
+            let (next, next_obj) = self.line_search(&beta, &step, obj);
+            let moved = (0..p)
+                .map(|a| (next[a] - beta[a]).abs())
+                .fold(0.0, f64::max);
+            if next_obj > obj {
+                break;
+            }
+            beta = next;
+            obj = next_obj;
+            if moved < 1e-10 {
+                break;
+            }
+        }
+        Ok(beta)
     }
 }
 
