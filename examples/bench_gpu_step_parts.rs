@@ -60,9 +60,17 @@ fn main() {
     let ctx = &ctx;
     println!("adapter: {}", ctx.report());
     println!("{:<60} {:>14} {:>14}", "", "GPU", "CPU");
+    // One generator, drawn by the parts in turn: their order fixes each part's data.
     let mut rng = Pcg32::new(3, 3);
+    bench_optimizer(ctx, &mut rng);
+    let samples = Samples::draw(&mut rng, 1 << 14, 16);
+    bench_loss(ctx, &samples);
+    bench_occupancy(ctx, &mut rng);
+    bench_compositing(ctx, &samples);
+}
 
-    // Adam + EMA over the paper model (16×2, T = 2^19): every parameter with a gradient.
+/// Adam + EMA over the paper model (16×2, T = 2^19): every parameter with a gradient.
+fn bench_optimizer(ctx: &GpuContext, rng: &mut Pcg32) {
     let net = NerfNetwork::new(ModelConfig::default()).unwrap();
     let n = net.layout.n_params;
     let n_matrix = net.layout.n_mlp_params();
@@ -90,35 +98,66 @@ fn main() {
         1e3 * t_gpu,
         1e3 * t_cpu
     );
+}
 
-    // The training loss: 2^14 rays of 16 samples.
-    let (n_rays, per_ray) = (1usize << 14, 16usize);
-    let ns = n_rays * per_ray;
-    let raw: Vec<[f32; 4]> = (0..ns)
-        .map(|_| std::array::from_fn(|k| rng.next_f32() * 4.0 - if k == 3 { 3.0 } else { 2.0 }))
-        .collect();
-    let dt = vec![0.01f32; ns];
-    let dist: Vec<f32> = (0..ns).map(|i| 0.5 + 0.01 * (i % per_ray) as f32).collect();
-    let pos: Vec<[f32; 3]> = (0..ns)
-        .map(|_| [rng.next_f32(), rng.next_f32(), rng.next_f32()])
-        .collect();
-    let rays: Vec<GpuRay> = (0..n_rays)
-        .map(|r| GpuRay {
-            start: (r * per_ray) as u32,
-            n: per_ray as u32,
-            bg: [0.5; 3],
-            target: [0.2, 0.4, 0.6],
-        })
-        .collect();
+/// Rays of samples for the loss (and, the first of them, for compositing).
+struct Samples {
+    raw: Vec<[f32; 4]>,
+    dt: Vec<f32>,
+    dist: Vec<f32>,
+    pos: Vec<[f32; 3]>,
+    rays: Vec<GpuRay>,
+}
+
+impl Samples {
+    /// `n_rays` rays of `per_ray` random samples.
+    fn draw(rng: &mut Pcg32, n_rays: usize, per_ray: usize) -> Samples {
+        let ns = n_rays * per_ray;
+        let raw: Vec<[f32; 4]> = (0..ns)
+            .map(|_| std::array::from_fn(|k| rng.next_f32() * 4.0 - if k == 3 { 3.0 } else { 2.0 }))
+            .collect();
+        let dt = vec![0.01f32; ns];
+        let dist: Vec<f32> = (0..ns).map(|i| 0.5 + 0.01 * (i % per_ray) as f32).collect();
+        let pos: Vec<[f32; 3]> = (0..ns)
+            .map(|_| [rng.next_f32(), rng.next_f32(), rng.next_f32()])
+            .collect();
+        let rays: Vec<GpuRay> = (0..n_rays)
+            .map(|r| GpuRay {
+                start: (r * per_ray) as u32,
+                n: per_ray as u32,
+                bg: [0.5; 3],
+                target: [0.2, 0.4, 0.6],
+            })
+            .collect();
+        Samples {
+            raw,
+            dt,
+            dist,
+            pos,
+            rays,
+        }
+    }
+}
+
+/// The training loss over `samples` (2^14 rays of 16 samples).
+fn bench_loss(ctx: &GpuContext, samples: &Samples) {
+    let Samples {
+        raw,
+        dt,
+        dist,
+        pos,
+        rays,
+    } = samples;
+    let (n_rays, ns) = (rays.len(), raw.len());
     let marcher = Marcher::new(1);
     let cfg = LossConfig::new(&marcher, 1.0 / n_rays as f32, DENSITY_PULL_UP);
     let loss = LossKernel::new(ctx).unwrap();
     let host = HostBatch {
-        rays: &rays,
-        raw: &raw,
-        dt: &dt,
-        dist: &dist,
-        pos: &pos,
+        rays,
+        raw,
+        dt,
+        dist,
+        pos,
     };
     // Upload and readback included: an upper bound on the kernel's time.
     let t_gpu = best(|| {
@@ -126,7 +165,7 @@ fn main() {
     });
     let mut d_raw = vec![[0.0f32; 4]; ns];
     let t_cpu = best(|| {
-        for r in &rays {
+        for r in rays {
             let s = r.start as usize..(r.start + r.n) as usize;
             let p = &pos[s.clone()];
             ray_loss(
@@ -148,8 +187,10 @@ fn main() {
         ns as f64 / t_gpu / 1e6,
         ns as f64 / t_cpu / 1e6
     );
+}
 
-    // One occupancy update at aabb 1 as in the first 256 steps: every cell drawn once.
+/// One occupancy update at aabb 1 as in the first 256 steps: every cell drawn once.
+fn bench_occupancy(ctx: &GpuContext, rng: &mut Pcg32) {
     let marcher = Marcher::new(1);
     let mut cpu_grid = OccupancyGrid::new(1);
     let mut gpu_grid = GpuOccupancy::upload(ctx, &cpu_grid, &marcher).unwrap();
@@ -173,14 +214,16 @@ fn main() {
         1e3 * t_gpu,
         1e3 * t_cpu
     );
+}
 
-    // A rendering wave: 2^15 rays of 8 samples (the loss's samples again).
+/// A rendering wave: 2^15 rays of 8 samples (the loss's samples again).
+fn bench_compositing(ctx: &GpuContext, samples: &Samples) {
     let n_rays = 1u32 << 15;
     let ns = 8 * n_rays as usize;
     let comp = CompositeKernel::new(ctx).unwrap();
     let state = comp.state(ctx, n_rays).unwrap();
     let waves: Vec<[u32; 2]> = (0..n_rays).map(|r| [8 * r, 8]).collect();
-    let (raw, dt, dist) = (&raw[..ns], &dt[..ns], &dist[..ns]);
+    let (raw, dt, dist) = (&samples.raw[..ns], &samples.dt[..ns], &samples.dist[..ns]);
     let b = |l, v: &[u8]| buffer(ctx, l, v);
     let (wave, b_raw, b_dt, b_dist) = (
         b("wave", bytemuck::cast_slice(&waves)),

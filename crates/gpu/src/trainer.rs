@@ -75,8 +75,8 @@ use super::{GpuContext, GpuError, GpuIndex, GpuResult, device_buffer};
 use ngp::data::Dataset;
 use ngp::encoding::{LevelIndices, check_indices};
 use ngp::model::Model;
-use ngp::network::ModelConfig;
 use ngp::network::nerf::NerfNetwork;
+use ngp::network::{ModelConfig, NerfLayout};
 use ngp::occupancy::{MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid};
 use ngp::render::march::Marcher;
 use ngp::train::hooks::{PolicyOps, StepInfo, TableBounds, TrainPolicy};
@@ -266,52 +266,82 @@ fn input<T>(msg: String) -> GpuResult<T> {
     Err(GpuError::Input(msg))
 }
 
-impl<'c> GpuTrainer<'c> {
-    /// A trainer of `scenes` (scene 0 the one a model publishes, the others weighted by
-    /// `config.others_weight`) with `model`'s architecture, starting from the weights
-    /// and occupancy grids the CPU [`Trainer`](ngp::train::Trainer) starts from for
-    /// `config.seed`, with its checks. `config.schedule` applies; `workers` does not.
-    pub fn new(
-        ctx: &'c GpuContext,
-        model: ModelConfig,
-        scenes: Vec<SceneSpec>,
-        config: TrainConfig,
-    ) -> GpuResult<Self> {
-        if scenes.is_empty() {
-            return input("no scene to train".into());
-        }
-        let net = NerfNetwork::new(model).map_err(|e| GpuError::Input(e.to_string()))?;
-        let layout = net.layout.clone();
-        let n_levels = layout.grid.levels.len();
-        for s in &scenes {
-            if s.indices.len() != n_levels {
-                return input(format!(
-                    "{} index functions for {n_levels} grid levels",
-                    s.indices.len()
-                ));
-            }
-            check_indices(&s.indices, &layout.grid).map_err(|e| GpuError::Input(e.to_string()))?;
-            if s.dataset.frames.is_empty() {
-                return input(format!("{}: no training images", s.dataset.root.display()));
-            }
-            if s.dataset.aabb_scale != model.aabb_scale {
-                return input(format!(
-                    "{}: aabb_scale {} differs from the model's {}",
-                    s.dataset.root.display(),
-                    s.dataset.aabb_scale,
-                    model.aabb_scale
-                ));
-            }
-        }
-        if config.batch_samples == 0 {
-            return input("a batch of 0 samples".into());
-        }
-        if !(config.others_batch > 0.0 && config.others_batch <= 1.0) {
+/// [`GpuTrainer::new`]'s checks of its scenes against the model, and of the batch.
+fn check_inputs(
+    scenes: &[SceneSpec],
+    layout: &NerfLayout,
+    model: ModelConfig,
+    config: &TrainConfig,
+) -> GpuResult<()> {
+    let n_levels = layout.grid.levels.len();
+    for s in scenes {
+        if s.indices.len() != n_levels {
             return input(format!(
-                "the other scenes' batch fraction must be in (0, 1], not {}",
-                config.others_batch
+                "{} index functions for {n_levels} grid levels",
+                s.indices.len()
             ));
         }
+        check_indices(&s.indices, &layout.grid).map_err(|e| GpuError::Input(e.to_string()))?;
+        if s.dataset.frames.is_empty() {
+            return input(format!("{}: no training images", s.dataset.root.display()));
+        }
+        if s.dataset.aabb_scale != model.aabb_scale {
+            return input(format!(
+                "{}: aabb_scale {} differs from the model's {}",
+                s.dataset.root.display(),
+                s.dataset.aabb_scale,
+                model.aabb_scale
+            ));
+        }
+    }
+    if config.batch_samples == 0 {
+        return input("a batch of 0 samples".into());
+    }
+    if !(config.others_batch > 0.0 && config.others_batch <= 1.0) {
+        return input(format!(
+            "the other scenes' batch fraction must be in (0, 1], not {}",
+            config.others_batch
+        ));
+    }
+    Ok(())
+}
+
+/// The CPU engine's options a GPU trainer refuses.
+fn check_cpu_only(config: &TrainConfig) -> GpuResult<()> {
+    if config.occupancy_budget.is_some_and(|r| r > 0.0) {
+        return input(
+            "an occupancy budget is for the CPU engine: a GPU keeps the reference's schedule"
+                .to_string(),
+        );
+    }
+    if config.coarse_march.is_some_and(|s| s > 0) {
+        return input(
+            "a coarse march is for the CPU engine: a GPU marches the reference's step".to_string(),
+        );
+    }
+    Ok(())
+}
+
+/// How many samples the trainer's buffers hold, for a batch's target on this device.
+#[derive(Clone, Copy)]
+struct SampleSizes {
+    /// Floats of a sample's grid encoding.
+    width: u64,
+    /// Marched samples a batch may hold ([`BUDGET_FACTOR`]).
+    budget: u32,
+    /// Trained samples the network's workspace holds ([`CAPACITY_FACTOR`]): one chunk of
+    /// the training pass.
+    capacity: u32,
+}
+
+impl SampleSizes {
+    /// The sizes for `config`'s batch within the device's largest binding, or an error
+    /// where even the batch's target does not fit.
+    fn for_device(
+        ctx: &GpuContext,
+        layout: &NerfLayout,
+        config: &TrainConfig,
+    ) -> GpuResult<SampleSizes> {
         let limits = ctx.device.limits();
         let max = limits
             .max_storage_buffer_binding_size
@@ -338,13 +368,64 @@ impl<'c> GpuTrainer<'c> {
                 config.batch_samples
             ));
         }
-        let params = net.init_params(config.seed);
-        // The field's own index is scene 0's; the trainer binds each scene's.
-        let field = GpuField::new(ctx, &layout, &params, &scenes[0].indices)?;
-        let marcher = Marcher::new(model.aabb_scale);
+        Ok(SampleSizes {
+            width,
+            budget,
+            capacity,
+        })
+    }
+}
+
+/// The trainer's sample buffers and its gradient, as [`GpuTrainer`]'s fields of the same
+/// names.
+struct SampleBuffers {
+    raw: wgpu::Buffer,
+    log_density: wgpu::Buffer,
+    enc: wgpu::Buffer,
+    enc_copied: wgpu::Buffer,
+    d_enc: wgpu::Buffer,
+    grad: wgpu::Buffer,
+    ray_out: wgpu::Buffer,
+}
+
+impl SampleBuffers {
+    fn new(ctx: &GpuContext, sizes: &SampleSizes, n_params: usize) -> GpuResult<SampleBuffers> {
+        let SampleSizes {
+            width,
+            budget,
+            capacity,
+        } = *sizes;
+        let b = budget as u64;
+        ctx.scoped("trainer buffers", || SampleBuffers {
+            raw: device_buffer(ctx, "trainer raw", 16 * b),
+            log_density: device_buffer(ctx, "trainer log-densities", 4 * b),
+            enc: device_buffer(ctx, "trainer encoding", 4 * width * b),
+            enc_copied: device_buffer(ctx, "trainer encoding, copied", 4 * width * capacity as u64),
+            d_enc: device_buffer(
+                ctx,
+                "trainer encoding gradient",
+                4 * width * capacity as u64,
+            ),
+            grad: device_buffer(ctx, "trainer gradient", 4 * n_params as u64),
+            ray_out: device_buffer(ctx, "trainer ray losses", 8 * MAX_RAYS as u64),
+        })
+    }
+}
+
+impl GpuScene {
+    /// `scenes` on the device, each with the occupancy grid the CPU trainer starts it
+    /// from; scene 0's loss weighs 1, the others' `config.others_weight`.
+    fn upload_all(
+        ctx: &GpuContext,
+        field: &GpuField,
+        marcher: &Marcher,
+        aabb_scale: u32,
+        scenes: Vec<SceneSpec>,
+        config: &TrainConfig,
+    ) -> GpuResult<Vec<GpuScene>> {
         let mut states = Vec::with_capacity(scenes.len());
         for s in scenes {
-            let grid = starting_grid(model.aabb_scale, &s.dataset);
+            let grid = starting_grid(aabb_scale, &s.dataset);
             let loss_weight = if states.is_empty() {
                 1.0
             } else {
@@ -352,8 +433,8 @@ impl<'c> GpuTrainer<'c> {
             };
             states.push(GpuScene {
                 index: field.grid().upload_index(ctx, &s.indices)?,
-                occupancy: GpuOccupancy::upload(ctx, &grid, &marcher)?,
-                rays: RayKernels::new(ctx, &s.dataset.frames, &marcher)?,
+                occupancy: GpuOccupancy::upload(ctx, &grid, marcher)?,
+                rays: RayKernels::new(ctx, &s.dataset.frames, marcher)?,
                 grid_mean: grid.mean,
                 dataset: s.dataset,
                 indices: s.indices,
@@ -364,6 +445,37 @@ impl<'c> GpuTrainer<'c> {
                 recent_asked: None,
             });
         }
+        Ok(states)
+    }
+}
+
+impl<'c> GpuTrainer<'c> {
+    /// A trainer of `scenes` (scene 0 the one a model publishes, the others weighted by
+    /// `config.others_weight`) with `model`'s architecture, starting from the weights
+    /// and occupancy grids the CPU [`Trainer`](ngp::train::Trainer) starts from for
+    /// `config.seed`, with its checks. `config.schedule` applies; `workers` does not.
+    pub fn new(
+        ctx: &'c GpuContext,
+        model: ModelConfig,
+        scenes: Vec<SceneSpec>,
+        config: TrainConfig,
+    ) -> GpuResult<Self> {
+        if scenes.is_empty() {
+            return input("no scene to train".into());
+        }
+        let net = NerfNetwork::new(model).map_err(|e| GpuError::Input(e.to_string()))?;
+        let layout = net.layout.clone();
+        check_inputs(&scenes, &layout, model, &config)?;
+        let sizes = SampleSizes::for_device(ctx, &layout, &config)?;
+        let SampleSizes {
+            budget, capacity, ..
+        } = sizes;
+        let params = net.init_params(config.seed);
+        // The field's own index is scene 0's; the trainer binds each scene's.
+        let field = GpuField::new(ctx, &layout, &params, &scenes[0].indices)?;
+        let marcher = Marcher::new(model.aabb_scale);
+        let states =
+            GpuScene::upload_all(ctx, &field, &marcher, model.aabb_scale, scenes, &config)?;
         let batch = RayBatch::new(ctx, MAX_RAYS, budget)?;
         let loss = LossKernel::new(ctx)?;
         let optimizer = GpuOptimizer::new(
@@ -385,35 +497,18 @@ impl<'c> GpuTrainer<'c> {
         let compacted_all =
             DeviceCount::new(ctx, &counter, &compacted.counters, 1, 0, budget, &slots)?;
         let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
-        let b = budget as u64;
-        let (raw, log_density, enc, enc_copied, d_enc, grad, ray_out) =
-            ctx.scoped("trainer buffers", || {
-                (
-                    device_buffer(ctx, "trainer raw", 16 * b),
-                    device_buffer(ctx, "trainer log-densities", 4 * b),
-                    device_buffer(ctx, "trainer encoding", 4 * width * b),
-                    device_buffer(ctx, "trainer encoding, copied", 4 * width * capacity as u64),
-                    device_buffer(
-                        ctx,
-                        "trainer encoding gradient",
-                        4 * width * capacity as u64,
-                    ),
-                    device_buffer(ctx, "trainer gradient", 4 * layout.n_params as u64),
-                    device_buffer(ctx, "trainer ray losses", 8 * MAX_RAYS as u64),
-                )
-            })?;
-        if config.occupancy_budget.is_some_and(|r| r > 0.0) {
-            return input(
-                "an occupancy budget is for the CPU engine: a GPU keeps the reference's schedule"
-                    .to_string(),
-            );
-        }
-        if config.coarse_march.is_some_and(|s| s > 0) {
-            return input(
-                "a coarse march is for the CPU engine: a GPU marches the reference's step"
-                    .to_string(),
-            );
-        }
+        let SampleBuffers {
+            raw,
+            log_density,
+            enc,
+            enc_copied,
+            d_enc,
+            grad,
+            ray_out,
+        } = SampleBuffers::new(ctx, &sizes, layout.n_params)?;
+        // Refused after the allocations, where it always was: on a device that fails to
+        // allocate, the device's error still comes first.
+        check_cpu_only(&config)?;
         Ok(GpuTrainer {
             ctx,
             config,
