@@ -26,6 +26,7 @@ mod bench {
     use stegongp::gpu::{GpuContext, GpuOccupancy, RayBatch, RayKernels};
     use stegongp::ngp::camera::Camera;
     use stegongp::ngp::data::{Frame, Image};
+    use stegongp::ngp::geometry::normalize;
     use stegongp::ngp::occupancy::{
         GRID_SIZE, N_CELLS, OccupancyGrid, morton3d_invert, n_cascades,
     };
@@ -33,11 +34,6 @@ mod bench {
     use stegongp::rng::Pcg32;
 
     const BUDGET: u32 = 1 << 18;
-
-    fn normalize(a: [f32; 3]) -> [f32; 3] {
-        let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-        a.map(|v| v / n)
-    }
 
     fn frames(aabb: u32) -> Vec<Frame> {
         let mut r = Pcg32::new(5, 1);

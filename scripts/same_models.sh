@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Issue 67's check that a refactor changes no CPU model: trains the same small models with
 # two builds of `stegongp` (same seed, data, options, thread count) and compares the files
-# byte for byte, and their renders pixel for pixel (PNG bytes).
+# byte for byte, and their renders pixel for pixel (PNG bytes), and two generated scenes.
 #
 #   scripts/same_models.sh OLD_BINARY NEW_BINARY OUT_DIR [DATA_DIR]
 #
@@ -40,6 +40,9 @@ for b in old new; do
     --save-every 4 --out "$d/plain-killed.ingp" 2>/dev/null
   "$bin" train "$data/lego" --downscale 8 "${small[@]}" --save-every 4 \
     --resume "$d/plain-killed.checkpoint.msgpack" --out "$d/plain-resumed.ingp" 2>/dev/null
+  "$bin" synth --scene object --res 48 --train 4 --test 1 --out "$d/synth-object" >/dev/null 2>&1
+  "$bin" synth --scene room --aabb-scale 4 --res 48 --train 4 --test 1 --out "$d/synth-room" \
+    >/dev/null 2>&1
   "$bin" render --model "$d/lego.ingp" --data "$data/lego" --split test --downscale 8 \
     --views 2 --out "$d/lego-render" >/dev/null 2>&1
 done
@@ -49,5 +52,9 @@ for f in lego.ingp fox.msgpack default.ingp stealth.ingp robust.ingp resumed.ing
 done
 for r in lego-render default-hidden stealth-hidden robust-hidden; do
   for png in "$out/old/$r"/*.png; do same "$r/$(basename "$png")" "$png" "$out/new/$r/$(basename "$png")"; done
+done
+for g in synth-object synth-room; do
+  if diff -r -q "$out/old/$g" "$out/new/$g" >/dev/null; then echo "same       $g/"; else
+    echo "DIFFERENT  $g/"; fail=1; fi
 done
 exit $fail

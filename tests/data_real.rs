@@ -222,7 +222,7 @@ fn similarity(a: &[V3], b: &[V3]) -> (f64, [[f64; 3]; 3], V3) {
         let l = r.iter().map(|v| v * v).sum::<f64>().sqrt();
         q = r.map(|v| v / l);
     }
-    let rot = stegongp::ngp::data::colmap2nerf::qvec_to_rotmat(q);
+    let rot = stegongp::ngp::geometry::quat_to_rotation(q);
     let (mut num, mut den) = (0.0, 0.0);
     for (p, qq) in a.iter().zip(b) {
         let ra = mat_vec(&rot, sub(*p, ma));

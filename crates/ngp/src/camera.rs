@@ -4,6 +4,8 @@
 //! (i+0.5, j+0.5). This is the reference's `uv · resolution` convention, so the principal
 //! point and focal lengths scale exactly by 1/n when an image is downscaled n times.
 
+use crate::geometry::{dot, normalize};
+
 /// OpenCV lens distortion (k1, k2 radial; p1, p2 tangential) on normalised image coordinates.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Distortion {
@@ -165,21 +167,6 @@ impl Camera {
         let r = self.ray(px, py);
         let e = [r.d[0] - dir[0], r.d[1] - dir[1], r.d[2] - dir[2]];
         dot(e, e).sqrt() < 1e-3
-    }
-}
-
-#[inline]
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-#[inline]
-fn normalize(a: [f32; 3]) -> [f32; 3] {
-    let n = dot(a, a).sqrt();
-    if n > 0.0 {
-        [a[0] / n, a[1] / n, a[2] / n]
-    } else {
-        a
     }
 }
 

@@ -9,6 +9,7 @@ pub mod data;
 pub mod encoding;
 pub mod error;
 pub mod eval;
+pub mod geometry;
 pub mod lpips;
 pub mod mesh;
 pub mod metrics;

@@ -10,6 +10,7 @@
 use ngp::camera::Camera;
 use ngp::data::transforms::nerf_to_ngp;
 use ngp::error::{Error, Result};
+use ngp::geometry::{add, cross, dist, dot, norm, normalize, scale, sub};
 use serde_json::{Map, Value, json};
 use std::path::Path;
 
@@ -824,36 +825,6 @@ pub fn instant_ngp_json(path: &CameraPath) -> Value {
 // ---------------------------------------------------------------------------------------------
 // Small vector algebra
 
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn add(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn scale(a: [f32; 3], s: f32) -> [f32; 3] {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-fn norm(a: [f32; 3]) -> f32 {
-    dot(a, a).sqrt()
-}
-fn dist(a: [f32; 3], b: [f32; 3]) -> f32 {
-    norm(sub(a, b))
-}
-fn normalize(a: [f32; 3]) -> [f32; 3] {
-    let n = norm(a);
-    if n > 0.0 { scale(a, 1.0 / n) } else { a }
-}
-fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
 /// Up as the direction the cameras' right axes are most nearly perpendicular to (upright
 /// cameras hold their right axis level), found by power iteration from `mean_up`, the mean
 /// of their up axes: that mean leans towards the scene when the cameras look down on it
@@ -938,26 +909,11 @@ fn solve3(a: [[f64; 3]; 3], b: [f64; 3], n: f64) -> Option<[f64; 3]> {
     Some(x)
 }
 
-/// Rotation of unit quaternion (x, y, z, w).
+/// Rotation of unit quaternion (x, y, z, w), the order of nerfstudio's and instant-ngp's
+/// path files.
 pub fn quat_to_mat(q: [f32; 4]) -> [[f32; 3]; 3] {
     let [x, y, z, w] = q;
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - z * w),
-            2.0 * (x * z + y * w),
-        ],
-        [
-            2.0 * (x * y + z * w),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - x * w),
-        ],
-        [
-            2.0 * (x * z - y * w),
-            2.0 * (y * z + x * w),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
+    ngp::geometry::quat_to_rotation([w, x, y, z])
 }
 
 /// Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method).

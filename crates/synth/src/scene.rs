@@ -5,30 +5,11 @@
 
 pub type V3 = [f32; 3];
 
-#[inline]
-pub fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-#[inline]
-pub fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-#[inline]
-pub fn mul(a: V3, s: f32) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-#[inline]
-pub fn dot(a: V3, b: V3) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-#[inline]
-pub fn cross(a: V3, b: V3) -> V3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
+pub use ngp::geometry::scale as mul;
+pub use ngp::geometry::{add, cross, dot, sub};
+
+/// `a` times the reciprocal of its length: not [`ngp::geometry::normalize`]'s division, so
+/// that every generated scene's images stay the bytes they have always been.
 #[inline]
 pub fn normalize(a: V3) -> V3 {
     mul(a, 1.0 / dot(a, a).sqrt())

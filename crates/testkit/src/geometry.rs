@@ -2,6 +2,8 @@
 //! rotations as quaternions) and to compare recovered poses with known ones (the
 //! similarity between two sets of points, the angle between two rotations).
 
+pub use ngp::geometry::{cross, quat_to_rotation};
+
 /// Shepperd's quaternion (w, x, y, z) of a rotation matrix, normalised.
 pub fn rot_to_quat(r: &[[f64; 3]; 3]) -> [f64; 4] {
     let tr = r[0][0] + r[1][1] + r[2][2];
@@ -40,36 +42,6 @@ pub fn rot_to_quat(r: &[[f64; 3]; 3]) -> [f64; 4] {
     };
     let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
     q.map(|v| v / n)
-}
-
-pub fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-/// Rotation matrix of a unit quaternion (w, x, y, z).
-pub fn quat_to_rot(q: [f64; 4]) -> [[f64; 3]; 3] {
-    let [w, x, y, z] = q;
-    [
-        [
-            1.0 - 2.0 * (y * y + z * z),
-            2.0 * (x * y - w * z),
-            2.0 * (x * z + w * y),
-        ],
-        [
-            2.0 * (x * y + w * z),
-            1.0 - 2.0 * (x * x + z * z),
-            2.0 * (y * z - w * x),
-        ],
-        [
-            2.0 * (x * z - w * y),
-            2.0 * (y * z + w * x),
-            1.0 - 2.0 * (x * x + y * y),
-        ],
-    ]
 }
 
 /// Eigenvalues and eigenvectors (the columns of the second) of a symmetric 4×4 matrix, by
@@ -160,7 +132,7 @@ pub fn similarity(from: &[[f64; 3]], to: &[[f64; 3]]) -> (f64, [[f64; 3]; 3], [f
         .expect("four eigenvalues");
     let q = [0, 1, 2, 3].map(|k| vecs[k][best]);
     let norm = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-    let r = quat_to_rot(q.map(|v| v / norm));
+    let r = quat_to_rotation(q.map(|v| v / norm));
     let rot = |p: [f64; 3]| [0, 1, 2].map(|i| (0..3).map(|k| r[i][k] * p[k]).sum::<f64>());
     let mut num = 0.0;
     for (a, b) in from.iter().zip(to) {
@@ -206,7 +178,7 @@ mod tests {
         );
         assert_eq!(cross([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]), [0.0, 0.0, 1.0]);
         for r in [rx, ry, rz] {
-            let back = quat_to_rot(rot_to_quat(&r));
+            let back = quat_to_rotation(rot_to_quat(&r));
             assert!(rotation_angle_deg(&r, &back) < 1e-6);
         }
     }
@@ -215,7 +187,7 @@ mod tests {
     fn a_known_similarity_is_recovered() {
         let q = [0.8f64, 0.1, -0.5, 0.3];
         let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let r = quat_to_rot(q.map(|v| v / n));
+        let r = quat_to_rotation(q.map(|v| v / n));
         let (s, t) = (2.5, [1.0, -3.0, 0.5]);
         let from: Vec<[f64; 3]> = (0..7)
             .map(|i| {

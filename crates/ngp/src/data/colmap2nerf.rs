@@ -26,6 +26,7 @@ use serde_json::{Value, json};
 use super::DatasetFormat;
 use super::image::image_size;
 use crate::error::{Error, Result};
+use crate::geometry::{cross, dot, norm, quat_to_rotation, scale};
 
 /// colmap2nerf's `--aabb_scale` default (ours are per format: see `colmap` and `llff`).
 pub const COLMAP2NERF_AABB_SCALE: u32 = 32;
@@ -179,52 +180,9 @@ pub struct Converted {
     pub norm: Normalisation,
 }
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-
-fn norm(a: [f64; 3]) -> f64 {
-    dot(a, a).sqrt()
-}
-
-fn scaled(a: [f64; 3], s: f64) -> [f64; 3] {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-
-/// Rotation matrix of a unit quaternion (w, x, y, z), COLMAP's `qvec2rotmat`. Callers
-/// normalise first.
-pub fn qvec_to_rotmat(q: [f64; 4]) -> [[f64; 3]; 3] {
-    let [w, x, y, z] = q;
-    [
-        [
-            1.0 - 2.0 * y * y - 2.0 * z * z,
-            2.0 * x * y - 2.0 * w * z,
-            2.0 * z * x + 2.0 * w * y,
-        ],
-        [
-            2.0 * x * y + 2.0 * w * z,
-            1.0 - 2.0 * x * x - 2.0 * z * z,
-            2.0 * y * z - 2.0 * w * x,
-        ],
-        [
-            2.0 * z * x - 2.0 * w * y,
-            2.0 * y * z + 2.0 * w * x,
-            1.0 - 2.0 * x * x - 2.0 * y * y,
-        ],
-    ]
-}
-
 /// Camera-to-world 3×4 of a COLMAP image (world-to-camera `x_c = R(q) x_w + t`).
 pub fn colmap_c2w(q: [f64; 4], t: [f64; 3]) -> [[f64; 4]; 3] {
-    let r = qvec_to_rotmat(q);
+    let r = quat_to_rotation(q);
     let mut m = [[0.0; 4]; 3];
     for i in 0..3 {
         for j in 0..3 {
@@ -239,8 +197,8 @@ pub fn colmap_c2w(q: [f64; 4], t: [f64; 3]) -> [[f64; 4]; 3] {
 /// `rotmat`). For opposite directions (where the script perturbs `a` at random) it returns
 /// a half-turn about an axis perpendicular to `b`.
 pub fn rotmat(a: [f64; 3], b: [f64; 3]) -> [[f64; 3]; 3] {
-    let a = scaled(a, 1.0 / norm(a));
-    let b = scaled(b, 1.0 / norm(b));
+    let a = scale(a, 1.0 / norm(a));
+    let b = scale(b, 1.0 / norm(b));
     let v = cross(a, b);
     let c = dot(a, b);
     if c < -1.0 + 1e-10 {
@@ -251,7 +209,7 @@ pub fn rotmat(a: [f64; 3], b: [f64; 3]) -> [[f64; 3]; 3] {
             [0.0, 1.0, 0.0]
         };
         let n = cross(b, helper);
-        let n = scaled(n, 1.0 / norm(n));
+        let n = scale(n, 1.0 / norm(n));
         let mut r = [[0.0; 3]; 3];
         for i in 0..3 {
             for j in 0..3 {
@@ -282,8 +240,8 @@ pub fn closest_point_2_lines(
     ob: [f64; 3],
     db: [f64; 3],
 ) -> ([f64; 3], f64) {
-    let da = scaled(da, 1.0 / norm(da));
-    let db = scaled(db, 1.0 / norm(db));
+    let da = scale(da, 1.0 / norm(da));
+    let db = scale(db, 1.0 / norm(db));
     let c = cross(da, db);
     let denom = dot(c, c);
     let t = [ob[0] - oa[0], ob[1] - oa[1], ob[2] - oa[2]];
@@ -340,7 +298,7 @@ pub fn normalise(
         .collect();
     let n_up = norm(up);
     let up = if n_up > 0.0 && n_up.is_finite() {
-        scaled(up, 1.0 / n_up)
+        scale(up, 1.0 / n_up)
     } else {
         [0.0, 0.0, 1.0]
     };
@@ -369,7 +327,7 @@ pub fn normalise(
                     totp[k] += o[k] - d * z[k];
                 }
             }
-            totp = scaled(totp, 1.0 / ms.len() as f64);
+            totp = scale(totp, 1.0 / ms.len() as f64);
         }
         None => {
             for f in &ms {
@@ -384,7 +342,7 @@ pub fn normalise(
                 }
             }
             if totw > 0.0 {
-                totp = scaled(totp, 1.0 / totw);
+                totp = scale(totp, 1.0 / totw);
             }
         }
     }
@@ -611,21 +569,21 @@ mod tests {
     #[test]
     fn quaternion_to_rotation_by_hand() {
         assert!(mat_close(
-            &qvec_to_rotmat([1.0, 0.0, 0.0, 0.0]),
+            &quat_to_rotation([1.0, 0.0, 0.0, 0.0]),
             &[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
             0.0
         ));
         // 90° about z: q = (cos 45°, 0, 0, sin 45°); x → y, y → −x.
         let h = std::f64::consts::FRAC_1_SQRT_2;
         assert!(mat_close(
-            &qvec_to_rotmat([h, 0.0, 0.0, h]),
+            &quat_to_rotation([h, 0.0, 0.0, h]),
             &[[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]],
             1e-12
         ));
         // 180° about x: q = (0, 1, 0, 0); y → −y, z → −z. −q is the same rotation.
         let r = [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]];
-        assert!(mat_close(&qvec_to_rotmat([0.0, 1.0, 0.0, 0.0]), &r, 0.0));
-        assert!(mat_close(&qvec_to_rotmat([0.0, -1.0, 0.0, 0.0]), &r, 0.0));
+        assert!(mat_close(&quat_to_rotation([0.0, 1.0, 0.0, 0.0]), &r, 0.0));
+        assert!(mat_close(&quat_to_rotation([0.0, -1.0, 0.0, 0.0]), &r, 0.0));
     }
 
     #[test]
@@ -651,7 +609,7 @@ mod tests {
             [0.2, 0.0, -1.0],
         ] {
             let r = rotmat(a, [0.0, 0.0, 1.0]);
-            let got = apply(&r, scaled(a, 1.0 / norm(a)));
+            let got = apply(&r, scale(a, 1.0 / norm(a)));
             assert!(
                 close(got[0], 0.0, 1e-6) && close(got[1], 0.0, 1e-6) && close(got[2], 1.0, 1e-6),
                 "{a:?} → {got:?}"
@@ -663,7 +621,7 @@ mod tests {
         // Nearly opposite: the reference's 1e-10 in (1 − c) / (s² + 1e-10) costs accuracy
         // (kept, to match it): within 1e-3 at 1e-3 from −z.
         let a = [1e-3, 0.0, -1.0];
-        let got = apply(&rotmat(a, [0.0, 0.0, 1.0]), scaled(a, 1.0 / norm(a)));
+        let got = apply(&rotmat(a, [0.0, 0.0, 1.0]), scale(a, 1.0 / norm(a)));
         assert!(close(got[2], 1.0, 1e-3), "{got:?}");
         // By hand: x onto z is a quarter turn about −y (v = x × z = −y, c = 0, R = I + K + K²).
         let r = rotmat([1.0, 0.0, 0.0], [0.0, 0.0, 1.0]);
@@ -713,10 +671,10 @@ mod tests {
     /// reconstructions of upright photos usually are).
     fn look_at_colmap(pos: [f64; 3], target: [f64; 3]) -> [[f64; 4]; 3] {
         let f = [target[0] - pos[0], target[1] - pos[1], target[2] - pos[2]];
-        let f = scaled(f, 1.0 / norm(f));
+        let f = scale(f, 1.0 / norm(f));
         let down = [0.0, 1.0, 0.0];
         let r = cross(down, f);
-        let r = scaled(r, 1.0 / norm(r));
+        let r = scale(r, 1.0 / norm(r));
         let d = cross(f, r);
         [
             [r[0], d[0], f[0], pos[0]],

@@ -11,7 +11,8 @@
 //! fine lattice, whose points outside occupied cells are masked).
 
 use super::Mesh;
-use super::table::{edge_corners, sub, table};
+use super::table::{edge_corners, table};
+use crate::geometry::sub;
 use rayon::prelude::*;
 
 /// No vertex on this edge.

@@ -9,6 +9,7 @@
 //! the mesh has no cracks and one orientation. The segments of a cell chain into closed
 //! loops, each fanned into triangles.
 
+use crate::geometry::{cross, dot, sub};
 use std::sync::OnceLock;
 
 /// Corner `c` of a cell sits at offset `(c & 1, c >> 1 & 1, c >> 2 & 1)`.
@@ -57,22 +58,6 @@ pub fn table() -> &'static Table {
 }
 
 type V = [f32; 3];
-
-pub(super) fn sub(a: V, b: V) -> V {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-fn dot(a: V, b: V) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: V, b: V) -> V {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
 
 fn corner_pos(c: usize) -> V {
     let o = corner_offset(c);

@@ -360,6 +360,7 @@ fn distance_to_next_voxel(p: [f32; 3], d: [f32; 3], idir: [f32; 3], res: f32) ->
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::geometry::normalize;
     use crate::occupancy::N_CELLS;
     use std::cell::Cell;
 
@@ -552,11 +553,6 @@ mod tests {
             differ * 200 <= n,
             "{differ} of {n} rays differ from the reference's walk"
         );
-    }
-
-    fn normalize(v: [f32; 3]) -> [f32; 3] {
-        let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-6);
-        [v[0] / l, v[1] / l, v[2] / l]
     }
 
     /// Empty space is skipped, at the reference's step and at a coarse training stride: every
