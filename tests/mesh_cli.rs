@@ -677,6 +677,7 @@ fn bad_input_is_refused_and_nothing_is_written() {
     );
     let ro = d.path().join("ro");
     std::fs::create_dir(&ro).unwrap();
+    // SAFETY: geteuid has no preconditions and cannot fail.
     let is_root = unsafe { libc::geteuid() } == 0;
     if !is_root {
         use std::os::unix::fs::PermissionsExt;

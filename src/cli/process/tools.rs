@@ -97,8 +97,9 @@ pub fn ffprobe(ffmpeg: Option<&Path>) -> Tool {
 /// stage's cost that does not depend on what else the machine runs.
 pub fn cpu_seconds() -> f64 {
     let used = |who| {
-        // SAFETY: getrusage fills the struct it is given and reads nothing else.
+        // SAFETY: rusage is plain integers, for which all zeros is a valid value.
         let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+        // SAFETY: getrusage fills the struct it is given and reads nothing else.
         if unsafe { libc::getrusage(who, &mut u) } != 0 {
             return 0.0;
         }
