@@ -292,18 +292,9 @@ fn poses(n: usize, train: bool, seed: u64) -> Vec<[[f32; 4]; 4]> {
 }
 
 fn encode_rgba_png(path: &Path, res: u32, rgba: &[u8]) -> Result<()> {
-    let mut buf = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut buf, res, res);
-        enc.set_color(png::ColorType::Rgba);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut wr = enc
-            .write_header()
-            .map_err(|e| Error::format(path, e.to_string()))?;
-        wr.write_image_data(rgba)
-            .map_err(|e| Error::format(path, e.to_string()))?;
-    }
-    write_atomic(path, &buf)
+    let bytes = ngp::data::png_bytes(res, res, 4, rgba, false)
+        .map_err(|e| Error::format(path, e.to_string()))?;
+    write_atomic(path, &bytes)
 }
 
 /// Writes `scene` as a NeRF-synthetic dataset (train and test splits) unless it is there:
