@@ -184,19 +184,41 @@ struct Checkpoint {
     /// 1: the reference's step).
     march_stride: u32,
     /// The training so far: its phase times (cumulative), to split a run by step range.
-    occupancy_seconds: f64,
-    rays_seconds: f64,
-    optimizer_seconds: f64,
-    /// Waiting for a GPU that runs ahead of the host (0 on the CPU).
-    wait_seconds: f64,
-    occupancy_updates: u32,
-    occupancy_evaluations: u64,
+    #[serde(flatten)]
+    phases: PhaseTotals,
     /// How long this checkpoint's evaluation took (not counted in the training's time).
     eval_seconds: f64,
     /// Seconds per evaluated view, and the network samples a ray its views took (0 where
     /// the renderer does not count them: a GPU's).
     seconds_per_view: f64,
     eval_samples_per_ray: f64,
+}
+
+/// The training's phase times and occupancy work (cumulative), as a checkpoint and the
+/// summary report them, in their place among the other fields.
+#[derive(Serialize)]
+struct PhaseTotals {
+    occupancy_seconds: f64,
+    rays_seconds: f64,
+    optimizer_seconds: f64,
+    /// Waiting for a GPU that runs ahead of the host (0 on the CPU).
+    wait_seconds: f64,
+    /// Occupancy-grid updates made and the densities they evaluated.
+    occupancy_updates: u32,
+    occupancy_evaluations: u64,
+}
+
+impl PhaseTotals {
+    fn of(t: &Totals) -> Self {
+        PhaseTotals {
+            occupancy_seconds: t.occupancy_seconds,
+            rays_seconds: t.rays_seconds,
+            optimizer_seconds: t.optimizer_seconds,
+            wait_seconds: t.wait_seconds,
+            occupancy_updates: t.occupancy_updates,
+            occupancy_evaluations: t.occupancy_evaluations,
+        }
+    }
 }
 
 #[derive(Serialize)]
@@ -228,14 +250,8 @@ struct Summary {
     /// CPU).
     host_waits_per_step: f64,
     submissions_per_step: f64,
-    occupancy_seconds: f64,
-    rays_seconds: f64,
-    optimizer_seconds: f64,
-    /// Waiting for a GPU that runs ahead of the host (0 on the CPU).
-    wait_seconds: f64,
-    /// Occupancy-grid updates made and the densities they evaluated.
-    occupancy_updates: u32,
-    occupancy_evaluations: u64,
+    #[serde(flatten)]
+    phases: PhaseTotals,
     /// The budget that sized the updates (evaluations per trained sample); null for the
     /// reference's schedule.
     occupancy_budget: Option<f32>,
@@ -735,12 +751,7 @@ impl<'a> CheckpointScorer<'a> {
             occupied_per_cascade: march.occupied,
             occupancy_threshold: march.threshold,
             march_stride: stride,
-            occupancy_seconds: t.occupancy_seconds,
-            rays_seconds: t.rays_seconds,
-            optimizer_seconds: t.optimizer_seconds,
-            wait_seconds: t.wait_seconds,
-            occupancy_updates: t.occupancy_updates,
-            occupancy_evaluations: t.occupancy_evaluations,
+            phases: PhaseTotals::of(&t),
             eval_seconds,
             seconds_per_view,
             eval_samples_per_ray,
@@ -801,12 +812,7 @@ pub fn run(a: Args) -> Result<()> {
         dropped_rays: t.dropped_rays,
         host_waits_per_step: t.host_waits as f64 / steps,
         submissions_per_step: t.submissions as f64 / steps,
-        occupancy_seconds: t.occupancy_seconds,
-        rays_seconds: t.rays_seconds,
-        optimizer_seconds: t.optimizer_seconds,
-        wait_seconds: t.wait_seconds,
-        occupancy_updates: t.occupancy_updates,
-        occupancy_evaluations: t.occupancy_evaluations,
+        phases: PhaseTotals::of(&t),
         occupancy_budget: recipe.occupancy_budget(&device),
         coarse_march: recipe.coarse_march(&device),
         half_grid: a.half_grid,
