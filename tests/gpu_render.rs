@@ -63,15 +63,8 @@ fn fixture() -> Option<&'static Fixture> {
         let key = seeded_key(SchemeKind::Prf, 1, 42, 1);
         let reference = reference_indices(&layout.grid);
         let t0 = Instant::now();
-        let steps = StepOptions {
-            seed: 7,
-            batch: 1 << 12,
-            occupancy_fraction: 1.0 / 128.0,
-            // The fixture is built by hand on the reference's schedule and step.
-            occupancy_budget: Some(0.0),
-            coarse_march: Some(0),
-            workers: 0,
-        };
+        // The fixture is built by hand on the reference's schedule and step.
+        let steps = StepOptions::reference_schedule(7, 1 << 12, 1.0 / 128.0);
         let hidden = vec![(Arc::new(hidden_train), key.clone())];
         let model = trained(cfg, Arc::new(cover_train), hidden, steps, STEPS);
         let key = key.level_indices(&layout.grid);

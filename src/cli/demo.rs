@@ -168,16 +168,8 @@ fn recipe(
         model,
         cover: cover.into(),
         hidden: vec![hidden],
-        steps: StepOptions {
-            seed: a.seed,
-            batch: a.batch,
-            occupancy_fraction: 0.125,
-            // The demo's figure and floors were measured on the reference's schedule.
-            occupancy_budget: Some(0.0),
-            // ...and on the reference's step.
-            coarse_march: Some(0),
-            workers: 0,
-        },
+        // An eighth of the reference's occupancy-update samples, as the demo has always had.
+        steps: StepOptions::reference_schedule(a.seed, a.batch, 0.125),
         options: HiddenOptions::default(),
         budget: Budget::Steps(a.steps),
         stored_loss: StoredLoss::Last,

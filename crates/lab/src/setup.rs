@@ -264,16 +264,7 @@ pub(crate) fn train_scenes(
                 key_name: format!("the key of {}", s.name),
             })
             .collect(),
-        steps: StepOptions {
-            seed: cfg.seed,
-            batch: cfg.batch,
-            occupancy_fraction: cfg.occupancy_fraction,
-            // The experiments' recorded figures were made on the reference's schedule.
-            occupancy_budget: Some(0.0),
-            // ...and on the reference's step.
-            coarse_march: Some(0),
-            workers: 0,
-        },
+        steps: StepOptions::reference_schedule(cfg.seed, cfg.batch, cfg.occupancy_fraction),
         options,
         budget: match budget {
             Budget::Steps(n) => Budget::Steps(options.steps_for(n, n_scenes)),

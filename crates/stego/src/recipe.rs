@@ -107,6 +107,22 @@ impl Default for StepOptions {
     }
 }
 
+impl StepOptions {
+    /// The reference's occupancy-grid schedule and march step on every device (where
+    /// `Default` leaves each to the device: a budget and a coarse march on the CPU): the
+    /// schedule the experiments' and the demo's recorded figures were made on.
+    pub fn reference_schedule(seed: u64, batch: u32, occupancy_fraction: f32) -> StepOptions {
+        StepOptions {
+            seed,
+            batch,
+            occupancy_fraction,
+            occupancy_budget: Some(0.0),
+            coarse_march: Some(0),
+            workers: 0,
+        }
+    }
+}
+
 /// How hidden scenes train beside the cover.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "clap", derive(clap::Args))]
