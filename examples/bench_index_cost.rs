@@ -76,11 +76,11 @@ fn main() {
         .unwrap();
         // Warm-up: the first steps refresh the occupancy grid every step.
         for _ in 0..32 {
-            t.train_step();
+            t.train_step().unwrap();
         }
         let (mut secs, mut samples) = (0.0, 0u64);
         for _ in 0..steps {
-            let st = t.train_step();
+            let st = t.train_step().unwrap();
             secs += st.rays_seconds;
             samples += st.n_samples;
         }

@@ -79,7 +79,7 @@ fn plain_training_reaches_threshold_and_is_deterministic() {
 
     let mut t = make();
     for _ in 0..250 {
-        t.train_step();
+        t.train_step().unwrap();
     }
     let model = Model::from_trainer(&t, 0.0);
     let p = psnr_of(&model, None, &test);
@@ -94,8 +94,8 @@ fn plain_training_reaches_threshold_and_is_deterministic() {
     let mut a = make();
     let mut b = make();
     for _ in 0..15 {
-        a.train_step();
-        b.train_step();
+        a.train_step().unwrap();
+        b.train_step().unwrap();
     }
     assert!(
         a.params == b.params,
@@ -129,7 +129,7 @@ fn stego_model_hides_scene_behind_key() {
     )
     .unwrap();
     for _ in 0..250 {
-        t.train_step();
+        t.train_step().unwrap();
     }
     let model = Model::from_trainer(&t, 0.0);
     let cover = psnr_of(&model, None, &ctest);

@@ -107,7 +107,7 @@ fn train_room(aabb_scale: u32, steps: u32, occupancy_budget: Option<f32>) -> Roo
     let untrained = psnr(&Model::from_trainer(&t, 0.0), &test);
     let (mut evaluations, mut updates) = (0, 0);
     for _ in 0..steps {
-        let st = t.train_step();
+        let st = t.train_step().unwrap();
         evaluations += st.occupancy_evaluations;
         updates += st.occupancy_updates;
     }
@@ -349,7 +349,7 @@ fn key_holder_rebuild_and_training_steps_at_aabb_scale_16() {
     )
     .unwrap();
     for _ in 0..3 {
-        let s = t.train_step();
+        let s = t.train_step().unwrap();
         assert!(s.loss.is_finite() && s.n_samples > 0);
     }
     let model = Model::from_trainer(&t, 0.0);
@@ -442,7 +442,7 @@ fn hidden_scene_confined_to_its_box_in_a_large_cover() {
             .sum()
     };
     for _ in 0..100 {
-        t.train_step();
+        t.train_step().unwrap();
     }
     assert!(
         t.grid(0).n_cascades == 3 && outside(t.grid(0)) > 0,

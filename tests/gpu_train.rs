@@ -127,7 +127,7 @@ fn gpu_training_matches_cpu_and_its_snapshot_renders_on_cpu() {
     .unwrap();
     let untrained = psnr_of(&Model::from_trainer(&cpu, 0.0), &test);
     for _ in 0..STEPS {
-        cpu.train_step();
+        cpu.train_step().unwrap();
     }
     let p_cpu = psnr_of(&Model::from_trainer(&cpu, 0.0), &test);
     eprintln!(

@@ -232,7 +232,7 @@ fn states_from_elsewhere_cut_short_or_forged_are_refused_naming_the_file() {
     steps(&mut g, 2);
     let gpu_state = g.save_state().unwrap();
     let mut cpu = Trainer::new(model_config(), specs(&train), config()).unwrap();
-    cpu.train_step();
+    cpu.train_step().unwrap();
     let cpu_state = cpu.save_state().unwrap();
     // The sanity of what follows: each restores into its own kind of trainer.
     gpu_trainer(ctx, &train)

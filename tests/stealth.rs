@@ -70,7 +70,7 @@ fn train(mode: Mode, cover: &Arc<Dataset>, hidden: &Arc<Dataset>, key: &Key) -> 
         t.set_policy(Box::new(policy)).unwrap();
     }
     for _ in 0..STEPS {
-        let st = t.train_step();
+        let st = t.train_step().unwrap();
         let cover_loss = st
             .primary_loss
             .expect("mixed batches train the cover every step");

@@ -87,7 +87,7 @@ fn train(hidden: Option<&Key>) -> Vec<u8> {
     };
     let mut t = Trainer::new(cfg, scenes, tc).unwrap();
     for _ in 0..3 {
-        t.train_step();
+        t.train_step().unwrap();
     }
     to_bytes(&Model::from_trainer(&t, 0.01).to_snapshot(), false).unwrap()
 }

@@ -71,7 +71,7 @@ fn train_plain(
     };
     let mut loss = 0.0;
     for _ in 0..steps {
-        loss = trainer.train_step().loss;
+        loss = trainer.train_step()?.loss;
         if freeze_table {
             trainer.params[layout.grid_offset..].copy_from_slice(&table_from);
         }

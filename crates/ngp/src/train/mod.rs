@@ -84,7 +84,7 @@ pub trait TrainBackend {
 
 impl TrainBackend for Trainer {
     fn train_step(&mut self) -> Result<StepStats> {
-        Ok(Trainer::train_step(self))
+        Trainer::train_step(self)
     }
     fn step(&self) -> u32 {
         self.step

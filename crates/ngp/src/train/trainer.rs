@@ -579,8 +579,8 @@ impl Trainer {
 
     /// Refreshes every scene's occupancy grid when an update is due ([`GridUpdates`]);
     /// `trained` are the scenes this step trains. Returns the densities evaluated, `None`
-    /// when no update was due.
-    fn update_occupancy(&mut self, trained: &[usize]) -> Option<u64> {
+    /// when no update was due; an error where the training policy failed.
+    fn update_occupancy(&mut self, trained: &[usize]) -> Result<Option<u64>> {
         let step = self.weight_steps;
         let fraction = self.config.occupancy_fraction;
         let n = self.scenes.len();
@@ -598,7 +598,7 @@ impl Trainer {
             |si| scenes[si].grid.expected_update_cost(step, fraction),
         );
         if !due {
-            return None;
+            return Ok(None);
         }
         let seed = self.config.seed;
         let mut evaluated = 0;
@@ -623,16 +623,16 @@ impl Trainer {
             });
             // The policy's indices take effect before the other scenes' grids are updated.
             if si == 0 && self.policy.is_some() {
-                self.primary_grid_updated();
+                self.primary_grid_updated()?;
             }
         }
-        Some(evaluated as u64)
+        Ok(Some(evaluated as u64))
     }
 
     /// The policy's hooks after an update of scene 0's grid.
-    fn primary_grid_updated(&mut self) {
+    fn primary_grid_updated(&mut self) -> Result<()> {
         let Some(policy) = &mut self.policy else {
-            return;
+            return Ok(());
         };
         let reads = policy.reads();
         let published = reads
@@ -649,13 +649,16 @@ impl Trainer {
         };
         policy
             .grid_updated(reads.grid.then_some(grid), published.as_deref(), &mut ops)
-            .unwrap_or_else(|e| panic!("the training policy failed on the CPU: {e}"));
+            .map_err(policy_failed)?;
         let fresh = match &published {
             Some(p) => policy.indices(grid, p),
             None => Vec::new(),
         };
-        self.set_indices(fresh)
-            .unwrap_or_else(|e| panic!("the training policy gave invalid index functions: {e}"));
+        self.set_indices(fresh).map_err(|e| {
+            Error::Other(format!(
+                "the training policy gave invalid index functions: {e}"
+            ))
+        })
     }
 
     /// Runs a policy hook on the CPU's mechanisms; returns the points its extra loss
@@ -663,9 +666,9 @@ impl Trainer {
     fn with_policy(
         &mut self,
         hook: impl FnOnce(&mut dyn TrainPolicy, &mut dyn PolicyOps) -> Result<()>,
-    ) -> u32 {
+    ) -> Result<u32> {
         let Some(policy) = &mut self.policy else {
-            return 0;
+            return Ok(0);
         };
         let mut ops = CpuOps {
             net: &self.net,
@@ -675,9 +678,8 @@ impl Trainer {
             mech: &mut self.mech,
             penalised: 0,
         };
-        hook(policy.as_mut(), &mut ops)
-            .unwrap_or_else(|e| panic!("the training policy failed on the CPU: {e}"));
-        ops.penalised
+        hook(policy.as_mut(), &mut ops).map_err(policy_failed)?;
+        Ok(ops.penalised)
     }
 
     fn step_info(&self) -> StepInfo {
@@ -688,8 +690,9 @@ impl Trainer {
         }
     }
 
-    /// One training step.
-    pub fn train_step(&mut self) -> StepStats {
+    /// One training step; an error where the training policy failed (the step's weights
+    /// are then not updated).
+    pub fn train_step(&mut self) -> Result<StepStats> {
         let t0 = std::time::Instant::now();
         let step = self.step;
         let info = self.step_info();
@@ -699,7 +702,7 @@ impl Trainer {
             .as_ref()
             .is_none_or(|p| p.updates_weights(&scene_ids));
         let occupancy = if update {
-            self.update_occupancy(&scene_ids)
+            self.update_occupancy(&scene_ids)?
         } else {
             None
         };
@@ -757,9 +760,9 @@ impl Trainer {
                     next_rays_per_batch(n_rays as u32, self.config.scene_batch(si), expected);
             }
             scene.stride = stride;
-            stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops));
+            stats.penalised += self.with_policy(|p, ops| p.after_scene(si, info, ops))?;
         }
-        stats.penalised += self.with_policy(|p, ops| p.before_update(info, ops));
+        stats.penalised += self.with_policy(|p, ops| p.before_update(info, ops))?;
         let t_rays = t0.elapsed().as_secs_f64();
         // Without the update, the gradients left in the workers' buffers wait there for the
         // next step that updates the weights (a gate's held-back ones in its own sum).
@@ -772,7 +775,7 @@ impl Trainer {
         stats.occupancy_seconds = t_occ;
         stats.rays_seconds = t_rays - t_occ;
         stats.optimizer_seconds = stats.seconds - t_rays;
-        stats
+        Ok(stats)
     }
 
     /// One optimizer step on the summed gradients of the workers, which it leaves zeroed;
@@ -1186,6 +1189,11 @@ fn train_rays(
     }
 }
 
+/// A policy hook's error, saying where it came from.
+fn policy_failed(e: Error) -> Error {
+    Error::Other(format!("the training policy failed on the CPU: {e}"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1280,6 +1288,29 @@ mod tests {
         Trainer::new(model, scenes, tc).unwrap()
     }
 
+    /// A policy whose hook fails makes the step an error naming it, not a panic, and the
+    /// weights are left as they were (the optimizer never ran).
+    #[test]
+    fn a_failing_policy_is_an_error_not_a_panic() {
+        struct Failing;
+        impl TrainPolicy for Failing {
+            fn before_update(&mut self, _: StepInfo, _: &mut dyn PolicyOps) -> Result<()> {
+                Err(Error::Other("no room for the hold-back".into()))
+            }
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let a = tiny_scene(&dir.path().join("a"), 4);
+        let mut t = tiny_trainer(vec![a], 3, None, 1 << 10);
+        t.set_policy(Box::new(Failing)).unwrap();
+        let before = t.params.clone();
+        let e = t.train_step().unwrap_err().to_string();
+        assert!(
+            e.contains("training policy failed") && e.contains("no room for the hold-back"),
+            "{e}"
+        );
+        assert_eq!(t.params, before, "a failed step updated the weights");
+    }
+
     #[test]
     fn the_other_scenes_batch_is_a_fraction_of_the_first_scenes() {
         let tc = |f| TrainConfig {
@@ -1340,7 +1371,7 @@ mod tests {
         let mut t = Trainer::new(model, specs(), tc(0.25)).unwrap();
         let (mut first, mut other) = (0u64, 0u64);
         for step in 0..8 {
-            t.train_step();
+            t.train_step().unwrap();
             // A grid is paid for by its own scene's samples: none while the first trains
             // alone.
             let updates = t.scenes[1].grid.ema_step;
@@ -1369,7 +1400,10 @@ mod tests {
         let mut coarse = tiny_trainer(vec![data], 5, Some(16), 1 << 15);
         let (mut rays_ref, mut rays_coarse, mut strides) = (0, 0, Vec::new());
         for step in 0..30 {
-            let (a, b) = (reference.train_step(), coarse.train_step());
+            let (a, b) = (
+                reference.train_step().unwrap(),
+                coarse.train_step().unwrap(),
+            );
             assert_eq!(reference.march_stride(0), 1);
             strides.push(coarse.march_stride(0));
             if (3..20).contains(&step) {
@@ -1408,11 +1442,11 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut whole = two_scene_trainer(dir.path(), 3);
         for _ in 0..30 {
-            whole.train_step();
+            whole.train_step().unwrap();
         }
         let mut first = two_scene_trainer(dir.path(), 3);
         for _ in 0..12 {
-            first.train_step();
+            first.train_step().unwrap();
         }
         let saved = first.save_state().unwrap();
         let mut resumed = two_scene_trainer(dir.path(), 3);
@@ -1421,8 +1455,8 @@ mod tests {
             .unwrap();
         assert_eq!(resumed.step, 12);
         for _ in 12..30 {
-            first.train_step();
-            resumed.train_step();
+            first.train_step().unwrap();
+            resumed.train_step().unwrap();
         }
         for t in [&first, &resumed] {
             assert_eq!(t.step, whole.step);
@@ -1444,7 +1478,7 @@ mod tests {
         // The state really moves the run: a fresh trainer without it differs.
         let mut fresh = two_scene_trainer(dir.path(), 3);
         for _ in 12..30 {
-            fresh.train_step();
+            fresh.train_step().unwrap();
         }
         assert!(bits(&fresh.params) != bits(&whole.params));
     }
@@ -1454,7 +1488,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let mut t = two_scene_trainer(dir.path(), 3);
         for _ in 0..3 {
-            t.train_step();
+            t.train_step().unwrap();
         }
         let saved = t.save_state().unwrap();
         let origin = std::path::Path::new("run.state");
@@ -1538,7 +1572,7 @@ mod tests {
         };
         let mut t = Trainer::new(model, vec![spec], tc).unwrap();
         for _ in 0..20 {
-            t.train_step();
+            t.train_step().unwrap();
         }
         for w in &mut t.workers {
             w.grad.fill(0.0);

@@ -88,7 +88,7 @@ fn paced_steps_without_the_cover_wait_for_it() {
             let params = t.params.clone();
             let grid = t.grid(0).density.clone();
             let clock = t.optimizer.step;
-            if t.train_step().primary_loss.is_some() {
+            if t.train_step().unwrap().primary_loss.is_some() {
                 with_cover += 1;
                 continue;
             }
@@ -180,7 +180,7 @@ fn a_density_cap_holds_the_covers_grid_down() {
         let mut t = cap_trainer(cap, dir.path());
         let mut capped = 0;
         for _ in 0..40 {
-            capped += t.train_step().penalised;
+            capped += t.train_step().unwrap().penalised;
         }
         let max = t.grid(0).density.iter().copied().fold(0.0f32, f32::max);
         (max, capped, t.params)
@@ -264,7 +264,7 @@ fn stealth_restores_bit_for_bit(cover_only_mlp: bool) {
     let mut first = build();
     let mut cover_steps = 0;
     loop {
-        let trained_cover = first.train_step().primary_loss.is_some();
+        let trained_cover = first.train_step().unwrap().primary_loss.is_some();
         cover_steps += trained_cover as u32;
         if cover_steps >= 8 && !trained_cover {
             break;
@@ -305,11 +305,11 @@ fn stealth_restores_bit_for_bit(cover_only_mlp: bool) {
         "the confinement has not moved since installation: the test proves nothing"
     );
     for _ in 0..END {
-        whole.train_step();
+        whole.train_step().unwrap();
     }
     for _ in stop..END {
-        first.train_step();
-        resumed.train_step();
+        first.train_step().unwrap();
+        resumed.train_step().unwrap();
     }
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     for t in [&first, &resumed] {
