@@ -113,8 +113,4 @@ impl StepProfiler {
     pub fn is_active(&self) -> bool {
         self.active
     }
-
-    pub fn profiled_steps(&self) -> u32 {
-        self.steps
-    }
 }

@@ -529,10 +529,6 @@ impl Totals {
         self.samples as f64 / self.seconds.max(1e-9)
     }
 
-    pub fn marched_per_second(&self) -> f64 {
-        self.marched as f64 / self.seconds.max(1e-9)
-    }
-
     pub fn steps_per_second(&self) -> f64 {
         self.steps as f64 / self.seconds.max(1e-9)
     }

@@ -112,17 +112,6 @@ impl Image {
         ]
     }
 
-    /// The whole image as interleaved sRGB on a fixed background (evaluation ground truth).
-    pub fn to_rgb_on(&self, bg: [f32; 3]) -> Vec<f32> {
-        let mut out = Vec::with_capacity(3 * self.width as usize * self.height as usize);
-        for y in 0..self.height {
-            for x in 0..self.width {
-                out.extend_from_slice(&self.target_on(x, y, bg));
-            }
-        }
-        out
-    }
-
     /// True when some pixel is not fully opaque.
     pub fn has_alpha(&self) -> bool {
         self.has_alpha

@@ -41,18 +41,10 @@ pub trait TrainBackend {
     /// The whole training state between two steps ([`state`]), as a document (a caller
     /// nests it: the run's state, a checkpoint snapshot), to go on from later; an error
     /// where this backend cannot save one.
-    fn save_state(&self) -> Result<state::Value> {
-        Err(crate::error::Error::Config(
-            "this device cannot save a training state yet (the CPU can)".into(),
-        ))
-    }
+    fn save_state(&self) -> Result<state::Value>;
     /// Takes back a [`save_state`](Self::save_state) before the first step; `origin`
     /// names it in errors.
-    fn restore_state(&mut self, _doc: &state::Value, _origin: &std::path::Path) -> Result<()> {
-        Err(crate::error::Error::Config(
-            "this device cannot resume a training state yet (the CPU can)".into(),
-        ))
-    }
+    fn restore_state(&mut self, doc: &state::Value, origin: &std::path::Path) -> Result<()>;
     /// The measurements of steps taken that no step's stats reported yet (a backend that
     /// reads them late, as a GPU does), for a run's totals once it ends; none here.
     fn flush_stats(&mut self) -> Result<StepStats> {
