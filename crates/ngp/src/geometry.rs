@@ -91,6 +91,15 @@ pub fn normalize<T: Real>(a: [T; 3]) -> [T; 3] {
     }
 }
 
+/// `a` times the reciprocal of its length (one division, three products: it rounds
+/// differently from [`normalize`]); a zero vector stays as it is. The generated scenes and
+/// the camera paths were made with it, so their images stay the bytes they were.
+#[inline]
+pub fn normalize_by_reciprocal<T: Real>(a: [T; 3]) -> [T; 3] {
+    let n = norm(a);
+    if n > T::ZERO { scale(a, T::ONE / n) } else { a }
+}
+
 /// The rotation matrix of a unit quaternion (w, x, y, z), written as COLMAP's
 /// `qvec2rotmat` (the capture import's poses depend on its rounding).
 pub fn quat_to_rotation<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {

@@ -10,7 +10,8 @@
 use ngp::camera::Camera;
 use ngp::data::transforms::nerf_to_ngp;
 use ngp::error::{Error, Result};
-use ngp::geometry::{add, cross, dist, dot, norm, normalize, scale, sub};
+use ngp::geometry::normalize_by_reciprocal as normalize;
+use ngp::geometry::{add, cross, dist, dot, norm, scale, sub};
 use serde_json::{Map, Value, json};
 use std::path::Path;
 

@@ -5,15 +5,9 @@
 
 pub type V3 = [f32; 3];
 
+pub use ngp::geometry::normalize_by_reciprocal as normalize;
 pub use ngp::geometry::scale as mul;
 pub use ngp::geometry::{add, cross, dot, sub};
-
-/// `a` times the reciprocal of its length: not [`ngp::geometry::normalize`]'s division, so
-/// that every generated scene's images stay the bytes they have always been.
-#[inline]
-pub fn normalize(a: V3) -> V3 {
-    mul(a, 1.0 / dot(a, a).sqrt())
-}
 
 /// How a surface is coloured at a hit point (world position, normal).
 #[derive(Clone, Copy, Debug)]
