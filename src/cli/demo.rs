@@ -2,7 +2,6 @@
 //! Instant-NGP model; the cover renders for everyone, the text only with the key.
 
 use super::common::{DeviceArg, ensure_dir, ensure_locked_dir};
-use super::video::{GAP, render_frame};
 use anyhow::Result;
 use std::path::{Path, PathBuf};
 use stegongp::backend::Device;
@@ -14,6 +13,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::{RenderOptions, VIEWING_MIN_TRANSMITTANCE};
 use stegongp::show::frame::Rgb8;
+use stegongp::show::frame::{GAP, render_frame};
 use stegongp::show::path::{PathCamera, SceneRig};
 use stegongp::show::video::Mp4Video;
 use stegongp::stego::recipe::{
@@ -312,7 +312,12 @@ fn render_large(
         ..RenderOptions::default()
     };
     let mut side_by_side = |camera: &PathCamera, size: u32| -> Result<Rgb8> {
-        render_frame(&mut renderers, &labels, &camera.camera(size, size), &look)
+        Ok(render_frame(
+            &mut renderers,
+            &labels,
+            &camera.camera(size, size),
+            &look,
+        )?)
     };
     let large = side_by_side(
         &PathCamera::of(&p.cover_test.frames[views[0]].camera),

@@ -6,12 +6,11 @@ use super::common::{
 };
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
-use stegongp::backend::RenderBackend;
 use stegongp::ngp::camera::Camera;
 use stegongp::ngp::data::{DatasetFormat, LoadOptions, Split};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions, VIEWING_MIN_TRANSMITTANCE};
-use stegongp::show::frame::Rgb8;
+use stegongp::show::frame::{GAP, Rgb8, render_frame};
 use stegongp::show::path::{
     CameraPath, DEFAULT_FPS, MAX_FRAMES, NerfFrame, PathCamera, SceneRig, model_cameras,
     model_frame_size, read_path, write_nerfstudio,
@@ -202,7 +201,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(p) = &a.write_path {
         write_nerfstudio(p, &path, w, h, &rig.frame)?;
     }
-    let render = |camera: &Camera| render_frame(&mut renderers, &labels, camera, &opts);
+    let render = |camera: &Camera| Ok(render_frame(&mut renderers, &labels, camera, &opts)?);
     let rendered = render_path(&a, &path.cameras, (w, h), fps, render)?;
     if a.json {
         let n = rendered.frames;
@@ -347,27 +346,4 @@ fn render_path(
         seconds: t0.elapsed().as_secs_f64(),
         render_seconds,
     })
-}
-
-/// Black pixels between side-by-side panels.
-pub const GAP: u32 = 4;
-
-/// One frame at `camera`: the one renderer's image, or each renderer's side by side under
-/// its label (`labels`, one a renderer).
-pub fn render_frame(
-    renderers: &mut [Box<dyn RenderBackend + '_>],
-    labels: &[&str],
-    camera: &Camera,
-    opts: &RenderOptions,
-) -> Result<Rgb8> {
-    let mut panels = Vec::with_capacity(renderers.len());
-    for r in renderers.iter_mut() {
-        let img = r.render(camera, opts)?;
-        panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
-    }
-    if labels.is_empty() {
-        return Ok(panels.pop().expect("one renderer"));
-    }
-    let labelled: Vec<(&Rgb8, &str)> = panels.iter().zip(labels.iter().copied()).collect();
-    Ok(Rgb8::side_by_side(&labelled, GAP))
 }

@@ -285,6 +285,29 @@ fn glyph(c: char) -> [u8; 7] {
     }
 }
 
+/// Black pixels between side-by-side panels.
+pub const GAP: u32 = 4;
+
+/// One frame at `camera`: the one renderer's image, or each renderer's side by side under
+/// its label (`labels`, one a renderer).
+pub fn render_frame(
+    renderers: &mut [Box<dyn ngp::render::RenderBackend + '_>],
+    labels: &[&str],
+    camera: &ngp::camera::Camera,
+    opts: &ngp::render::image::RenderOptions,
+) -> ngp::error::Result<Rgb8> {
+    let mut panels = Vec::with_capacity(renderers.len());
+    for r in renderers.iter_mut() {
+        let img = r.render(camera, opts)?;
+        panels.push(Rgb8::from_floats(img.width, img.height, &img.rgb));
+    }
+    if labels.is_empty() {
+        return Ok(panels.pop().expect("one renderer"));
+    }
+    let labelled: Vec<(&Rgb8, &str)> = panels.iter().zip(labels.iter().copied()).collect();
+    Ok(Rgb8::side_by_side(&labelled, GAP))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
