@@ -1,6 +1,6 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! lab and the show layer (paths, video, viewer), the lab on the attacks, those on the stego
-//! layer, the stego layer on the device boundary, that on the
+//! lab, the show layer (paths, video, viewer) and the meshes, the lab on the attacks, those
+//! on the stego layer, the stego layer on the device boundary, that on the
 //! engine and its wgpu backend, and the engine on no other crate of ours, nor on wgpu or
 //! clap. Read from `cargo metadata` (the resolved graph, so a dependency of a dependency
 //! counts too).
@@ -11,11 +11,13 @@ use std::process::Command;
 
 /// Each crate of the workspace and the crates of ours it may depend on (normal and build
 /// dependencies; tests may use more).
-const ALLOWED: [(&str, &[&str]); 11] = [
+const ALLOWED: [(&str, &[&str]); 12] = [
     ("stegongp-ngp", &[]),
     ("stegongp-gpu", &["stegongp-ngp"]),
     ("stegongp-backend", &["stegongp-ngp", "stegongp-gpu"]),
     ("stegongp-synth", &["stegongp-ngp"]),
+    // Meshes out of a model's density: the engine alone (the caller passes the density).
+    ("stegongp-mesh", &["stegongp-ngp"]),
     (
         "stegongp-stego",
         &["stegongp-ngp", "stegongp-gpu", "stegongp-backend"],
@@ -86,6 +88,7 @@ const ALLOWED: [(&str, &[&str]); 11] = [
             "stegongp-lab",
             "stegongp-show",
             "stegongp-attack",
+            "stegongp-mesh",
         ],
     ),
 ];

@@ -9,9 +9,9 @@ use anyhow::{Context, Result, bail};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use stegongp::backend::DeviceReport;
-use stegongp::ngp::mesh::frame::{Axes, Frame};
-use stegongp::ngp::mesh::lattice::{occupied_box, occupied_box_within};
-use stegongp::ngp::mesh::{Lattice, Mesh, colour, march, obj, ply};
+use stegongp::mesh::frame::{Axes, Frame};
+use stegongp::mesh::lattice::{occupied_box, occupied_box_within};
+use stegongp::mesh::{Lattice, Mesh, colour, march, obj, ply};
 use stegongp::ngp::model::Model;
 use stegongp::stego::options::choice;
 

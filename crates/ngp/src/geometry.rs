@@ -1,5 +1,5 @@
 //! Small 3-vector and rotation algebra on plain arrays, in `f32` or `f64`: the one copy that
-//! the engine's cameras and meshes, the capture import, the generated scenes, the camera
+//! the engine's cameras, the meshes, the capture import, the generated scenes, the camera
 //! paths and the tests share. Each function evaluates in the order written, so a caller's
 //! numbers are the ones its own copy gave (no fused multiply-add, no reassociation).
 

@@ -11,7 +11,6 @@ pub mod error;
 pub mod eval;
 pub mod geometry;
 pub mod lpips;
-pub mod mesh;
 pub mod metrics;
 pub mod model;
 pub mod network;

@@ -8,6 +8,8 @@
 /// Transmittance below which a training ray stops (and later samples get no gradient).
 pub const TRAIN_MIN_TRANSMITTANCE: f32 = 1e-4;
 
+/// The logistic function, colour network output → colour (the compositor's, and the mesh
+/// layer's vertex colours).
 #[inline]
 pub fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())

@@ -4,7 +4,7 @@
 //! cycle, so that the mesh lies over the cameras of `transforms.json`.
 
 use super::Mesh;
-use crate::error::{Error, Result};
+use ngp::error::{Error, Result};
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Axes {
@@ -15,7 +15,7 @@ pub enum Axes {
     Dataset,
 }
 
-impl crate::choice::Choice for Axes {
+impl ngp::choice::Choice for Axes {
     const ALL: &'static [Self] = &[Axes::InstantNgp, Axes::Dataset];
     fn name(self) -> &'static str {
         match self {
@@ -35,7 +35,7 @@ impl crate::choice::Choice for Axes {
 
 impl std::fmt::Display for Axes {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(crate::choice::Choice::name(*self))
+        f.write_str(ngp::choice::Choice::name(*self))
     }
 }
 
@@ -106,7 +106,7 @@ mod tests {
 
     #[test]
     fn frames_round_trip_and_match_the_loader() {
-        use crate::data::transforms::nerf_to_ngp;
+        use ngp::data::transforms::nerf_to_ngp;
         let (s, o) = (0.33, [0.5, 0.4, 0.3]);
         let t = [1.0, -2.0, 0.25];
         // The loader's image of a camera at data position t.

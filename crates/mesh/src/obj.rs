@@ -3,8 +3,8 @@
 //! name each vertex's normal (`f a//a b//b c//c`, 1-based).
 
 use super::Mesh;
-use crate::error::Result;
-use crate::util::write_atomic_with;
+use ngp::error::Result;
+use ngp::util::write_atomic_with;
 use std::io::{BufWriter, Write};
 use std::path::Path;
 
@@ -49,7 +49,7 @@ mod tests {
 
     #[test]
     fn obj_lines_name_every_vertex_normal_and_face() {
-        let m = crate::mesh::ply::tests::tetrahedron();
+        let m = crate::ply::tests::tetrahedron();
         let mut buf = Vec::new();
         write_obj_to(&mut buf, &m).unwrap();
         let s = String::from_utf8(buf).unwrap();

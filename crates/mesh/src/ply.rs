@@ -4,8 +4,8 @@
 //! copy of the mesh is made.
 
 use super::Mesh;
-use crate::error::Result;
-use crate::util::write_atomic_with;
+use ngp::error::Result;
+use ngp::util::write_atomic_with;
 use ply_rs_bw::ply::{
     Addable, ElementDef, Encoding, Header, PropertyAccess, PropertyDef, PropertyType, ScalarType,
 };

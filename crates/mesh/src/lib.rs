@@ -6,7 +6,8 @@
 //! box's centre, positions written back in the dataset's frame.
 //!
 //! The density is whatever the caller evaluates ([`lattice::march`] takes a function), so
-//! that the same lattice runs on any device; the engine knows nothing of keys or devices.
+//! that the same lattice runs on any device: this crate, like the engine it reads, knows
+//! nothing of keys or devices.
 
 pub mod colour;
 mod cubes;

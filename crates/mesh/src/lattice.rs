@@ -5,8 +5,8 @@
 
 use super::Mesh;
 use super::cubes::{Cubes, TooManyTriangles};
-use crate::error::{Error, Result};
-use crate::occupancy::{
+use ngp::error::{Error, Result};
+use ngp::occupancy::{
     GRID_SIZE, MIN_OPTICAL_THICKNESS, N_CELLS, OccupancyGrid, cell_along, mip_from_distance,
     mip_from_pos, morton3d, morton3d_invert, pow2,
 };
@@ -320,7 +320,7 @@ fn too_many(e: TooManyTriangles, layers: usize) -> Error {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::topology::{edges, euler_characteristic, signed_volume};
+    use crate::topology::{edges, euler_characteristic, signed_volume};
 
     /// A ball of radius `r` around `c`: raw density `10 (r − |p − c|) / r + 2.5`, crossing
     /// the default threshold on the sphere.
@@ -339,7 +339,7 @@ mod tests {
 
     #[test]
     fn the_axis_tables_mask_what_each_point_would() {
-        use crate::occupancy::cell_at;
+        use ngp::occupancy::cell_at;
         let mut grid = OccupancyGrid::new(5);
         let mut state = 0x9e37_79b9_7f4a_7c15u64;
         for d in grid.density.iter_mut() {

@@ -3,9 +3,9 @@
 //! centre out through it (no better direction is known for a surface point), through the
 //! sigmoid.
 
-use crate::network::nerf::CHUNK;
-use crate::render::composite::sigmoid;
-use crate::render::image::SceneView;
+use ngp::network::nerf::CHUNK;
+use ngp::render::composite::sigmoid;
+use ngp::render::image::SceneView;
 use rayon::prelude::*;
 
 /// The colour of each ngp-space position under `view`.

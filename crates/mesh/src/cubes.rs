@@ -12,7 +12,7 @@
 
 use super::Mesh;
 use super::table::{edge_corners, table};
-use crate::geometry::sub;
+use ngp::geometry::sub;
 use rayon::prelude::*;
 
 /// No vertex on this edge.
@@ -381,7 +381,7 @@ fn renumber(ids: &mut [u32], chunk: usize, firsts: &[(u32, usize)]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::mesh::topology::{edges, euler_characteristic};
+    use crate::topology::{edges, euler_characteristic};
 
     /// Two balls, one of them cut by a masked slab, in a lattice whose sides are not
     /// multiples of a task's rows; the outermost points masked, as the lattice masks them.

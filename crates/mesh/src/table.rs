@@ -9,7 +9,7 @@
 //! the mesh has no cracks and one orientation. The segments of a cell chain into closed
 //! loops, each fanned into triangles.
 
-use crate::geometry::{cross, dot, sub};
+use ngp::geometry::{cross, dot, sub};
 use std::sync::OnceLock;
 
 /// Corner `c` of a cell sits at offset `(c & 1, c >> 1 & 1, c >> 2 & 1)`.
