@@ -238,16 +238,8 @@ pub struct GpuTrainer<'c> {
     /// and uploaded to the hold-back kernels.
     bounds: Option<TableBounds>,
     ws: MlpWorkspace,
-    raw: wgpu::Buffer,
-    /// The marched samples' log-densities (the density network's pass).
-    log_density: wgpu::Buffer,
-    enc: wgpu::Buffer,
-    /// A one-chunk step's trained encodings, copied from the marched ones in `enc` (a
-    /// second buffer: the copy changes the leading dimension, so in place it would race).
-    enc_copied: wgpu::Buffer,
-    d_enc: wgpu::Buffer,
-    grad: wgpu::Buffer,
-    ray_out: wgpu::Buffer,
+    /// The step's sample buffers and the gradient.
+    samples: SampleBuffers,
     /// Occupancy updates submitted (each with its read-back) in this step so far.
     occupancy_submissions: u32,
     /// Device timestamps between the step's phases, when asked for.
@@ -376,12 +368,14 @@ impl SampleSizes {
     }
 }
 
-/// The trainer's sample buffers and its gradient, as [`GpuTrainer`]'s fields of the same
-/// names.
+/// The trainer's sample buffers and its gradient.
 struct SampleBuffers {
     raw: wgpu::Buffer,
+    /// The marched samples' log-densities (the density network's pass).
     log_density: wgpu::Buffer,
     enc: wgpu::Buffer,
+    /// A one-chunk step's trained encodings, copied from the marched ones in `enc` (a
+    /// second buffer: the copy changes the leading dimension, so in place it would race).
     enc_copied: wgpu::Buffer,
     d_enc: wgpu::Buffer,
     grad: wgpu::Buffer,
@@ -497,15 +491,7 @@ impl<'c> GpuTrainer<'c> {
         let compacted_all =
             DeviceCount::new(ctx, &counter, &compacted.counters, 1, 0, budget, &slots)?;
         let readback = StepReadback::new(ctx, states.len(), MAX_LAG as usize + 1)?;
-        let SampleBuffers {
-            raw,
-            log_density,
-            enc,
-            enc_copied,
-            d_enc,
-            grad,
-            ray_out,
-        } = SampleBuffers::new(ctx, &sizes, layout.n_params)?;
+        let samples = SampleBuffers::new(ctx, &sizes, layout.n_params)?;
         // Refused after the allocations, where it always was: on a device that fails to
         // allocate, the device's error still comes first.
         check_cpu_only(&config)?;
@@ -534,13 +520,7 @@ impl<'c> GpuTrainer<'c> {
             kept: None,
             bounds: None,
             ws,
-            raw,
-            log_density,
-            enc,
-            enc_copied,
-            d_enc,
-            grad,
-            ray_out,
+            samples,
             occupancy_submissions: 0,
             profiler: RefCell::new(None),
             half: None,
@@ -620,10 +600,10 @@ impl<'c> GpuTrainer<'c> {
         let counters = &self.compacted.counters;
         self.chunks = TrainChunk::all(ctx, &self.counter, &self.field, counters, budget, capacity)?;
         let bytes = 4 * width * capacity as u64;
-        self.d_enc = ctx.scoped("trainer encoding gradient", || {
+        self.samples.d_enc = ctx.scoped("trainer encoding gradient", || {
             device_buffer(ctx, "trainer encoding gradient", bytes)
         })?;
-        self.enc_copied = ctx.scoped("trainer encoding, copied", || {
+        self.samples.enc_copied = ctx.scoped("trainer encoding, copied", || {
             device_buffer(ctx, "trainer encoding, copied", bytes)
         })?;
         Ok(())
@@ -952,8 +932,12 @@ impl<'c> GpuTrainer<'c> {
             self.mark_submission(&mut encoder);
         }
         if update {
-            self.optimizer
-                .encode_step(ctx, &mut encoder, &self.field.params, &self.grad)?;
+            self.optimizer.encode_step(
+                ctx,
+                &mut encoder,
+                &self.field.params,
+                &self.samples.grad,
+            )?;
             if let (Some(_), Some(h)) = (&self.bounds, &self.hold) {
                 h.encode_clamp(ctx, &mut encoder, &self.field.params)?;
             }
@@ -1088,7 +1072,7 @@ impl<'c> GpuTrainer<'c> {
             si,
             &self.batch.counters,
             &self.compacted.counters,
-            &self.ray_out,
+            &self.samples.ray_out,
             n_rays,
             scene.occupancy.mean_buffer(),
         )?;
@@ -1207,12 +1191,12 @@ impl<'c> GpuTrainer<'c> {
         let c = &self.compacted;
         let bufs = LossBuffers {
             rays: &c.rays,
-            raw: &self.raw,
+            raw: &self.samples.raw,
             dt: &c.dt,
             dist: &c.dist,
             pos: &c.pos,
             d_raw: &c.d_raw,
-            ray_out: &self.ray_out,
+            ray_out: &self.samples.ray_out,
             grid_mean: Some(self.scenes[si].occupancy.mean_buffer()),
         };
         let mut cfg = LossConfig::new(&self.marcher, loss_norm, DENSITY_PULL_UP);
@@ -1257,19 +1241,19 @@ impl<'c> GpuTrainer<'c> {
             ctx,
             encoder,
             &eb,
-            &self.log_density,
+            &self.samples.log_density,
             Some(&self.marched),
         )?;
         self.mark(encoder, "density network (marched)");
 
         let inputs = CompactInputs {
             rays: &self.batch.rays,
-            log_density: &self.log_density,
+            log_density: &self.samples.log_density,
             dt: &self.batch.dt,
             dist: &self.batch.dist,
             pos: &self.batch.pos,
             drawn: &self.batch.drawn,
-            ray_out: &self.ray_out,
+            ray_out: &self.samples.ray_out,
         };
         self.compacted
             .encode_within(ctx, encoder, &inputs, n_rays, slots)?;
@@ -1294,7 +1278,11 @@ impl<'c> GpuTrainer<'c> {
     fn encoded_batch(&self, shape: GridShape, copied: bool) -> EncodedBatch<'_> {
         EncodedBatch {
             params: &self.field.params,
-            enc: if copied { &self.enc_copied } else { &self.enc },
+            enc: if copied {
+                &self.samples.enc_copied
+            } else {
+                &self.samples.enc
+            },
             ld: shape.ld,
             n: shape.n_samples,
         }
@@ -1336,9 +1324,9 @@ impl<'c> GpuTrainer<'c> {
                 let copy = self.field.grid().bind_copy(
                     ctx,
                     from,
-                    self.enc.slice(..4 * width * budget as u64),
+                    self.samples.enc.slice(..4 * width * budget as u64),
                     budget,
-                    self.enc_copied.slice(..4 * width * shape.ld as u64),
+                    self.samples.enc_copied.slice(..4 * width * shape.ld as u64),
                     shape,
                 )?;
                 copy.record_maybe_counted(encoder, count)?;
@@ -1348,7 +1336,7 @@ impl<'c> GpuTrainer<'c> {
         let eb = self.encoded_batch(shape, copied);
         let ws = keep.then_some(&self.ws);
         let mlp = self.field.mlp();
-        mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.raw, ws, count)?;
+        mlp.encode_forward_slice(ctx, encoder, &eb, dirs, &self.samples.raw, ws, count)?;
         self.mark(
             encoder,
             if keep {
@@ -1375,7 +1363,7 @@ impl<'c> GpuTrainer<'c> {
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
         let grid = self.field.grid();
         let index = &self.scenes[si].index;
-        let (pos, enc) = (pos.slice(..pos_bytes), self.enc.slice(..enc_bytes));
+        let (pos, enc) = (pos.slice(..pos_bytes), self.samples.enc.slice(..enc_bytes));
         let forward = match &self.half {
             Some(h) => grid.bind_forward_half(ctx, index, pos, h, enc, shape)?,
             None => {
@@ -1406,15 +1394,15 @@ impl<'c> GpuTrainer<'c> {
         let (grid_bytes, pos_bytes, enc_bytes) = self.batch_bytes(shape);
         let eb = self.encoded_batch(shape, copied);
         let mlp = self.field.mlp();
-        let (ws, grad, d_enc) = (&self.ws, &self.grad, &self.d_enc);
+        let (ws, grad, d_enc) = (&self.ws, &self.samples.grad, &self.samples.d_enc);
         mlp.encode_backward_slice(ctx, encoder, &eb, d_raw, ws, grad, d_enc, count)?;
         self.mark(encoder, "network backward (trained)");
         let backward = self.field.grid().bind_backward(
             ctx,
             &self.scenes[si].index,
             pos.slice(..pos_bytes),
-            self.d_enc.slice(..enc_bytes),
-            self.grad.slice(grid_bytes),
+            self.samples.d_enc.slice(..enc_bytes),
+            self.samples.grad.slice(grid_bytes),
             shape,
         )?;
         backward.record_maybe_counted(encoder, count)?;
@@ -1461,7 +1449,7 @@ impl<'c> GpuTrainer<'c> {
             ctx.scoped("density loss forward", || {
                 ctx.queue.submit([encoder.finish()])
             })?;
-            let raw: Vec<[f32; 4]> = ctx.read_buffer(&self.raw, 16 * m as u64)?;
+            let raw: Vec<[f32; 4]> = ctx.read_buffer(&self.samples.raw, 16 * m as u64)?;
             let d_raw: Vec<[f32; 4]> = raw
                 .iter()
                 .map(|r| {
@@ -1499,7 +1487,7 @@ impl<'c> GpuTrainer<'c> {
     /// did not update the weights left for the next one, zero otherwise).
     pub fn gradient(&self) -> GpuResult<Vec<f32>> {
         self.ctx
-            .read_buffer(&self.grad, 4 * self.field.layout().n_params as u64)
+            .read_buffer(&self.samples.grad, 4 * self.field.layout().n_params as u64)
     }
 
     /// The model as published (what [`Model::from_trainer`] makes of a CPU trainer): the
@@ -1726,7 +1714,7 @@ impl<'c> GpuTrainer<'c> {
         if let Some(g) = &gradient {
             ctx.scoped("restore gradient", || {
                 ctx.queue
-                    .write_buffer(&self.grad, 0, bytemuck::cast_slice(g))
+                    .write_buffer(&self.samples.grad, 0, bytemuck::cast_slice(g))
             })?;
         }
         if let Some(p) = &mut self.policy {
@@ -1802,7 +1790,7 @@ impl GpuOps<'_, '_> {
             .encoder
             .get_or_insert_with(|| t.ctx.device.create_command_encoder(&Default::default()));
         let h = t.hold.as_ref().expect("made above");
-        Ok(f(h, t.ctx, encoder, &t.grad)?)
+        Ok(f(h, t.ctx, encoder, &t.samples.grad)?)
     }
 
     /// Records `f` on the kept MLP gradient (made on first use) and the gradient.
@@ -1816,7 +1804,7 @@ impl GpuOps<'_, '_> {
             .encoder
             .get_or_insert_with(|| t.ctx.device.create_command_encoder(&Default::default()));
         let k = t.kept.as_mut().expect("made above");
-        Ok(f(k, encoder, &t.grad)?)
+        Ok(f(k, encoder, &t.samples.grad)?)
     }
 }
 
