@@ -12,7 +12,8 @@
 set -euo pipefail
 old=$(realpath "$1"); new=$(realpath "$2"); out=$3; data=$(realpath "${4:-../shared/data}")
 mkdir -p "$out"; out=$(realpath "$out")
-small=(--steps 24 --batch 16384 --workers 2 --log2-t 15)
+base=(--batch 16384 --workers 2 --log2-t 15)
+small=(--steps 24 "${base[@]}")
 [ -d "$out/text" ] || "$old" synth --scene text --out "$out/text" --res 64 --train 20 --test 2 >/dev/null
 [ -f "$out/k.key" ] || "$old" keygen --out "$out/k.key" >/dev/null
 fail=0
@@ -32,11 +33,11 @@ for b in old new; do
     "$bin" render --model "$d/$mode.ingp" --data "$out/text" --split test --views 1 \
       --key "$d/$mode.key" "${extra[@]}" --out "$d/$mode-hidden" >/dev/null 2>&1
   done
-  "$bin" train "$data/lego" --downscale 8 --steps 12 --batch 16384 --workers 2 --log2-t 15 \
+  "$bin" train "$data/lego" --downscale 8 --steps 12 "${base[@]}" \
     --hidden "$out/text" --key "$d/k.key" --save-every 4 --out "$d/killed.ingp" 2>/dev/null
   "$bin" train "$data/lego" --downscale 8 "${small[@]}" --hidden "$out/text" --key "$d/k.key" \
     --save-every 4 --resume "$d/killed.ingp.state" --out "$d/resumed.ingp" 2>/dev/null
-  "$bin" train "$data/lego" --downscale 8 --steps 12 --batch 16384 --workers 2 --log2-t 15 \
+  "$bin" train "$data/lego" --downscale 8 --steps 12 "${base[@]}" \
     --save-every 4 --out "$d/plain-killed.ingp" 2>/dev/null
   "$bin" train "$data/lego" --downscale 8 "${small[@]}" --save-every 4 \
     --resume "$d/plain-killed.checkpoint.msgpack" --out "$d/plain-resumed.ingp" 2>/dev/null

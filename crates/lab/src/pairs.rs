@@ -490,11 +490,8 @@ pub fn run_pairs(cfg: &ExpConfig, opts: &PairsOptions) -> Result<Report> {
     };
     let t_all = std::time::Instant::now();
     for (k, (cover_dir, hidden_dir)) in pairs.iter().enumerate() {
-        if cfg.verbose {
-            let (cl, hl) = (scene_label(cover_dir), scene_label(hidden_dir));
-            eprintln!("pair {}/{}: {cl} : {hl}", k + 1, pairs.len());
-        }
-        let pair = Pair::load(cfg, opts, &mut models, cover_dir, hidden_dir)?;
+        let which = (k, pairs.len());
+        let pair = Pair::load(cfg, opts, &mut models, which, cover_dir, hidden_dir)?;
         let trained = pair.train(&mut models)?;
         if !cfg.jobs.scores() {
             continue;
@@ -584,14 +581,20 @@ struct PairModels {
 
 impl<'a> Pair<'a> {
     /// Loads the pair's scenes (the hidden scene in the cover's box) and makes the cover's
-    /// the one `models` takes placeholders' size and cameras from.
+    /// the one `models` takes placeholders' size and cameras from; `which` is the pair's
+    /// index and the number of pairs, for the progress line.
     fn load(
         cfg: &'a ExpConfig,
         opts: &'a PairsOptions,
         models: &mut Models,
+        which: (usize, usize),
         cover_dir: &'a Path,
         hidden_dir: &'a Path,
     ) -> Result<Self> {
+        let (cl, hl) = (scene_label(cover_dir), scene_label(hidden_dir));
+        if cfg.verbose {
+            eprintln!("pair {}/{}: {cl} : {hl}", which.0 + 1, which.1);
+        }
         let cover = load_scene(cover_dir, cfg.downscale, None)?;
         let box_scale = cover.train.aabb_scale;
         let hidden = load_scene(hidden_dir, cfg.hidden_downscale, Some(box_scale))?;
@@ -610,8 +613,8 @@ impl<'a> Pair<'a> {
             opts,
             cover_dir,
             hidden_dir,
-            cl: scene_label(cover_dir),
-            hl: scene_label(hidden_dir),
+            cl,
+            hl,
             cover,
             hidden,
             config,
