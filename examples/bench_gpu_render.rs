@@ -22,8 +22,9 @@ use stegongp::ngp::metrics::psnr;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::{RenderOptions, rebuild_occupancy, render_image};
-use stegongp::stego::recipe::{Budget, Recipe, StepOptions, StoredLoss};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::training::recipe::{Budget, Recipe, StepOptions, StoredLoss};
+use stegongp::training::run::{Run, RunOptions};
 
 /// Best of `reps` (≥ 1) runs of `f`, in seconds, and its last result.
 fn best<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
@@ -79,9 +80,9 @@ fn trained(res: u32) -> (Model, Camera) {
     let mut recipe = Recipe::plain(cfg, Arc::new(train), steps, Budget::Steps(100));
     recipe.stored_loss = StoredLoss::Last;
     let cpu = Device::default();
-    let mut training = recipe.start(&cpu).unwrap_or_else(|e| fail(e));
-    training.run(|_, _| Ok(())).unwrap_or_else(|e| fail(e));
-    let model = training.finish().unwrap_or_else(|e| fail(e)).model;
+    let mut run = Run::start(&recipe, &cpu, RunOptions::default()).unwrap_or_else(|e| fail(e));
+    run.run(|_| Ok(())).unwrap_or_else(|e| fail(e));
+    let model = run.finish().unwrap_or_else(|e| fail(e)).trained.model;
     println!(
         "trained the {res}×{res} object scene on the CPU: 100 steps of 2^13 samples in {:.1} s",
         t0.elapsed().as_secs_f64()

@@ -23,8 +23,8 @@ use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
-use stegongp::stego::recipe::{Budget, Recipe, StepOptions, StoredLoss};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::training::recipe::{Budget, Recipe, StepOptions, StoredLoss};
 
 fn arg<T: std::str::FromStr>(i: usize, default: T) -> T {
     std::env::args()

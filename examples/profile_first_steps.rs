@@ -20,7 +20,7 @@ use std::sync::Arc;
 use stegongp::backend::{Device, DeviceRequest};
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
 use stegongp::ngp::network::ModelConfig;
-use stegongp::stego::recipe::{Budget, Recipe, StepOptions};
+use stegongp::training::recipe::{Budget, Recipe, StepOptions};
 
 struct Args {
     data: PathBuf,

@@ -17,6 +17,7 @@ pub use show;
 pub use stego;
 pub use stego::steganalysis;
 pub use synth;
+pub use training;
 
 #[cfg(feature = "gpu")]
 pub use gpu;

@@ -18,8 +18,8 @@ use stegongp::ngp::render::image::{
     RenderOptions, RenderedImage, SceneView, rebuild_occupancy, refine_occupancy, render_image,
 };
 use stegongp::stego::SchemeKind;
-use stegongp::stego::recipe::StepOptions;
 use stegongp::synth::SceneKind;
+use stegongp::training::recipe::StepOptions;
 use testkit::keys::seeded_key;
 use testkit::models::trained;
 use testkit::scenes::generated;

@@ -16,11 +16,12 @@ use stegongp::show::frame::Rgb8;
 use stegongp::show::frame::{GAP, render_frame};
 use stegongp::show::path::{PathCamera, SceneRig};
 use stegongp::show::video::Mp4Video;
-use stegongp::stego::recipe::{
-    Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
-};
 use stegongp::stego::{Key, generate_prf, load_key, open_scene_on, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::training::recipe::{
+    Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
+};
+use stegongp::training::run::{Event, Run, RunOptions};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -180,12 +181,15 @@ fn recipe(
 /// Trains `recipe` with a progress bar and saves the model to `model_path`; returns the
 /// training's seconds and samples.
 fn train(a: &Args, recipe: &Recipe, device: &Device, model_path: &Path) -> Result<(f64, u64)> {
-    let mut training = recipe.start(device)?;
+    let mut run = Run::start(recipe, device, RunOptions::default())?;
     let pb = super::common::progress(
         a.steps as u64,
         "{spinner} training cover + hidden [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
     );
-    training.run(|t, _| {
+    run.run(|event| {
+        let Event::Step(t) = event else {
+            return Ok(());
+        };
         pb.inc(1);
         pb.set_message(format!(
             "loss {:.4} {:.0}k samples/s",
@@ -195,7 +199,7 @@ fn train(a: &Args, recipe: &Recipe, device: &Device, model_path: &Path) -> Resul
         Ok(())
     })?;
     pb.finish_and_clear();
-    let trained = training.finish()?;
+    let trained = run.finish()?.trained;
     trained.model.save(model_path)?;
     Ok((trained.totals.seconds, trained.totals.samples))
 }

@@ -7,17 +7,17 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::backend::{Device, DeviceReport};
 use stegongp::ngp::data::{Dataset, LoadOptions, Split};
-use stegongp::ngp::encoding::{GridLayout, reference_indices};
-use stegongp::ngp::eval::{Protocol, evaluate_under, spread_views};
-use stegongp::ngp::lpips::Lpips;
-use stegongp::ngp::network::{ModelConfig, NerfLayout};
-use stegongp::ngp::occupancy::OccupancyGrid;
-use stegongp::ngp::render::image::{Background, RenderOptions};
+use stegongp::ngp::eval::Protocol;
+use stegongp::ngp::network::ModelConfig;
+use stegongp::ngp::render::image::Background;
 use stegongp::stego::options::choice;
-use stegongp::stego::recipe::{
-    Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, SaveEvery, StepOptions, StoredLoss,
-    Totals, Training,
+use stegongp::training::checkpoints::{Checkpoint, CheckpointPlan, PhaseTotals};
+use stegongp::training::recipe::{
+    Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
 };
+use stegongp::training::run::{Event, ResumeFrom, Resumed, Run, RunOptions};
+use stegongp::training::state::{SaveEvery, StateFile, StateForm, StateSaver};
+use stegongp::training::steps::{Totals, Training};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -152,76 +152,6 @@ fn state_path(a: &Args) -> PathBuf {
 }
 
 #[derive(Serialize)]
-struct Checkpoint {
-    minutes: f64,
-    /// The rules its views were scored under (`--eval-protocol`).
-    protocol: Protocol,
-    step: u32,
-    psnr: f64,
-    ssim: f64,
-    /// AlexNet LPIPS (v0.1); none where the views are smaller than the network takes.
-    lpips: Option<f64>,
-    /// The training so far: its time, the samples that reached the loss and those marched
-    /// (differences between checkpoints give the steady rates).
-    train_seconds: f64,
-    samples: u64,
-    marched: u64,
-    network: u64,
-    /// Rays trained so far.
-    rays: u64,
-    /// Since the previous checkpoint (or the start): rays a step, and the samples a ray
-    /// that reached the loss and that were marched.
-    rays_per_step: f64,
-    samples_per_ray: f64,
-    marched_per_ray: f64,
-    /// The cover's occupancy grid: the share of each cascade's cells occupied (its bit set),
-    /// and the optical thickness above which a cell is occupied (`min(0.01, cascade 0's
-    /// mean)`: below 0.01 while the middle of the box is still nearly empty, when faint fog
-    /// counts as occupied).
-    occupied_per_cascade: Vec<f64>,
-    occupancy_threshold: f32,
-    /// The reference's steps a cover sample stands for at the next step (the coarse march;
-    /// 1: the reference's step).
-    march_stride: u32,
-    /// The training so far: its phase times (cumulative), to split a run by step range.
-    #[serde(flatten)]
-    phases: PhaseTotals,
-    /// How long this checkpoint's evaluation took (not counted in the training's time).
-    eval_seconds: f64,
-    /// Seconds per evaluated view, and the network samples a ray its views took (0 where
-    /// the renderer does not count them: a GPU's).
-    seconds_per_view: f64,
-    eval_samples_per_ray: f64,
-}
-
-/// The training's phase times and occupancy work (cumulative), as a checkpoint and the
-/// summary report them, in their place among the other fields.
-#[derive(Serialize)]
-struct PhaseTotals {
-    occupancy_seconds: f64,
-    rays_seconds: f64,
-    optimizer_seconds: f64,
-    /// Waiting for a GPU that runs ahead of the host (0 on the CPU).
-    wait_seconds: f64,
-    /// Occupancy-grid updates made and the densities they evaluated.
-    occupancy_updates: u32,
-    occupancy_evaluations: u64,
-}
-
-impl PhaseTotals {
-    fn of(t: &Totals) -> Self {
-        PhaseTotals {
-            occupancy_seconds: t.occupancy_seconds,
-            rays_seconds: t.rays_seconds,
-            optimizer_seconds: t.optimizer_seconds,
-            wait_seconds: t.wait_seconds,
-            occupancy_updates: t.occupancy_updates,
-            occupancy_evaluations: t.occupancy_evaluations,
-        }
-    }
-}
-
-#[derive(Serialize)]
 struct Summary {
     model: PathBuf,
     device: DeviceReport,
@@ -263,55 +193,6 @@ struct Summary {
     /// With --profile-every: milliseconds per profiled step in each device phase.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     device_phases_ms: Vec<Phase>,
-}
-
-/// How the rays marched since the previous checkpoint, and how full the grid is now.
-struct MarchSince {
-    rays_per_step: f64,
-    samples_per_ray: f64,
-    marched_per_ray: f64,
-    occupied: Vec<f64>,
-    threshold: f32,
-    stride: u32,
-}
-
-impl MarchSince {
-    fn new(now: &Totals, before: Option<&Totals>, grid: &OccupancyGrid, stride: u32) -> Self {
-        let zero = Totals::default();
-        let b = before.unwrap_or(&zero);
-        let rays = now.rays.saturating_sub(b.rays).max(1) as f64;
-        MarchSince {
-            rays_per_step: rays / now.steps.saturating_sub(b.steps).max(1) as f64,
-            samples_per_ray: now.samples.saturating_sub(b.samples) as f64 / rays,
-            marched_per_ray: now.marched.saturating_sub(b.marched) as f64 / rays,
-            occupied: (0..grid.n_cascades)
-                .map(|c| grid.occupied_fraction_in(c))
-                .collect(),
-            threshold: grid.threshold(),
-            stride,
-        }
-    }
-
-    fn note(&self) -> String {
-        let occ: Vec<String> = self
-            .occupied
-            .iter()
-            .map(|f| format!("{:.0}%", 100.0 * f))
-            .collect();
-        let stride = if self.stride > 1 {
-            format!(", marching {} steps a sample", self.stride)
-        } else {
-            String::new()
-        };
-        format!(
-            "{:.0} rays a step, {:.0} samples a ray ({:.0} marched), occupied {} above {:.4}{stride}",
-            self.rays_per_step,
-            self.samples_per_ray,
-            self.marched_per_ray,
-            occ.join("/"),
-            self.threshold
-        )
-    }
 }
 
 #[derive(Serialize)]
@@ -432,40 +313,57 @@ fn load_recipe(a: &Args) -> Result<(Recipe, Option<Dataset>)> {
     Ok((recipe, eval_data))
 }
 
-/// Where `--resume` went on from: the seconds it took (reading included) and the step.
-#[derive(Default)]
-struct Resumed {
-    seconds: f64,
-    at: Option<u32>,
+/// What the run does besides stepping: go on from `--resume`'s state, save states on
+/// `--save-every`'s cadence, score `--checkpoints`.
+fn run_options(a: &Args, resume: Option<ResumeBytes>, eval: Option<Dataset>) -> RunOptions {
+    let resume = resume
+        .zip(a.resume.clone())
+        .map(|(r, origin)| ResumeFrom::Bytes {
+            bytes: r.bytes,
+            origin,
+        });
+    let save = a.save_every.map(|every| {
+        let form = if a.hidden.is_empty() {
+            StateForm::Snapshot
+        } else {
+            StateForm::Secret
+        };
+        let path = state_path(a);
+        StateSaver::for_run(every, StateFile { path, form })
+    });
+    let checkpoints = eval.map(|data| CheckpointPlan {
+        minutes: a.checkpoints.clone(),
+        data,
+        views: a.eval_views,
+        background: a.background,
+        protocol: a.eval_protocol,
+    });
+    RunOptions {
+        resume,
+        save,
+        checkpoints,
+    }
 }
 
-/// Goes on from the state `--resume` read: a stego run's state, or a plain run's
-/// checkpoint snapshot.
-fn resume(a: &Args, training: &mut Training, state: Option<ResumeBytes>) -> Result<Resumed> {
-    let (Some(state), Some(p)) = (state, &a.resume) else {
-        return Ok(Resumed::default());
+/// Where `--resume` went on from: the seconds it took (reading the state included) and the
+/// step; said unless `--json`.
+fn resumed(a: &Args, run: &Run, read_seconds: f64) -> (f64, Option<u32>) {
+    let Resumed::From {
+        from,
+        step,
+        trained_seconds,
+        seconds,
+    } = run.resumed()
+    else {
+        return (0.0, None);
     };
-    let t0 = std::time::Instant::now();
-    if stegongp::stego::recipe::is_run_state(&state.bytes) {
-        training.restore_state(&state.bytes, p)?;
-    } else {
-        let snap = stegongp::ngp::snapshot::from_bytes(&state.bytes)
-            .map_err(|m| stegongp::ngp::error::Error::format(p, m))?;
-        training.restore_checkpoint(snap, p)?;
-    }
-    let totals = training.totals();
     if !a.json {
         eprintln!(
-            "resumed from {} at step {} ({:.1} s trained)",
-            p.display(),
-            totals.steps,
-            totals.seconds
+            "resumed from {} at step {step} ({trained_seconds:.1} s trained)",
+            from.display()
         );
     }
-    Ok(Resumed {
-        seconds: t0.elapsed().as_secs_f64() + state.read_seconds,
-        at: Some(totals.steps),
-    })
+    (seconds + read_seconds, Some(*step))
 }
 
 /// `--half-grid` and `--profile-every` on the device that trains.
@@ -559,237 +457,44 @@ fn show_progress(pb: &ProgressBar, budget: Budget, training: &Training) {
     ));
 }
 
-/// `--save-every`'s cadence: when a state is due, where it goes, and what saving cost.
-struct StateSaver {
-    every: Option<SaveEvery>,
-    file: PathBuf,
-    /// A plain run saves a checkpoint snapshot, a stego run its secret state.
-    plain: bool,
-    saved_at: f64,
-    saved_step: Option<u32>,
-    saves: u32,
-    seconds: f64,
-}
-
-impl StateSaver {
-    fn new(a: &Args, training: &Training) -> Self {
-        StateSaver {
-            every: a.save_every,
-            file: state_path(a),
-            plain: a.hidden.is_empty(),
-            saved_at: training.totals().seconds,
-            saved_step: None,
-            saves: 0,
-            seconds: 0.0,
-        }
-    }
-
-    /// Saves the state if one is due after this step.
-    fn after_step(&mut self, training: &Training) -> Result<()> {
-        let t = training.totals();
-        if self.every.is_some_and(|e| e.due(t, self.saved_at)) {
-            self.save(training)?;
-            self.saved_at = t.seconds;
-        }
-        Ok(())
-    }
-
-    fn save(&mut self, training: &Training) -> Result<()> {
-        let step = training.totals().steps;
-        if self.saved_step == Some(step) {
-            return Ok(()); // the end of a run that just saved
-        }
-        self.saved_step = Some(step);
-        let t0 = std::time::Instant::now();
-        let saved = if self.plain {
-            training.save_checkpoint(&self.file)
-        } else {
-            training.save_state_to(&self.file)
-        };
-        saved.with_context(|| format!("saving the training state to {}", self.file.display()))?;
-        self.saves += 1;
-        self.seconds += t0.elapsed().as_secs_f64();
-        Ok(())
-    }
-
-    /// The run's last state (with `--save-every`), and where it is.
-    fn finish(&mut self, training: &Training, quiet: bool) -> Result<()> {
-        if self.every.is_none() {
-            return Ok(());
-        }
-        self.save(training)?;
-        if quiet {
-            return Ok(());
-        }
-        if self.plain {
-            eprintln!(
-                "training state: {} (a snapshot with its optimizer state: --resume goes on from it, instant-ngp loads it)",
-                self.file.display()
-            );
-        } else {
-            eprintln!(
-                "training state: {} (owner-only; --resume goes on from it; it describes the hidden scenes: keep it like the keys, delete it when done)",
-                self.file.display()
-            );
-        }
-        Ok(())
-    }
-}
-
-/// `--checkpoints`: scores the cover's test views at the minutes asked, on the device.
-struct CheckpointScorer<'a> {
-    a: &'a Args,
-    data: Option<Dataset>,
-    /// The minutes still ahead, soonest first (a resumed run scores only those).
-    pending: Vec<f64>,
-    grid: GridLayout,
-    last: Option<Totals>,
-    done: Vec<Checkpoint>,
-}
-
-impl<'a> CheckpointScorer<'a> {
-    fn new(
-        a: &'a Args,
-        data: Option<Dataset>,
-        recipe: &Recipe,
-        training: &Training,
-    ) -> Result<Self> {
-        let done_seconds = training.totals().seconds;
-        let mut pending: Vec<f64> = a
-            .checkpoints
-            .iter()
-            .copied()
-            .filter(|m| m * 60.0 > done_seconds)
-            .collect();
-        pending.sort_by(|x, y| x.total_cmp(y));
-        Ok(CheckpointScorer {
-            a,
-            data,
-            pending,
-            grid: NerfLayout::new(recipe.model)?.grid,
-            last: None,
-            done: Vec::new(),
-        })
-    }
-
-    /// Scores every checkpoint the run's time has reached.
-    fn after_step(&mut self, training: &Training, device: &Device, pb: &ProgressBar) -> Result<()> {
-        while let Some(&m) = self.pending.first() {
-            if training.totals().seconds < m * 60.0 {
-                break;
-            }
-            self.pending.remove(0);
-            let line = self.score(m, training, device)?;
-            // A hidden bar (no terminal) swallows println: write the line ourselves.
-            if pb.is_hidden() {
-                eprintln!("{line}");
-            } else {
-                pb.println(line);
-            }
-        }
-        Ok(())
-    }
-
-    /// Scores the checkpoint at `m` minutes; returns the line that says so.
-    fn score(&mut self, m: f64, training: &Training, device: &Device) -> Result<String> {
-        let a = self.a;
-        let t = *training.totals();
-        let data = self.data.as_ref().expect("loaded with checkpoints");
-        let t_eval = std::time::Instant::now();
-        let model = training.model()?;
-        let idx = reference_indices(&self.grid);
-        let mut renderer = device.renderer(&model, &idx, &model.grid)?;
-        let opts = RenderOptions {
-            background: a.background.rgb(),
-            ..Default::default()
-        };
-        let which = spread_views(data.frames.len(), a.eval_views);
-        let r = evaluate_under(
-            a.eval_protocol,
-            renderer.as_mut(),
-            data,
-            &opts,
-            Some(&which),
-            Some(Lpips::embedded()),
-            |_, _, _| {},
-        )?;
-        let eval_seconds = t_eval.elapsed().as_secs_f64();
-        let seconds_per_view = eval_seconds / r.n_views.max(1) as f64;
-        let eval_samples_per_ray =
-            r.views.iter().map(|v| v.samples_per_ray).sum::<f64>() / r.n_views.max(1) as f64;
-        let lpips = r.lpips.map_or(String::new(), |l| format!(" LPIPS {l:.4}"));
-        let stride = training.trainer().march_stride(0);
-        let march = MarchSince::new(&t, self.last.as_ref(), &model.grid, stride);
-        let line = format!(
-            "checkpoint {m} min: step {} test PSNR ({}) {:.2} dB SSIM {:.4}{lpips} ({} views, {:.2} s and {:.0} samples a ray a view); {}; {}",
-            t.steps,
-            r.protocol,
-            r.psnr,
-            r.ssim,
-            r.n_views,
-            seconds_per_view,
-            eval_samples_per_ray,
-            t.phase_split(),
-            march.note()
-        );
-        self.last = Some(t);
-        self.done.push(Checkpoint {
-            minutes: m,
-            protocol: r.protocol,
-            step: t.steps,
-            psnr: r.psnr,
-            ssim: r.ssim,
-            lpips: r.lpips,
-            train_seconds: t.seconds,
-            samples: t.samples,
-            marched: t.marched,
-            network: t.network,
-            rays: t.rays,
-            rays_per_step: march.rays_per_step,
-            samples_per_ray: march.samples_per_ray,
-            marched_per_ray: march.marched_per_ray,
-            occupied_per_cascade: march.occupied,
-            occupancy_threshold: march.threshold,
-            march_stride: stride,
-            phases: PhaseTotals::of(&t),
-            eval_seconds,
-            seconds_per_view,
-            eval_samples_per_ray,
-        });
-        Ok(line)
-    }
-}
-
 pub fn run(a: Args) -> Result<()> {
     let state = check_args(&a)?;
+    let read_seconds = state.as_ref().map_or(0.0, |r| r.read_seconds);
     let (recipe, eval_data) = load_recipe(&a)?;
     let device = a.device.open()?;
-    let mut training = recipe.start(&device)?;
-    let resumed = resume(&a, &mut training, state)?;
-    configure_device(&a, &mut training, &device)?;
+    let mut run = Run::start(&recipe, &device, run_options(&a, state, eval_data))?;
+    let (resume_seconds, resumed_at) = resumed(&a, &run, read_seconds);
+    configure_device(&a, run.training_mut(), &device)?;
     if !a.json {
-        describe(&a, &recipe, &training, &device);
+        describe(&a, &recipe, run.training(), &device);
     }
     let pb = progress_bar(recipe.budget);
-    let mut saver = StateSaver::new(&a, &training);
-    let mut scorer = CheckpointScorer::new(&a, eval_data, &recipe, &training)?;
-    while training.step()?.is_some() {
-        show_progress(&pb, recipe.budget, &training);
-        saver.after_step(&training)?;
-        scorer.after_step(&training, &device, &pb)?;
-    }
+    run.run(|event| {
+        match event {
+            Event::Step(training) => show_progress(&pb, recipe.budget, training),
+            // A hidden bar (no terminal) swallows println: write the line ourselves.
+            Event::Checkpoint(c) if pb.is_hidden() => eprintln!("{}", c.line),
+            Event::Checkpoint(c) => pb.println(&c.line),
+            Event::StateSaved { .. } | Event::StateOff { .. } => {}
+        }
+        Ok(())
+    })?;
     pb.finish_and_clear();
-    saver.finish(&training, a.json)?;
-    let device_phases_ms: Vec<Phase> = training
-        .trainer()
+    if let Some(file) = run.save_last_state()?
+        && !a.json
+    {
+        say_state(file);
+    }
+    let device_phases_ms: Vec<Phase> = run
         .device_profile()
         .into_iter()
         .map(|(phase, ms)| Phase { phase, ms })
         .collect();
     // A --minutes budget can end before --hidden-from: the file would hold the cover alone.
-    let trained = training
+    let done = run
         .finish()
         .map_err(|e| anyhow::anyhow!("{e}; nothing written"))?;
+    let trained = done.trained;
     trained.model.save(&a.out)?;
     let t = trained.totals;
     let steps = t.steps.max(1) as f64;
@@ -798,10 +503,10 @@ pub fn run(a: Args) -> Result<()> {
         device: device.report(),
         steps: t.steps,
         train_seconds: t.seconds,
-        state_saves: saver.saves,
-        state_save_seconds: saver.seconds,
-        resume_seconds: resumed.seconds,
-        resumed_at: resumed.at,
+        state_saves: done.state_saves,
+        state_save_seconds: done.state_save_seconds,
+        resume_seconds,
+        resumed_at,
         final_loss: trained.model.loss,
         samples_per_second: t.samples as f64 / t.seconds,
         marched_samples_per_second: t.marched as f64 / t.seconds,
@@ -816,10 +521,25 @@ pub fn run(a: Args) -> Result<()> {
         occupancy_budget: recipe.occupancy_budget(&device),
         coarse_march: recipe.coarse_march(&device),
         half_grid: a.half_grid,
-        checkpoints: scorer.done,
+        checkpoints: done.checkpoints,
         device_phases_ms,
     };
     report(&summary, &t, &a)
+}
+
+/// Where the run's last state is, and what it is.
+fn say_state(file: &StateFile) {
+    if file.form == StateForm::Snapshot {
+        eprintln!(
+            "training state: {} (a snapshot with its optimizer state: --resume goes on from it, instant-ngp loads it)",
+            file.path.display()
+        );
+    } else {
+        eprintln!(
+            "training state: {} (owner-only; --resume goes on from it; it describes the hidden scenes: keep it like the keys, delete it when done)",
+            file.path.display()
+        );
+    }
 }
 
 fn report(summary: &Summary, t: &Totals, a: &Args) -> Result<()> {

@@ -12,7 +12,7 @@ use ngp::error::{Error, Result};
 use ngp::model::Model;
 use ngp::train::{SceneSpec, Trainer};
 use std::sync::Arc;
-use stego::recipe::{Budget, Recipe, StepOptions};
+use training::recipe::{Budget, Recipe, StepOptions};
 
 /// What a re-training starts from.
 enum Start<'a> {

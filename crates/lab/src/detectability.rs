@@ -37,13 +37,13 @@ use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use stego::SchemeKind;
-use stego::recipe::HiddenOptions;
 use stego::stealth::StealthOptions;
 use stego::steganalysis::{
     Detector, analyse_file, auc_p_value, directed_auc_p_value, feature_matrix, roc_auc,
 };
 use synth::scene::{Material, Object, Scene, Shape, V3, text_scene};
 use synth::{CAMERA_ANGLE_X, CAMERA_RADIUS, layout_text, look_at, render_view};
+use training::recipe::HiddenOptions;
 
 /// What the detectability experiment adds to [`ExpConfig`].
 #[derive(Clone, Debug)]

@@ -19,7 +19,7 @@ use super::report::{Report, Table, save_grid};
 use super::setup::{
     Budget, ExpConfig, Experiment, Scene, experiment_key, load_scene, train_scenes,
 };
-use super::store::{ModelState, read_stored, reuse_or_train};
+use super::store::{read_stored, reuse_or_train};
 use ngp::error::{Error, Result};
 use ngp::eval::{ground_truth, spread_views};
 use ngp::lpips::Lpips;
@@ -30,6 +30,7 @@ use ngp::render::image::RenderOptions;
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 use stego::{Key, open_scene_on};
+use training::state::StateSaver;
 
 /// Bumped when what a model file depends on changes meaning.
 const MODEL_FORMAT: u32 = 1;
@@ -265,7 +266,7 @@ impl Models<'_> {
         &mut self,
         job: PairJob,
         config: Value,
-        train: impl FnOnce(Option<&mut ModelState>) -> Result<(Model, u32, f64)>,
+        train: impl FnOnce(Option<StateSaver>) -> Result<(Model, u32, f64)>,
     ) -> Result<Stored> {
         let tag = format!("{:016x}", fnv64(&config.to_string()));
         let path = self.dir.join(format!("{}-{}.ingp", job.stem, &tag[..8]));
@@ -674,7 +675,7 @@ impl<'a> Pair<'a> {
         scenes: &[(&Scene, &Key)],
         budget: Budget,
         label: &str,
-        state: Option<&mut ModelState>,
+        state: Option<StateSaver>,
     ) -> Result<(Model, u32, f64)> {
         let t = train_scenes(self.cfg, self.config, scenes, budget, label, state)?;
         Ok((t.model, t.steps, t.seconds))

@@ -28,8 +28,8 @@ use ngp::util::write_atomic;
 use serde_json::{Value, json};
 use std::path::Path;
 use stego::Key;
-use stego::recipe::HiddenOptions;
 use stego::stealth::StealthOptions;
+use training::recipe::HiddenOptions;
 
 /// How a model of the experiment hides its scene.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

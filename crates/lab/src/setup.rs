@@ -1,10 +1,10 @@
 //! What every experiment shares: the experiments' names, their configuration, the scenes
 //! they load, their keys, and training and scoring one model through the one recipe
-//! ([`stego::recipe`]).
+//! ([`training::recipe`]).
 
 use super::jobs::{Action, JobMode, PlannedModel, is_placeholder, no_scores, placeholder, slug};
 use super::report::save_grid;
-use super::store::{ModelState, read_stored, reuse_or_train_exact};
+use super::store::{read_stored, reuse_or_train_exact};
 use backend::Device;
 use ngp::data::{Dataset, LoadOptions, Split};
 use ngp::encoding::GridConfig;
@@ -18,9 +18,11 @@ use ngp::rng::Pcg32;
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-pub use stego::recipe::Budget;
-use stego::recipe::{HiddenOptions, HiddenScene, Recipe, SaveEvery, StepOptions, StoredLoss};
 use stego::{Key, SchemeKind, generate_with, open_scene_on};
+pub use training::recipe::Budget;
+use training::recipe::{HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss};
+use training::run::{Event, ResumeFrom, Resumed, Run, RunOptions};
+use training::state::{SaveEvery, StateSaver};
 
 /// One of the experiments, named as `stegongp experiment NAME` takes it; the name is also
 /// its report's folder and its report's `experiment` field.
@@ -245,7 +247,7 @@ pub(crate) fn train_scenes(
     scenes: &[(&Scene, &Key)],
     budget: Budget,
     label: &str,
-    mut state: Option<&mut ModelState>,
+    state: Option<StateSaver>,
 ) -> Result<Trained> {
     let Some(((cover, _), hidden)) = scenes.split_first() else {
         return Err(Error::Config(format!("{label}: no scene to train")));
@@ -273,15 +275,36 @@ pub(crate) fn train_scenes(
         stored_loss: StoredLoss::Last,
     };
     let in_label = |e: Error| Error::Other(format!("{label}: {e}"));
-    let mut training = recipe.start(&cfg.device).map_err(in_label)?;
-    if let Some(st) = state.as_deref_mut() {
-        st.resume(&mut training)?;
+    let opts = RunOptions {
+        resume: state.as_ref().map(|_| ResumeFrom::OwnState),
+        save: state,
+        checkpoints: None,
+    };
+    let mut run = Run::start(&recipe, &cfg.device, opts).map_err(in_label)?;
+    if cfg.verbose {
+        match run.resumed() {
+            Resumed::From {
+                from,
+                step,
+                trained_seconds,
+                ..
+            } => eprintln!(
+                "  resumed {} at step {step} ({trained_seconds:.1} s trained)",
+                from.display()
+            ),
+            Resumed::StaleRemoved(p) => {
+                eprintln!("  {}: left by another configuration, removed", p.display());
+            }
+            Resumed::Fresh => {}
+        }
     }
-    training.run(|t, _| match state.as_deref_mut() {
-        Some(st) => st.after_step(t),
-        None => Ok(()),
+    run.run(|event| {
+        if let Event::StateOff { why } = event {
+            eprintln!("  no training state for this model: {why}");
+        }
+        Ok(())
     })?;
-    let trained = training.finish().map_err(in_label)?;
+    let trained = run.finish().map_err(in_label)?.trained;
     let t = trained.totals;
     if cfg.verbose {
         eprintln!(
@@ -340,7 +363,7 @@ impl Ctx<'_> {
         let id = planned.id.clone();
         let config = self.model_config(grid);
         let action = self.cfg.jobs.action(planned);
-        let train = |state: Option<&mut ModelState>| {
+        let train = |state: Option<StateSaver>| {
             let budget = Budget::Steps(self.cfg.steps);
             train_scenes(self.cfg, config, scenes, budget, label, state)
         };
@@ -508,7 +531,7 @@ pub(crate) fn train_pair(
     cfg: &ExpConfig,
     key: Option<u64>,
     label: &str,
-    state: Option<&mut ModelState>,
+    state: Option<StateSaver>,
 ) -> Result<PairRun> {
     let cover = load_scene(&cfg.cover, cfg.downscale, None)?;
     let box_scale = Some(cover.train.aabb_scale);

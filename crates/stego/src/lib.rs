@@ -41,7 +41,6 @@ pub mod options;
 pub mod permute;
 pub mod prf;
 pub mod primes;
-pub mod recipe;
 pub mod stealth;
 pub mod steganalysis;
 pub mod strength;

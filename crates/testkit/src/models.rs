@@ -6,7 +6,8 @@ use ngp::model::Model;
 use ngp::network::ModelConfig;
 use std::sync::Arc;
 use stego::Key;
-use stego::recipe::{Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss};
+use training::recipe::{Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss};
+use training::run::{Run, RunOptions};
 
 /// A model of `cover`, with each of `hidden` under its key, trained `n_steps` steps of
 /// `steps` on the CPU with the default hidden options (mixed batches, no stealth).
@@ -35,7 +36,7 @@ pub fn trained(
         stored_loss: StoredLoss::Last,
     };
     let cpu = Device::default();
-    let mut training = recipe.start(&cpu).expect("a valid test recipe");
-    training.run(|_, _| Ok(())).expect("training on the CPU");
-    training.finish().expect("a finished training").model
+    let mut run = Run::start(&recipe, &cpu, RunOptions::default()).expect("a valid test recipe");
+    run.run(|_| Ok(())).expect("training on the CPU");
+    run.finish().expect("a finished training").trained.model
 }

@@ -19,8 +19,9 @@ use stegongp::ngp::encoding::GridConfig;
 use stegongp::ngp::train::Schedule;
 use stegongp::stego::SchemeKind;
 use stegongp::stego::options::choice;
-use stegongp::stego::recipe::{HiddenOptions, SaveEvery};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
+use stegongp::training::recipe::HiddenOptions;
+use stegongp::training::state::SaveEvery;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
