@@ -80,6 +80,7 @@ fn trained(res: u32) -> (Model, Camera) {
     let mut recipe = Recipe::plain(cfg, Arc::new(train), steps, Budget::Steps(100));
     recipe.stored_loss = StoredLoss::Last;
     let cpu = Device::default();
+    let recipe = recipe.check().unwrap_or_else(|e| fail(e));
     let mut run = Run::start(&recipe, &cpu, RunOptions::default()).unwrap_or_else(|e| fail(e));
     run.run(|_| Ok(())).unwrap_or_else(|e| fail(e));
     let model = run.finish().unwrap_or_else(|e| fail(e)).trained.model;

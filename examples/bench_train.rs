@@ -88,6 +88,7 @@ fn main() -> anyhow::Result<()> {
     };
     let mut recipe = Recipe::plain(model, Arc::new(train), steps_opts, Budget::Steps(steps));
     recipe.stored_loss = StoredLoss::Last;
+    let recipe = recipe.check()?;
     let mut training = recipe.start(&device)?;
     let which = spread_views(test.frames.len(), 8);
     let ropts = RenderOptions::default();

@@ -71,6 +71,7 @@ fn main() -> anyhow::Result<()> {
         recipe.coarse_march(&device),
         recipe.occupancy_budget(&device)
     );
+    let recipe = recipe.check()?;
     let mut training = recipe.start(&device)?;
     while let Some(st) = training.step()? {
         let t = *training.totals();

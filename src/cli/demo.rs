@@ -19,7 +19,7 @@ use stegongp::show::video::Mp4Video;
 use stegongp::stego::{Key, generate_prf, load_key, open_scene_on, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 use stegongp::training::recipe::{
-    Budget, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
+    Budget, Checked, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
 };
 use stegongp::training::run::{Event, Run, RunOptions};
 
@@ -150,7 +150,7 @@ fn recipe(
     key: &Key,
     key_path: &Path,
     opts: &LoadOptions,
-) -> Result<(Recipe, Vec<PathCamera>)> {
+) -> Result<(Checked, Vec<PathCamera>)> {
     let cover = Dataset::load(cover_dir, Split::Train, opts)?;
     let cover_cameras: Vec<PathCamera> = cover
         .frames
@@ -175,12 +175,12 @@ fn recipe(
         budget: Budget::Steps(a.steps),
         stored_loss: StoredLoss::Last,
     };
-    Ok((recipe, cover_cameras))
+    Ok((recipe.check()?, cover_cameras))
 }
 
 /// Trains `recipe` with a progress bar and saves the model to `model_path`; returns the
 /// training's seconds and samples.
-fn train(a: &Args, recipe: &Recipe, device: &Device, model_path: &Path) -> Result<(f64, u64)> {
+fn train(a: &Args, recipe: &Checked, device: &Device, model_path: &Path) -> Result<(f64, u64)> {
     let mut run = Run::start(recipe, device, RunOptions::default())?;
     let pb = super::common::progress(
         a.steps as u64,

@@ -13,7 +13,7 @@ use stegongp::ngp::render::image::Background;
 use stegongp::stego::options::choice;
 use stegongp::training::checkpoints::{Checkpoint, CheckpointPlan, PhaseTotals};
 use stegongp::training::recipe::{
-    Budget, GridOptions, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
+    Budget, Checked, GridOptions, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
 };
 use stegongp::training::run::{Event, ResumeFrom, Resumed, Run, RunOptions};
 use stegongp::training::state::{SaveEvery, StateFile, StateForm, StateSaver};
@@ -251,7 +251,7 @@ fn check_args(a: &Args) -> Result<Option<ResumeBytes>> {
 
 /// The recipe of the scenes and keys the options name, checked (a `--robust` run's keys
 /// then record the mode), and the test views `--checkpoints` scores.
-fn load_recipe(a: &Args) -> Result<(Recipe, Option<Dataset>)> {
+fn load_recipe(a: &Args) -> Result<(Checked, Option<Dataset>)> {
     let opts = LoadOptions {
         downscale: a.downscale,
         images: a.images.clone(),
@@ -298,7 +298,7 @@ fn load_recipe(a: &Args) -> Result<(Recipe, Option<Dataset>)> {
         budget,
         stored_loss: StoredLoss::Smoothed,
     };
-    recipe.check()?;
+    let recipe = recipe.check()?;
     if a.training.robust {
         record_robust(&a.key)?;
     }

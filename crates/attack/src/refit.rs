@@ -54,7 +54,7 @@ fn train_plain(
         step_options,
         Budget::Steps(steps),
     );
-    recipe.check()?;
+    let recipe = recipe.check()?;
     let config = recipe.train_config(&Device::default());
     let layout = &like.net.layout;
     let scenes = vec![SceneSpec {

@@ -280,6 +280,7 @@ pub(crate) fn train_scenes(
         save: state,
         checkpoints: None,
     };
+    let recipe = recipe.check().map_err(in_label)?;
     let mut run = Run::start(&recipe, &cfg.device, opts).map_err(in_label)?;
     if cfg.verbose {
         match run.resumed() {

@@ -36,7 +36,8 @@ pub fn trained(
         stored_loss: StoredLoss::Last,
     };
     let cpu = Device::default();
-    let mut run = Run::start(&recipe, &cpu, RunOptions::default()).expect("a valid test recipe");
+    let recipe = recipe.check().expect("a valid test recipe");
+    let mut run = Run::start(&recipe, &cpu, RunOptions::default()).expect("training on the CPU");
     run.run(|_| Ok(())).expect("training on the CPU");
     run.finish().expect("a finished training").trained.model
 }

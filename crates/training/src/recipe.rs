@@ -316,8 +316,14 @@ impl Recipe {
         }
     }
 
-    /// Every check, before anything is trained or written.
-    pub fn check(&self) -> Result<()> {
+    /// Every check, before anything is trained or written: the recipe as one that may
+    /// start. A recipe is checked here once; [`Checked::start`] takes it as it is.
+    pub fn check(self) -> Result<Checked> {
+        self.check_all()?;
+        Ok(Checked(self))
+    }
+
+    fn check_all(&self) -> Result<()> {
         self.options.check()?;
         let layout = NerfLayout::new(self.model)?;
         if self.steps.batch == 0 {
@@ -448,10 +454,21 @@ impl Recipe {
             None => device.default_coarse_march(),
         }
     }
+}
 
-    /// Checks the recipe and starts its training on `device`.
+/// A recipe [`Recipe::check`] passed: the only kind that trains.
+pub struct Checked(Recipe);
+
+impl std::ops::Deref for Checked {
+    type Target = Recipe;
+    fn deref(&self) -> &Recipe {
+        &self.0
+    }
+}
+
+impl Checked {
+    /// Starts the recipe's training on `device`.
     pub fn start<'d>(&self, device: &'d Device) -> Result<Training<'d>> {
-        self.check()?;
         let layout = NerfLayout::new(self.model)?;
         let mut scenes = vec![SceneSpec {
             dataset: self.cover.clone(),

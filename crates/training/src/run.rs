@@ -6,7 +6,7 @@
 //! experiment and the test kit consume it; they only display what it says.
 
 use crate::checkpoints::{Checkpoint, CheckpointPlan, CheckpointScorer};
-use crate::recipe::Recipe;
+use crate::recipe::Checked;
 use crate::state::{Saved, StateFile, StateSaver, Tagged, damaged, is_run_state};
 use crate::steps::{Trained, Training};
 use backend::Device;
@@ -82,7 +82,7 @@ pub struct Finished {
 
 impl<'d> Run<'d> {
     /// The recipe's training on `device`, gone on from `opts.resume` if given.
-    pub fn start(recipe: &Recipe, device: &'d Device, opts: RunOptions) -> Result<Self> {
+    pub fn start(recipe: &Checked, device: &'d Device, opts: RunOptions) -> Result<Self> {
         let mut training = recipe.start(device)?;
         let resumed = match opts.resume {
             None => Resumed::Fresh,
@@ -220,14 +220,14 @@ fn resume(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::recipe::{Budget, GridOptions, StepOptions};
+    use crate::recipe::{Budget, GridOptions, Recipe, StepOptions};
     use crate::state::{SaveEvery, StateForm};
     use ngp::data::{Dataset, LoadOptions, Split};
     use ngp::network::ModelConfig;
     use std::sync::Arc;
 
     /// A plain recipe of a tiny generated scene: `steps` steps of 2^12 samples.
-    fn tiny(dir: &Path, steps: u32) -> Recipe {
+    fn tiny(dir: &Path, steps: u32) -> Checked {
         let opts = synth::SynthOptions {
             resolution: 24,
             n_train: 4,
@@ -255,6 +255,8 @@ mod tests {
             ..Default::default()
         };
         Recipe::plain(model, Arc::new(cover), step, Budget::Steps(steps))
+            .check()
+            .unwrap()
     }
 
     /// The stream says every step, then each state the cadence saves; the last state is
