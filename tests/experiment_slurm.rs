@@ -13,9 +13,11 @@ use stegongp::experiments::report::comparable;
 use testkit::cli::{bin, run_ok};
 use testkit::slurm::SlurmCluster;
 
-/// Two pairs (an object cover with a text and with a logo, given as --pair: a pair's key is
-/// drawn from its scenes' paths, which must be the same for the two runs compared): 5
-/// models at 32 px.
+/// One pair (an object cover with a text, given as --pair: a pair's key is drawn from its
+/// scenes' paths, which must be the same for the runs compared): 3 models at 32 px, two of
+/// them plain (each a job of its own), so that two jobs run at once on the node's two CPUs.
+/// (A second pair, as this test had, made it 5 models and ran 60 s longer in CI without
+/// reaching anything the first does not.)
 const PAIRS: [&str; 14] = [
     "experiment",
     "pairs",
@@ -42,7 +44,7 @@ fn report(dir: &Path) -> Value {
 /// Generates the scenes once, in `dir/scenes`; the --pair options naming them.
 fn scenes(dir: &Path) -> Vec<String> {
     let s = dir.join("scenes");
-    for name in ["object", "text", "logo"] {
+    for name in ["object", "text"] {
         testkit::cli::synth(&s.join(name), name, 32, 40);
     }
     let p = |h: &str| {
@@ -52,7 +54,7 @@ fn scenes(dir: &Path) -> Vec<String> {
             s.join(h).display()
         )
     };
-    vec![p("text"), p("logo")]
+    vec![p("text")]
 }
 
 fn single_machine(dir: &Path, pairs: &[String]) -> Value {
@@ -145,7 +147,7 @@ fn through_slurm(cluster: &SlurmCluster, d: &Path, pairs: &[String]) -> Value {
         here,
         "Slurm's report is the single machine's"
     );
-    for png in ["pair1_cover.png", "pair2_hidden.png"] {
+    for png in ["pair1_cover.png", "pair1_hidden.png"] {
         let a = std::fs::read(plan.join("pairs").join(png)).unwrap();
         let b = std::fs::read(d.join("here/pairs").join(png)).unwrap();
         assert!(a == b, "{png} differs");
@@ -196,7 +198,7 @@ fn cancelled_and_resubmitted(cluster: &SlurmCluster, d: &Path, pairs: &[String],
                 .ends_with(".done")
         })
         .count();
-    assert!(finished_before < 5, "every job finished before the cancel");
+    assert!(finished_before < 3, "every model's job finished before the cancel");
     // Submitted again: only what has not finished runs; a stego job resumes.
     let st = cluster
         .command("bash")
