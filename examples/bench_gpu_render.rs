@@ -14,9 +14,10 @@
 use std::sync::Arc;
 use std::time::Instant;
 use stegongp::backend::Device;
+use stegongp::dataset::LoadOptions;
 use stegongp::gpu::{GpuContext, GpuRenderer, rebuild_occupancy_gpu};
 use stegongp::ngp::camera::Camera;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::metrics::psnr;
 use stegongp::ngp::model::Model;
@@ -64,8 +65,8 @@ fn trained(res: u32) -> (Model, Camera) {
         downscale: 1,
         ..Default::default()
     };
-    let train = Dataset::load(dir.path(), Split::Train, &o).unwrap_or_else(|e| fail(e));
-    let test = Dataset::load(dir.path(), Split::Test, &o).unwrap_or_else(|e| fail(e));
+    let train = stegongp::dataset::load(dir.path(), Split::Train, &o).unwrap_or_else(|e| fail(e));
+    let test = stegongp::dataset::load(dir.path(), Split::Test, &o).unwrap_or_else(|e| fail(e));
     let mut cfg = ModelConfig::default();
     cfg.grid.log2_hashmap_size = 16;
     let t0 = Instant::now();

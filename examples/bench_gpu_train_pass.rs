@@ -12,8 +12,9 @@
 
 use std::sync::Arc;
 use std::time::Instant;
+use stegongp::dataset::LoadOptions;
 use stegongp::gpu::{GpuContext, GpuTrainer};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::train::{SceneSpec, TrainConfig};
@@ -29,7 +30,8 @@ fn main() {
         downscale,
         ..Default::default()
     };
-    let train = Arc::new(Dataset::load(data.as_ref(), Split::Train, &opts).expect("the dataset"));
+    let train =
+        Arc::new(stegongp::dataset::load(data.as_ref(), Split::Train, &opts).expect("the dataset"));
     let model = ModelConfig {
         aabb_scale: train.aabb_scale,
         ..Default::default()

@@ -7,7 +7,8 @@
 //! (default: a generated 100 px object scene, 60 steps)
 
 use std::sync::Arc;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
@@ -45,8 +46,8 @@ fn main() {
         downscale,
         ..Default::default()
     };
-    let data = Arc::new(Dataset::load(&dir, Split::Train, &opts).expect("load"));
-    let test = Dataset::load(&dir, Split::Test, &opts).expect("load test split");
+    let data = Arc::new(stegongp::dataset::load(&dir, Split::Train, &opts).expect("load"));
+    let test = stegongp::dataset::load(&dir, Split::Test, &opts).expect("load test split");
     let cfg = ModelConfig {
         aabb_scale: data.aabb_scale,
         ..Default::default()

@@ -6,7 +6,8 @@
 //! cargo run --release --example bench_occupancy_update -- MODEL [DATA_DIR [DOWNSCALE]]
 
 use std::time::Instant;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::occupancy::{N_CELLS, in_block_order};
@@ -26,7 +27,7 @@ fn main() {
     let mut grid = model.grid.clone();
     if let Some(dir) = args.get(2) {
         let downscale = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1);
-        let data = Dataset::load(
+        let data = stegongp::dataset::load(
             dir.as_ref(),
             Split::Train,
             &LoadOptions {

@@ -11,8 +11,8 @@
 
 use std::collections::HashMap;
 use std::path::Path;
-use stegongp::ngp::data::colmap::read_model;
-use stegongp::ngp::data::colmap2nerf::colmap_c2w;
+use stegongp::dataset::colmap::read_model;
+use stegongp::dataset::colmap2nerf::colmap_c2w;
 use testkit::capture::{Arc, Pose, pose_errors, room_arc, write_colmap_text, write_png};
 
 fn render(dir: &Path, views: usize, width: u32, height: u32, arc_deg: f32) {

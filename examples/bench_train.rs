@@ -18,7 +18,8 @@ use serde_json::json;
 use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::backend::{Device, DeviceRequest};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
@@ -66,8 +67,8 @@ fn main() -> anyhow::Result<()> {
         PathBuf::from(&scene)
     };
     let opts = LoadOptions::default();
-    let train = Dataset::load(&dir, Split::Train, &opts)?;
-    let test = Dataset::load(&dir, Split::Test, &opts)?;
+    let train = stegongp::dataset::load(&dir, Split::Train, &opts)?;
+    let test = stegongp::dataset::load(&dir, Split::Test, &opts)?;
     let model = ModelConfig {
         aabb_scale: train.aabb_scale,
         ..Default::default()

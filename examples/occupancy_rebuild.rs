@@ -5,7 +5,8 @@
 //!
 //! SPC=4 REFINE=28 cargo run --release --example occupancy_rebuild -- MODEL DATA_DIR [DOWNSCALE] [KEYFILE] [VIEWS]
 
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
@@ -20,7 +21,7 @@ fn main() {
     }
     let model = Model::load(args[1].as_ref()).unwrap_or_else(|e| panic!("{e}"));
     let downscale = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(1);
-    let data = Dataset::load(
+    let data = stegongp::dataset::load(
         args[2].as_ref(),
         Split::Test,
         &LoadOptions {

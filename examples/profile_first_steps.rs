@@ -18,7 +18,8 @@ use serde_json::json;
 use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::backend::{Device, DeviceRequest};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::Split;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::training::recipe::{Budget, Recipe, StepOptions};
 
@@ -58,7 +59,7 @@ fn parse() -> anyhow::Result<Args> {
 
 fn main() -> anyhow::Result<()> {
     let a = parse()?;
-    let train = Dataset::load(&a.data, Split::Train, &a.load)?;
+    let train = stegongp::dataset::load(&a.data, Split::Train, &a.load)?;
     let model = ModelConfig {
         aabb_scale: train.aabb_scale,
         ..Default::default()

@@ -12,11 +12,12 @@ use testkit::geometry::rot_to_quat;
 
 use npyz::WriterBuilder;
 use serde_json::Value;
-use stegongp::ngp::camera::Camera;
-use stegongp::ngp::data::colmap2nerf::{
+use stegongp::dataset::colmap2nerf::{
     ImportCamera, ImportFrame, ImportedScene, colmap_c2w, to_transforms,
 };
-use stegongp::ngp::data::{Dataset, DatasetFormat, LoadOptions, Split, import_capture};
+use stegongp::dataset::{LoadOptions, import_capture};
+use stegongp::ngp::camera::Camera;
+use stegongp::ngp::data::{DatasetFormat, Split};
 use stegongp::synth::{CAMERA_ANGLE_X, SceneKind, SynthOptions, generate};
 
 const RES: u32 = 32;
@@ -300,7 +301,7 @@ fn opts() -> LoadOptions {
 }
 
 fn cams(dir: &Path, split: Split, o: &LoadOptions) -> Vec<Camera> {
-    Dataset::load_cameras(dir, split, o).unwrap().0
+    stegongp::dataset::load_cameras(dir, split, o).unwrap().0
 }
 
 fn rot(c: &Camera) -> M3 {
@@ -410,9 +411,10 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
     };
     let a = to_transforms(&bin, 16, &fx.cap);
     let b = to_transforms(&by_hand, 16, &fx.cap);
-    assert!((a.norm.scale - b.norm.scale).abs() < 1e-9);
-    let fa = a.json["frames"].as_array().unwrap();
-    let fb = b.json["frames"].as_array().unwrap();
+    let (a, b) = ((a.to_json(), a.norm), (b.to_json(), b.norm));
+    assert!((a.1.scale - b.1.scale).abs() < 1e-9);
+    let fa = a.0["frames"].as_array().unwrap();
+    let fb = b.0["frames"].as_array().unwrap();
     for (x, y) in fa.iter().zip(fb) {
         assert_eq!(x["file_path"], y["file_path"]);
         for i in 0..4 {
@@ -425,13 +427,13 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
             }
         }
     }
-    assert_eq!(a.json["fl_x"], b.json["fl_x"]);
-    assert_eq!(a.json["aabb_scale"], 16);
-    assert!(a.json.get("sharpness").is_none() && fa[0].get("sharpness").is_none());
+    assert_eq!(a.0["fl_x"], b.0["fl_x"]);
+    assert_eq!(a.0["aabb_scale"], 16);
+    assert!(a.0.get("sharpness").is_none() && fa[0].get("sharpness").is_none());
 
     // Loaded cameras: every 8th view held out (0 and 8), the rest for training.
     let o = opts();
-    let (test, meta) = Dataset::load_cameras(&fx.cap, Split::Test, &o).unwrap();
+    let (test, meta) = stegongp::dataset::load_cameras(&fx.cap, Split::Test, &o).unwrap();
     assert_eq!(meta.format, DatasetFormat::Colmap);
     assert_eq!(meta.images_dir.as_deref(), Some("images"));
     assert_eq!(meta.aabb_scale, 16);
@@ -443,7 +445,7 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
     assert_eq!(train.len(), N - 2);
     assert!((test[0].fx as f64 - focal()).abs() < 1e-4);
     // All views in name order, to compare with the known poses.
-    let (_, tm) = Dataset::load_cameras(&fx.cap, Split::Train, &o).unwrap();
+    let (_, tm) = stegongp::dataset::load_cameras(&fx.cap, Split::Train, &o).unwrap();
     let mut all: Vec<(String, Camera)> = tm
         .file_paths
         .iter()
@@ -495,7 +497,7 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
     for split in [Split::Train, Split::Test] {
         let b = cams(&fx.cap, split, &o);
         same_cameras(&b, &cams(&fx.cap.join("sparse_txt/0"), split, &o), 1e-5);
-        let (l, lm) = Dataset::load_cameras(&fx.llff, split, &o).unwrap();
+        let (l, lm) = stegongp::dataset::load_cameras(&fx.llff, split, &o).unwrap();
         assert_eq!(lm.format, DatasetFormat::Llff);
         same_cameras(&b, &l, 1e-4);
     }
@@ -505,7 +507,7 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
         images: Some("images_2".into()),
         ..Default::default()
     };
-    let (h2, m2) = Dataset::load_cameras(&fx.cap, Split::Test, &o2).unwrap();
+    let (h2, m2) = stegongp::dataset::load_cameras(&fx.cap, Split::Test, &o2).unwrap();
     assert_eq!(m2.images_dir.as_deref(), Some("images_2"));
     assert_eq!(m2.file_paths[0], "images_2/view_00.png");
     assert_eq!((h2[0].width, h2[0].height), (RES / 2, RES / 2));
@@ -518,7 +520,7 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
         aabb_scale: Some(8),
         ..Default::default()
     };
-    let d = Dataset::load(&fx.cap, Split::Train, &o8).unwrap();
+    let d = stegongp::dataset::load(&fx.cap, Split::Train, &o8).unwrap();
     assert_eq!((d.frames.len(), d.width, d.aabb_scale), (N - 2, RES, 8));
     assert_eq!(d.format, DatasetFormat::Colmap);
     same_cameras(&d.cameras(), &train, 0.0);
@@ -557,13 +559,13 @@ fn convert_writes_a_transforms_json_that_loads_back() {
             "{fp}"
         );
         for split in [Split::Train, Split::Test] {
-            let (a, am) = Dataset::load_cameras(&out, split, &o).unwrap();
+            let (a, am) = stegongp::dataset::load_cameras(&out, split, &o).unwrap();
             assert_eq!(am.format, DatasetFormat::InstantNgp);
             same_cameras(&a, &cams(cap, split, &o), 1e-6);
         }
     }
     // With transforms.json beside the LLFF model, the JSON wins.
-    let (_, m) = Dataset::load_cameras(&fx.llff, Split::Train, &o).unwrap();
+    let (_, m) = stegongp::dataset::load_cameras(&fx.llff, Split::Train, &o).unwrap();
     assert_eq!(m.format, DatasetFormat::InstantNgp);
     // --json, --aabb-scale and --images.
     let out = fx.cap.join("t2.json");
@@ -610,7 +612,7 @@ fn has(msg: &str, needles: &[&str]) {
 fn bad_colmap_models_are_refused_with_the_file_and_field() {
     let fx = fixture();
     let model = fx.cap.join("sparse/0");
-    let load = |dir: &Path| Dataset::load_cameras(dir, Split::Train, &opts()).map(|_| ());
+    let load = |dir: &Path| stegongp::dataset::load_cameras(dir, Split::Train, &opts()).map(|_| ());
     let cams_bin = std::fs::read(model.join("cameras.bin")).unwrap();
     let imgs_bin = std::fs::read(model.join("images.bin")).unwrap();
     let pts_bin = std::fs::read(model.join("points3D.bin")).unwrap();
@@ -688,7 +690,7 @@ fn bad_colmap_models_are_refused_with_the_file_and_field() {
         ..Default::default()
     };
     has(
-        &err_of(Dataset::load_cameras(&fx.cap, Split::Train, &o).map(|_| ())),
+        &err_of(stegongp::dataset::load_cameras(&fx.cap, Split::Train, &o).map(|_| ())),
         &["images_4", "not found"],
     );
     // A bad aabb_scale override.
@@ -697,7 +699,7 @@ fn bad_colmap_models_are_refused_with_the_file_and_field() {
         ..Default::default()
     };
     has(
-        &err_of(Dataset::load_cameras(&fx.cap, Split::Train, &o).map(|_| ())),
+        &err_of(stegongp::dataset::load_cameras(&fx.cap, Split::Train, &o).map(|_| ())),
         &["aabb_scale 3"],
     );
 
@@ -752,7 +754,7 @@ fn bad_colmap_models_are_refused_with_the_file_and_field() {
 fn bad_llff_captures_are_refused() {
     let fx = fixture();
     let npy = fx.llff.join("poses_bounds.npy");
-    let load = || Dataset::load_cameras(&fx.llff, Split::Train, &opts()).map(|_| ());
+    let load = || stegongp::dataset::load_cameras(&fx.llff, Split::Train, &opts()).map(|_| ());
     // Wrong shape.
     let rows: Vec<Vec<f64>> = llff_rows(&fx.known)
         .into_iter()

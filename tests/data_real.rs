@@ -3,8 +3,9 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use stegongp::dataset::LoadOptions;
 use stegongp::ngp::camera::Camera;
-use stegongp::ngp::data::{Dataset, DatasetFormat, LoadOptions, Split};
+use stegongp::ngp::data::{DatasetFormat, Split};
 
 fn data_dir(name: &str) -> Option<PathBuf> {
     for base in ["/work/shared/data", "../shared/data", "../../shared/data"] {
@@ -34,7 +35,7 @@ fn lego_downscale_4() {
         ..Default::default()
     };
     let t0 = Instant::now();
-    let train = Dataset::load(&dir, Split::Train, &opts).unwrap();
+    let train = stegongp::dataset::load(&dir, Split::Train, &opts).unwrap();
     println!(
         "lego train x4: {} frames in {:.2?}",
         train.frames.len(),
@@ -42,7 +43,7 @@ fn lego_downscale_4() {
     );
     assert_eq!(train.frames.len(), 100);
     let t0 = Instant::now();
-    let test = Dataset::load(&dir, Split::Test, &opts).unwrap();
+    let test = stegongp::dataset::load(&dir, Split::Test, &opts).unwrap();
     println!(
         "lego test x4: {} frames in {:.2?}",
         test.frames.len(),
@@ -56,7 +57,7 @@ fn lego_downscale_4() {
     assert_eq!(test.frames[0].file_path, "./test/r_0");
     assert_eq!(test.frames[199].file_path, "./test/r_199");
     // Val falls back to test.
-    let (cams, meta) = Dataset::load_cameras(&dir, Split::Val, &opts).unwrap();
+    let (cams, meta) = stegongp::dataset::load_cameras(&dir, Split::Val, &opts).unwrap();
     assert_eq!(meta.n, 200);
     let c = &test.frames[0].camera;
     // 0.5·800 / tan(0.5·0.6911112) / 4.
@@ -93,7 +94,7 @@ fn fox_every_eighth_with_distortion() {
         downscale: 4,
         ..Default::default()
     };
-    let (test_cams, test_meta) = Dataset::load_cameras(&dir, Split::Test, &opts).unwrap();
+    let (test_cams, test_meta) = stegongp::dataset::load_cameras(&dir, Split::Test, &opts).unwrap();
     assert_eq!(
         test_meta.dropped.len(),
         17,
@@ -102,7 +103,7 @@ fn fox_every_eighth_with_distortion() {
     assert_eq!(test_meta.n, 7);
     assert_eq!(test_meta.file_paths[0], "images/0001.jpg");
     let t0 = Instant::now();
-    let train = Dataset::load(&dir, Split::Train, &opts).unwrap();
+    let train = stegongp::dataset::load(&dir, Split::Train, &opts).unwrap();
     println!(
         "fox train x4: {} frames in {:.2?}",
         train.frames.len(),
@@ -156,7 +157,7 @@ fn fox_every_eighth_with_distortion() {
 fn lego_full_size_timing() {
     let Some(dir) = data_dir("lego") else { return };
     let t0 = Instant::now();
-    let train = Dataset::load(&dir, Split::Train, &LoadOptions::default()).unwrap();
+    let train = stegongp::dataset::load(&dir, Split::Train, &LoadOptions::default()).unwrap();
     let bytes: usize = train.frames.iter().map(|f| f.image.storage_bytes()).sum();
     println!(
         "lego train x1: {} frames, {} MB in {:.2?}",
@@ -239,7 +240,7 @@ fn similarity(a: &[V3], b: &[V3]) -> (f64, [[f64; 3]; 3], V3) {
 fn all_cameras(dir: &Path, opts: &LoadOptions) -> Vec<(String, Camera)> {
     let mut v = Vec::new();
     for split in [Split::Train, Split::Test] {
-        let (cams, meta) = Dataset::load_cameras(dir, split, opts).unwrap();
+        let (cams, meta) = stegongp::dataset::load_cameras(dir, split, opts).unwrap();
         for (p, c) in meta.file_paths.iter().zip(cams) {
             let name = Path::new(p)
                 .file_name()
@@ -289,8 +290,8 @@ fn convert_round_trip(dir: &Path) -> String {
     let back = all_cameras(&out, &o);
     assert_same_cameras(&back, &all_cameras(dir, &o), 1e-5);
     for split in [Split::Train, Split::Test] {
-        let (_, a) = Dataset::load_cameras(&out, split, &o).unwrap();
-        let (_, b) = Dataset::load_cameras(dir, split, &o).unwrap();
+        let (_, a) = stegongp::dataset::load_cameras(&out, split, &o).unwrap();
+        let (_, b) = stegongp::dataset::load_cameras(dir, split, &o).unwrap();
         assert_eq!(a.format, DatasetFormat::InstantNgp);
         assert_eq!(a.n, b.n, "same split");
     }
@@ -312,7 +313,7 @@ fn fox_colmap_binary_and_text_agree_with_fox_transforms() {
     assert_eq!(bin.len(), 50);
     // The text model prints the binary's doubles with 17 digits: the same cameras.
     assert_same_cameras(&bin, &txt, 1e-6);
-    let (test, meta) = Dataset::load_cameras(&dir, Split::Test, &o).unwrap();
+    let (test, meta) = stegongp::dataset::load_cameras(&dir, Split::Test, &o).unwrap();
     assert_eq!(meta.format, DatasetFormat::Colmap);
     assert_eq!(meta.images_dir.as_deref(), Some("images"));
     assert_eq!((meta.n, meta.aabb_scale), (7, 16));
@@ -323,7 +324,7 @@ fn fox_colmap_binary_and_text_agree_with_fox_transforms() {
     assert_eq!((c.width, c.height), (1080, 1920));
     let d = c.distortion.expect("OPENCV camera");
     assert!(d.k1 > 0.05 && d.k2 < -0.07, "{d:?}");
-    let imported = stegongp::ngp::data::import_capture(&dir, None).unwrap();
+    let imported = stegongp::dataset::import_capture(&dir, None).unwrap();
     let pts = imported.points.expect("points3D.bin");
     println!(
         "fox-colmap: {} points, bbox {:?} .. {:?} (COLMAP world)",
@@ -336,7 +337,7 @@ fn fox_colmap_binary_and_text_agree_with_fox_transforms() {
     let Some(fox) = data_dir("fox") else { return };
     let reference = all_cameras(&fox, &o);
     // The same views held out as fox's (natural and byte order agree on these names).
-    let (_, fox_test) = Dataset::load_cameras(&fox, Split::Test, &o).unwrap();
+    let (_, fox_test) = stegongp::dataset::load_cameras(&fox, Split::Test, &o).unwrap();
     assert_eq!(fox_test.file_paths, meta.file_paths);
     assert_eq!(reference.len(), 50);
     let mut a = Vec::new();
@@ -401,12 +402,12 @@ fn flower_llff_images_8() {
         return;
     };
     let o = LoadOptions::default();
-    let rows = stegongp::ngp::data::llff::read_poses_bounds(&dir.join("poses_bounds.npy")).unwrap();
+    let rows = stegongp::dataset::llff::read_poses_bounds(&dir.join("poses_bounds.npy")).unwrap();
     assert_eq!(rows.len(), 34);
     let (h, w, f) = (rows[0][4], rows[0][9], rows[0][14]);
     assert_eq!((h, w), (3024.0, 4032.0));
     let t0 = Instant::now();
-    let (test, meta) = Dataset::load_cameras(&dir, Split::Test, &o).unwrap();
+    let (test, meta) = stegongp::dataset::load_cameras(&dir, Split::Test, &o).unwrap();
     println!("flower test cameras in {:.2?}", t0.elapsed());
     assert_eq!(meta.format, DatasetFormat::Llff);
     assert_eq!(
@@ -425,7 +426,7 @@ fn flower_llff_images_8() {
     assert_eq!((c.cx, c.cy), (252.0, 189.0));
     assert!(c.distortion.is_none());
     let t0 = Instant::now();
-    let train = Dataset::load(&dir, Split::Train, &o).unwrap();
+    let train = stegongp::dataset::load(&dir, Split::Train, &o).unwrap();
     println!(
         "flower train: {} images in {:.2?}",
         train.frames.len(),

@@ -5,8 +5,9 @@
 //! axes — at every aabb_scale up to 128, which must never panic.
 
 use std::sync::Arc;
+use stegongp::dataset::LoadOptions;
 use stegongp::ngp::camera::Camera;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split, aabb_for_scale};
+use stegongp::ngp::data::{Dataset, Split, aabb_for_scale};
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::eval::evaluate;
 use stegongp::ngp::model::Model;
@@ -46,8 +47,8 @@ fn room(dir: &std::path::Path, aabb_scale: u32) -> (Dataset, Dataset) {
         ..Default::default()
     };
     (
-        Dataset::load(dir, Split::Train, &o).unwrap(),
-        Dataset::load(dir, Split::Test, &o).unwrap(),
+        stegongp::dataset::load(dir, Split::Train, &o).unwrap(),
+        stegongp::dataset::load(dir, Split::Test, &o).unwrap(),
     )
 }
 
@@ -331,7 +332,7 @@ fn key_holder_rebuild_and_training_steps_at_aabb_scale_16() {
         dir.path(),
     )
     .unwrap();
-    let data = Dataset::load(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
+    let data = stegongp::dataset::load(dir.path(), Split::Train, &LoadOptions::default()).unwrap();
     let mut cfg = model_config(16);
     cfg.grid.log2_hashmap_size = 12;
     let layout = NerfLayout::new(cfg).unwrap();
@@ -389,8 +390,8 @@ fn hidden_scene_confined_to_its_box_in_a_large_cover() {
     )
     .unwrap();
     let o = LoadOptions::default();
-    let mut hidden = Dataset::load(&hdir, Split::Train, &o).unwrap();
-    let mut hidden_test = Dataset::load(&hdir, Split::Test, &o).unwrap();
+    let mut hidden = stegongp::dataset::load(&hdir, Split::Train, &o).unwrap();
+    let mut hidden_test = stegongp::dataset::load(&hdir, Split::Test, &o).unwrap();
     let key = generate_prf(2).unwrap().with_scene_box(Some(1)).unwrap();
     // A key's box smaller than its scene is refused, naming the scene and the fix.
     let err = room_test.fit_into_box(16, Some(1)).unwrap_err().to_string();

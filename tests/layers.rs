@@ -1,8 +1,8 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
 //! lab, the show layer (paths, video, viewer) and the meshes, the lab on the attacks, those
-//! on the stego layer, the stego layer on the device boundary, that on the
-//! engine and its wgpu backend, and the engine on no other crate of ours, nor on wgpu or
-//! clap. Read from `cargo metadata` (the resolved graph, so a dependency of a dependency
+//! on the stego layer, the stego layer on the device boundary and the capture readers
+//! (dataset), those on the engine (and its wgpu backend), and the engine on no other crate of
+//! ours, nor on wgpu or clap. Read from `cargo metadata` (the resolved graph, so a dependency of a dependency
 //! counts too).
 
 use serde_json::Value;
@@ -11,16 +11,23 @@ use std::process::Command;
 
 /// Each crate of the workspace and the crates of ours it may depend on (normal and build
 /// dependencies; tests may use more).
-const ALLOWED: [(&str, &[&str]); 13] = [
+const ALLOWED: [(&str, &[&str]); 14] = [
     ("stegongp-ngp", &[]),
+    // Captures on disk (transforms.json, COLMAP, LLFF) read into the engine's datasets.
+    ("stegongp-dataset", &["stegongp-ngp"]),
     ("stegongp-gpu", &["stegongp-ngp"]),
     ("stegongp-backend", &["stegongp-ngp", "stegongp-gpu"]),
-    ("stegongp-synth", &["stegongp-ngp"]),
+    ("stegongp-synth", &["stegongp-ngp", "stegongp-dataset"]),
     // Meshes out of a model's density: the engine alone (the caller passes the density).
     ("stegongp-mesh", &["stegongp-ngp"]),
     (
         "stegongp-stego",
-        &["stegongp-ngp", "stegongp-gpu", "stegongp-backend"],
+        &[
+            "stegongp-ngp",
+            "stegongp-dataset",
+            "stegongp-gpu",
+            "stegongp-backend",
+        ],
     ),
     // The one training run (recipe, steps, state, checkpoints): keys from stego, devices
     // from backend; nothing above them.
@@ -28,6 +35,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp-training",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -39,6 +47,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp-attack",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -49,6 +58,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp-lab",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -61,6 +71,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp-show",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -71,6 +82,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp-fuzz",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -85,6 +97,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp-testkit",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -96,6 +109,7 @@ const ALLOWED: [(&str, &[&str]); 13] = [
         "stegongp",
         &[
             "stegongp-ngp",
+            "stegongp-dataset",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -111,8 +125,9 @@ const ALLOWED: [(&str, &[&str]); 13] = [
 
 /// Crates of the outside world a layer must not reach: the engine knows no device and no
 /// command line.
-const FORBIDDEN: [(&str, &[&str]); 3] = [
+const FORBIDDEN: [(&str, &[&str]); 4] = [
     ("stegongp-ngp", &["wgpu", "clap", "anyhow", "indicatif"]),
+    ("stegongp-dataset", &["wgpu", "clap", "anyhow", "indicatif"]),
     ("stegongp-gpu", &["clap", "anyhow", "indicatif"]),
     ("stegongp-synth", &["wgpu"]),
 ];

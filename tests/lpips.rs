@@ -128,7 +128,8 @@ fn shipped_weights_match_sha256sums() {
 #[test]
 fn eval_reports_lpips_unless_skipped() {
     use std::sync::Arc;
-    use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+    use stegongp::dataset::LoadOptions;
+    use stegongp::ngp::data::Split;
     use stegongp::ngp::encoding::reference_indices;
     use stegongp::ngp::eval::{evaluate, evaluate_with};
     use stegongp::ngp::model::Model;
@@ -151,7 +152,7 @@ fn eval_reports_lpips_unless_skipped() {
         &data_dir,
     )
     .unwrap();
-    let load = |split| Dataset::load(&data_dir, split, &LoadOptions::default()).unwrap();
+    let load = |split| stegongp::dataset::load(&data_dir, split, &LoadOptions::default()).unwrap();
     let mut cfg = ModelConfig::default();
     cfg.grid.log2_hashmap_size = 14;
     let layout = NerfLayout::new(cfg).unwrap();

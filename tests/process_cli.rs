@@ -10,7 +10,7 @@
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
-use stegongp::ngp::data::colmap::read_model;
+use stegongp::dataset::colmap::read_model;
 use stegongp::show::frame::Rgb8;
 use stegongp::show::video::Mp4Video;
 use testkit::capture::{Arc, Pose, PoseErrors, pose_errors, room_arc, write_png};

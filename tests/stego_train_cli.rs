@@ -307,7 +307,8 @@ fn density_cap_is_stealths_and_checked_before_anything_is_written() {
 /// where a key already makes eval rebuild it.
 #[test]
 fn rebuild_grid_scores_a_plain_scene_as_a_hidden_one_is_scored() {
-    use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+    use stegongp::dataset::LoadOptions;
+    use stegongp::ngp::data::Split;
     use stegongp::ngp::encoding::reference_indices;
     use stegongp::ngp::eval::evaluate_with;
     use stegongp::ngp::model::Model;
@@ -380,7 +381,8 @@ fn rebuild_grid_scores_a_plain_scene_as_a_hidden_one_is_scored() {
         grid.density, m.grid.density,
         "the fixture's stored grid must differ from a rebuilt one for the test to tell them apart"
     );
-    let data = Dataset::load(cover.as_ref(), Split::Test, &LoadOptions::default()).unwrap();
+    let data =
+        stegongp::dataset::load(cover.as_ref(), Split::Test, &LoadOptions::default()).unwrap();
     let score = |g| {
         let view = m.view(&indices, g);
         evaluate_with(

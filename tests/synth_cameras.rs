@@ -12,8 +12,9 @@ use std::process::{Command, Output};
 use testkit::geometry::{cross, rot_to_quat};
 
 use npyz::WriterBuilder;
+use stegongp::dataset::LoadOptions;
 use stegongp::ngp::camera::Camera;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::ngp::data::Split;
 use stegongp::synth::cameras_from::generate_from_cameras;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
@@ -25,7 +26,7 @@ fn stegongp(args: &[&str]) -> Output {
 }
 
 fn cams(dir: &Path, split: Split, o: &LoadOptions) -> Vec<Camera> {
-    Dataset::load_cameras(dir, split, o).unwrap().0
+    stegongp::dataset::load_cameras(dir, split, o).unwrap().0
 }
 
 fn load(downscale: u32) -> LoadOptions {
@@ -58,8 +59,8 @@ fn check_output(what: &str, src: &Path, src_opts: &LoadOptions, out: &Path) {
         let b = cams(out, split, &load(1));
         assert_same(&format!("{what} {}", split.name()), &a, &b);
     }
-    let test = Dataset::load(out, Split::Test, &load(1)).unwrap();
-    let train = Dataset::load(out, Split::Train, &load(1)).unwrap();
+    let test = stegongp::dataset::load(out, Split::Test, &load(1)).unwrap();
+    let train = stegongp::dataset::load(out, Split::Train, &load(1)).unwrap();
     assert!(test.has_alpha, "{what}: a transparent background");
     let mut seen = 0;
     let frames: Vec<_> = train.frames.iter().chain(&test.frames).collect();
@@ -120,7 +121,7 @@ fn nerf_synthetic_source_with_val() {
     check_output("nerf-synthetic", &src, &load(1), &out);
     // The aabb_scale is the source's, in every split.
     assert_eq!(
-        Dataset::load_cameras(&out, Split::Test, &load(1))
+        stegongp::dataset::load_cameras(&out, Split::Test, &load(1))
             .unwrap()
             .1
             .aabb_scale,

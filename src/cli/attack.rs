@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::PathBuf;
 use stegongp::attack::{Applied, Attack, AttackContext, apply_all};
-use stegongp::ngp::data::LoadOptions;
+use stegongp::dataset::LoadOptions;
 use stegongp::ngp::model::Model;
 
 #[derive(clap::Args, Debug)]

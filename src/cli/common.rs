@@ -4,7 +4,8 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use stegongp::backend::{Device, DeviceRequest};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::{Dataset, Split};
 use stegongp::ngp::eval::spread_views;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions};
@@ -98,7 +99,7 @@ impl ViewArgs {
             bail!("--downscale must be at least 1");
         }
         let model = Model::load(&self.model)?;
-        let data = Dataset::load(
+        let data = stegongp::dataset::load(
             &self.data,
             self.split,
             &LoadOptions {

@@ -7,9 +7,9 @@
 use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
-use stegongp::ngp::data::colmap2nerf::{CentreFrom, to_transforms};
-use stegongp::ngp::data::transforms::parse_transforms_value;
-use stegongp::ngp::data::{check_aabb_scale, import_capture};
+use stegongp::dataset::colmap2nerf::{CentreFrom, to_transforms};
+use stegongp::dataset::import_capture;
+use stegongp::ngp::data::check_aabb_scale;
 use stegongp::util::write_atomic;
 
 #[derive(clap::Args, Debug)]
@@ -77,8 +77,8 @@ pub fn run(a: Args) -> Result<()> {
     };
     let conv = to_transforms(&scene, aabb, &base);
     // What instant-ngp will read must load here first: nothing is written otherwise.
-    parse_transforms_value(&conv.json, &a.out, &base)?;
-    let text = serde_json::to_string_pretty(&conv.json)?;
+    conv.transforms(&a.out, &base)?;
+    let text = serde_json::to_string_pretty(&conv.to_json())?;
     write_atomic(&a.out, text.as_bytes())?;
     let s = Summary {
         format: scene.format.name(),

@@ -5,8 +5,9 @@ use super::common::{DeviceArg, ensure_dir, ensure_locked_dir};
 use anyhow::Result;
 use std::path::{Path, PathBuf};
 use stegongp::backend::Device;
+use stegongp::dataset::LoadOptions;
 use stegongp::experiments::report::save_grid;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split, save_png_rgb};
+use stegongp::ngp::data::{Dataset, Split, save_png_rgb};
 use stegongp::ngp::eval::{evaluate_on, ground_truth, spread_views};
 use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::model::Model;
@@ -93,8 +94,8 @@ pub fn run(a: Args) -> Result<()> {
     let published = Published {
         device: &device,
         model: Model::load(&model_path)?,
-        cover_test: Dataset::load(&cover_dir, Split::Test, &opts)?,
-        hidden_test: Dataset::load(&hidden_dir, Split::Test, &opts)?,
+        cover_test: stegongp::dataset::load(&cover_dir, Split::Test, &opts)?,
+        hidden_test: stegongp::dataset::load(&hidden_dir, Split::Test, &opts)?,
         wrong: Key::wrong(a.seed ^ 0x5eed, &key),
         key,
         seed: a.seed,
@@ -151,7 +152,7 @@ fn recipe(
     key_path: &Path,
     opts: &LoadOptions,
 ) -> Result<(Checked, Vec<PathCamera>)> {
-    let cover = Dataset::load(cover_dir, Split::Train, opts)?;
+    let cover = stegongp::dataset::load(cover_dir, Split::Train, opts)?;
     let cover_cameras: Vec<PathCamera> = cover
         .frames
         .iter()

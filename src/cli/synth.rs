@@ -1,6 +1,6 @@
 use anyhow::{Result, bail};
 use std::path::PathBuf;
-use stegongp::ngp::data::LoadOptions;
+use stegongp::dataset::LoadOptions;
 use stegongp::synth::cameras_from::generate_from_cameras;
 use stegongp::synth::{RoomOptions, SceneKind, SynthOptions, generate};
 

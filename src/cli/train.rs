@@ -6,7 +6,8 @@ use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::backend::{Device, DeviceReport};
-use stegongp::ngp::data::{Dataset, LoadOptions, Split};
+use stegongp::dataset::LoadOptions;
+use stegongp::ngp::data::{Dataset, Split};
 use stegongp::ngp::eval::Protocol;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::Background;
@@ -257,7 +258,7 @@ fn load_recipe(a: &Args) -> Result<(Checked, Option<Dataset>)> {
         images: a.images.clone(),
         aabb_scale: a.aabb_scale,
     };
-    let cover = Dataset::load(&a.scene, Split::Train, &opts)?;
+    let cover = stegongp::dataset::load(&a.scene, Split::Train, &opts)?;
     let model = ModelConfig {
         grid: a.grid.grid(),
         aabb_scale: cover.aabb_scale,
@@ -306,7 +307,7 @@ fn load_recipe(a: &Args) -> Result<(Checked, Option<Dataset>)> {
         None
     } else {
         Some(
-            Dataset::load(&a.scene, Split::Test, &opts)
+            stegongp::dataset::load(&a.scene, Split::Test, &opts)
                 .context("loading test views for --checkpoints")?,
         )
     };

@@ -6,8 +6,9 @@ use super::common::{
 };
 use anyhow::{Result, bail};
 use std::path::{Path, PathBuf};
+use stegongp::dataset::LoadOptions;
 use stegongp::ngp::camera::Camera;
-use stegongp::ngp::data::{DatasetFormat, LoadOptions, Split};
+use stegongp::ngp::data::{DatasetFormat, Split};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions, VIEWING_MIN_TRANSMITTANCE};
 use stegongp::show::frame::{GAP, Rgb8, render_frame};
@@ -47,7 +48,7 @@ impl SceneCameras {
     pub fn open(&self, model: &Model) -> Result<Rig> {
         let (cameras, frame, size, forward_facing) = match &self.data {
             Some(dir) => {
-                let (cams, meta) = stegongp::ngp::data::Dataset::load_cameras(
+                let (cams, meta) = stegongp::dataset::load_cameras(
                     dir,
                     self.split,
                     &LoadOptions {

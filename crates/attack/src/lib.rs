@@ -21,7 +21,7 @@ pub mod weights;
 
 pub use spec::Attack;
 
-use ngp::data::LoadOptions;
+use dataset::LoadOptions;
 use ngp::error::Result;
 use ngp::model::Model;
 use serde::Serialize;

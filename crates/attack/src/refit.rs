@@ -105,7 +105,7 @@ pub fn finetune_photos(model: Model, steps: u32, ctx: &AttackContext) -> Result<
     if load.aabb_scale.is_none() {
         load.aabb_scale = Some(model.config.aabb_scale);
     }
-    let data = Dataset::load(dir, Split::Train, &load)?;
+    let data = dataset::load(dir, Split::Train, &load)?;
     train_plain(&model, Start::Weights(&model), data, steps, false, ctx)
 }
 

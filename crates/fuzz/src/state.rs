@@ -4,7 +4,8 @@
 //! megabytes; CI runs fewer of them.
 
 use crate::seeds::{self, Case};
-use ngp::data::{Dataset, LoadOptions, Split};
+use dataset::LoadOptions;
+use ngp::data::{Dataset, Split};
 use ngp::encoding::reference_indices;
 use ngp::network::NerfLayout;
 use ngp::train::{SceneSpec, Schedule, TrainConfig, Trainer};
@@ -23,7 +24,7 @@ fn dataset() -> Result<Arc<Dataset>, String> {
             aabb_scale: Some(1),
             ..Default::default()
         };
-        Dataset::load(&dir, Split::Train, &opts)
+        dataset::load(&dir, Split::Train, &opts)
             .map(Arc::new)
             .map_err(|e| e.to_string())
     })

@@ -3,7 +3,8 @@
 //! the runner looks for panics, oversized allocations and slow cases.
 
 use crate::seeds::{self, Case};
-use ngp::data::{Dataset, LoadOptions, Split};
+use dataset::LoadOptions;
+use ngp::data::Split;
 use std::path::Path;
 
 pub struct Target {
@@ -54,11 +55,11 @@ fn image(dir: &Path) -> Result<(), String> {
 /// Loads both splits, as `train` and `eval` do, and converts a capture as `convert` does.
 fn dataset(dir: &Path) -> Result<(), String> {
     let opts = LoadOptions::default();
-    let train = Dataset::load(dir, Split::Train, &opts).map_err(|e| e.to_string());
-    let test = Dataset::load(dir, Split::Test, &opts).map_err(|e| e.to_string());
-    if ngp::data::find_capture(dir).is_some() {
-        let scene = ngp::data::import_capture(dir, None).map_err(|e| e.to_string())?;
-        let _ = ngp::data::colmap2nerf::to_transforms(&scene, 16, dir);
+    let train = dataset::load(dir, Split::Train, &opts).map_err(|e| e.to_string());
+    let test = dataset::load(dir, Split::Test, &opts).map_err(|e| e.to_string());
+    if dataset::find_capture(dir).is_some() {
+        let scene = dataset::import_capture(dir, None).map_err(|e| e.to_string())?;
+        let _ = dataset::colmap2nerf::to_transforms(&scene, 16, dir).to_json();
     }
     let mut train = train?;
     test?;

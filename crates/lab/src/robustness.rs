@@ -19,8 +19,8 @@ use super::setup::{
 };
 use super::store::read_stored;
 use attack::{Attack, AttackContext, apply};
+use dataset::LoadOptions;
 use ngp::choice::Choice;
-use ngp::data::LoadOptions;
 use ngp::error::{Error, Result};
 use ngp::eval::EvalResult;
 use ngp::model::Model;

@@ -6,7 +6,8 @@ use super::jobs::{Action, JobMode, PlannedModel, is_placeholder, no_scores, plac
 use super::report::save_grid;
 use super::store::{read_stored, reuse_or_train_exact};
 use backend::Device;
-use ngp::data::{Dataset, LoadOptions, Split};
+use dataset::LoadOptions;
+use ngp::data::{Dataset, Split};
 use ngp::encoding::GridConfig;
 use ngp::error::{Error, Result};
 use ngp::eval::{EvalResult, evaluate_on, spread_views};
@@ -201,8 +202,8 @@ pub(crate) fn load_scene(dir: &Path, downscale: u32, aabb_scale: Option<u32>) ->
         downscale,
         ..Default::default()
     };
-    let mut train = Dataset::load(dir, Split::Train, &opts)?;
-    let mut test = Dataset::load(dir, Split::Test, &opts)?;
+    let mut train = dataset::load(dir, Split::Train, &opts)?;
+    let mut test = dataset::load(dir, Split::Test, &opts)?;
     let own_box = train.aabb_scale;
     if let Some(a) = aabb_scale {
         train.fit_into_box(a, None)?;

@@ -106,7 +106,7 @@ mod tests {
 
     #[test]
     fn frames_round_trip_and_match_the_loader() {
-        use ngp::data::transforms::nerf_to_ngp;
+        use ngp::camera::nerf_to_ngp;
         let (s, o) = (0.33, [0.5, 0.4, 0.3]);
         let t = [1.0, -2.0, 0.25];
         // The loader's image of a camera at data position t.

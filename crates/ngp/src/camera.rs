@@ -192,6 +192,20 @@ fn inverse3_mul(m: &[[f32; 4]; 3], r: [f32; 3]) -> Option<[f32; 3]> {
     ])
 }
 
+/// The reference's `nerf_matrix_to_ngp`: negate camera columns 1 and 2 (OpenGL y up, z back →
+/// y down, z forward), translation · scale + offset, then cycle rows: ngp (x,y,z) = nerf (y,z,x).
+pub fn nerf_to_ngp(m: &[[f32; 4]; 3], scale: f32, offset: [f32; 3]) -> [[f32; 4]; 3] {
+    let mut r = *m;
+    for row in r.iter_mut() {
+        row[1] = -row[1];
+        row[2] = -row[2];
+    }
+    for (i, row) in r.iter_mut().enumerate() {
+        row[3] = row[3] * scale + offset[i];
+    }
+    [r[1], r[2], r[0]]
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -307,5 +321,26 @@ mod tests {
         let (u, v) = dist.distort(cc[0] / cc[2], cc[1] / cc[2]);
         assert!((u - 18.0 / 100.0).abs() < 1e-5);
         assert!((v + 15.0 / 120.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn pose_conversion_by_hand() {
+        // nerf pose: identity rotation, position (1, 2, 3).
+        let m = [
+            [1.0, 0.0, 0.0, 1.0],
+            [0.0, 1.0, 0.0, 2.0],
+            [0.0, 0.0, 1.0, 3.0],
+        ];
+        let g = nerf_to_ngp(&m, 0.5, [0.1, 0.2, 0.3]);
+        // After column negation rows are (1,0,0 | 0.6), (0,-1,0 | 1.2), (0,0,-1 | 1.8);
+        // cycled: ngp rows = nerf rows 1, 2, 0.
+        assert_eq!(
+            g,
+            [
+                [0.0, -1.0, 0.0, 1.2],
+                [0.0, 0.0, -1.0, 1.8],
+                [1.0, 0.0, 0.0, 0.6],
+            ]
+        );
     }
 }

@@ -8,7 +8,7 @@
 //! scale and offset.
 
 use ngp::camera::Camera;
-use ngp::data::transforms::nerf_to_ngp;
+use ngp::camera::nerf_to_ngp;
 use ngp::error::{Error, Result};
 use ngp::geometry::normalize_by_reciprocal as normalize;
 use ngp::geometry::{add, cross, dist, dot, norm, scale, sub};

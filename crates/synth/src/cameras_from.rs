@@ -2,7 +2,7 @@
 //! --cameras-from DIR`): the hidden scene of a stego pair seen from the cover's very
 //! cameras, as the paper's GS-Hider comparison needs.
 //!
-//! The cameras are read by the loader ([`Dataset::load_cameras`]), so every format it
+//! The cameras are read by the loader ([`dataset::load_cameras`]), so every format it
 //! reads works (NeRF-synthetic, instant-ngp, COLMAP, LLFF), with its split conventions
 //! (instant-ngp, COLMAP and LLFF hold out every 8th image) and the loader's options
 //! (`downscale`, `images`, `aabb_scale`). The output is a NeRF-synthetic folder —
@@ -19,8 +19,9 @@
 
 use super::scene::{Scene, V3, dot, normalize};
 use super::{SceneKind, SynthSummary, bounded_scene, encode_png, render_rgba};
+use dataset::LoadOptions;
 use ngp::camera::Camera;
-use ngp::data::{Dataset, DatasetFormat, DatasetMeta, LoadOptions, Split};
+use ngp::data::{DatasetFormat, DatasetMeta, Split};
 use ngp::error::{Error, Result};
 use ngp::util::{write_atomic, write_atomic_with};
 use serde::Serialize;
@@ -182,7 +183,7 @@ fn source_splits(dir: &Path, load: &LoadOptions) -> Result<Vec<(Split, Vec<Camer
     let wrap = |e: Error| Error::Other(format!("cannot take cameras from {}: {e}", dir.display()));
     let mut out = Vec::new();
     for split in [Split::Train, Split::Val, Split::Test] {
-        let (cams, meta) = Dataset::load_cameras(dir, split, load).map_err(wrap)?;
+        let (cams, meta) = dataset::load_cameras(dir, split, load).map_err(wrap)?;
         if split == Split::Val
             && !(meta.format == DatasetFormat::NerfSynthetic
                 && meta

@@ -668,7 +668,8 @@ mod tests {
     /// same bytes for a seed, other furniture for another, and not the bare room.
     #[test]
     fn a_furnished_room_is_a_capture_of_the_size_and_lens_asked_for() {
-        use ngp::data::{Dataset, LoadOptions, Split};
+        use dataset::LoadOptions;
+        use ngp::data::Split;
         let d = tempfile::tempdir().unwrap();
         let room = |furnished: bool, seed: u64, name: &str| {
             let opts = SynthOptions {
@@ -697,7 +698,7 @@ mod tests {
         assert_ne!(a, room(true, 4, "c"), "the seed draws the furniture");
         assert_ne!(a, room(false, 3, "bare"));
         let data =
-            Dataset::load(&d.path().join("a"), Split::Train, &LoadOptions::default()).unwrap();
+            dataset::load(&d.path().join("a"), Split::Train, &LoadOptions::default()).unwrap();
         assert_eq!(data.frames.len(), 7);
         let f = &data.frames[0];
         assert_eq!((f.image.width, f.image.height), (36, 24));

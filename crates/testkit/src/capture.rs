@@ -3,8 +3,8 @@
 //! poses are from the known ones.
 
 use crate::geometry::{rot_to_quat, rotation_angle_deg, similarity};
-use ngp::data::colmap::read_model;
-use ngp::data::colmap2nerf::colmap_c2w;
+use dataset::colmap::read_model;
+use dataset::colmap2nerf::colmap_c2w;
 use std::collections::HashMap;
 use std::path::Path;
 use synth::{RoomOptions, SceneKind, SynthOptions, look_at, render_pinhole, room};

@@ -1,7 +1,8 @@
 //! Generated scenes, written into a folder and loaded back as the trainer and the
 //! evaluation read them.
 
-use ngp::data::{Dataset, LoadOptions, Split};
+use dataset::LoadOptions;
+use ngp::data::{Dataset, Split};
 use std::path::Path;
 use std::sync::Arc;
 use synth::{SceneKind, SynthOptions, generate};
@@ -49,7 +50,7 @@ pub fn generated(
     .unwrap_or_else(|e| panic!("generating {}: {e}", dir.display()));
     let o = LoadOptions::default();
     let load = |split| {
-        Dataset::load(dir, split, &o).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()))
+        dataset::load(dir, split, &o).unwrap_or_else(|e| panic!("loading {}: {e}", dir.display()))
     };
     Generated {
         train: load(Split::Train),

@@ -11,7 +11,8 @@
 
 use crate::steps::{Totals, Training};
 use backend::Device;
-use ngp::data::{Dataset, LoadOptions, Split};
+use dataset::LoadOptions;
+use ngp::data::{Dataset, Split};
 use ngp::encoding::{GridConfig, reference_indices};
 use ngp::error::{Error, Result};
 use ngp::network::{ModelConfig, NerfLayout};
@@ -273,7 +274,7 @@ impl HiddenScene {
         opts: &LoadOptions,
         cover_box: u32,
     ) -> Result<HiddenScene> {
-        let mut data = Dataset::load(dir, Split::Train, opts)?;
+        let mut data = dataset::load(dir, Split::Train, opts)?;
         data.fit_into_box(cover_box, key.scene_box())
             .map_err(|e| Error::Other(format!("{e} (placing it with its key {key_name})")))?;
         Ok(HiddenScene {

@@ -222,7 +222,8 @@ mod tests {
     use super::*;
     use crate::recipe::{Budget, GridOptions, Recipe, StepOptions};
     use crate::state::{SaveEvery, StateForm};
-    use ngp::data::{Dataset, LoadOptions, Split};
+    use dataset::LoadOptions;
+    use ngp::data::Split;
     use ngp::network::ModelConfig;
     use std::sync::Arc;
 
@@ -238,7 +239,7 @@ mod tests {
             ..Default::default()
         };
         synth::generate(&opts, dir).unwrap();
-        let cover = Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap();
+        let cover = dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap();
         let grid = GridOptions {
             levels: 8,
             features: 2,

@@ -27,9 +27,9 @@ use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-use stegongp::ngp::data::colmap2nerf::to_transforms;
-use stegongp::ngp::data::transforms::parse_transforms_value;
-use stegongp::ngp::data::{Dataset, LoadOptions, Split, check_aabb_scale, import_capture};
+use stegongp::dataset::colmap2nerf::to_transforms;
+use stegongp::dataset::{LoadOptions, import_capture};
+use stegongp::ngp::data::{Split, check_aabb_scale};
 use stegongp::util::write_atomic;
 
 pub use sfm::{CameraModel, Matcher};
@@ -285,8 +285,11 @@ fn write_transforms(work: &Path, aabb_scale: Option<u32>) -> Result<()> {
     let aabb = aabb_scale.unwrap_or(scene.default_aabb_scale);
     let conv = to_transforms(&scene, aabb, work);
     let path = work.join("transforms.json");
-    parse_transforms_value(&conv.json, &path, work)?;
-    write_atomic(&path, serde_json::to_string_pretty(&conv.json)?.as_bytes())?;
+    conv.transforms(&path, work)?;
+    write_atomic(
+        &path,
+        serde_json::to_string_pretty(&conv.to_json())?.as_bytes(),
+    )?;
     Ok(())
 }
 
@@ -344,7 +347,7 @@ pub fn run(a: Args) -> Result<()> {
         write_transforms(&work, a.aabb_scale)?;
     }
     // What `train` will read must load now: nothing is published otherwise.
-    Dataset::load_cameras(&work, Split::Train, &LoadOptions::default())
+    stegongp::dataset::load_cameras(&work, Split::Train, &LoadOptions::default())
         .context("the finished capture does not load")?;
     let registered: std::collections::HashSet<&str> =
         sfm.registered.iter().map(String::as_str).collect();

@@ -11,7 +11,7 @@ use anyhow::{Context, Result};
 use indicatif::ProgressBar;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use stegongp::ngp::data::colmap::read_model;
+use stegongp::dataset::colmap::read_model;
 
 /// How COLMAP matches features between images.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]

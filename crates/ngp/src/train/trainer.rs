@@ -1197,16 +1197,16 @@ fn policy_failed(e: Error) -> Error {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::{LoadOptions, Split};
+    use crate::data::Split;
     use crate::encoding::{GridConfig, reference_indices};
     use crate::network::NerfLayout;
-    use serde_json::json;
 
-    /// A small NeRF-synthetic scene written by hand: `n` views of 16×16 noise on a ring of
-    /// cameras looking at the origin.
+    /// A small NeRF-synthetic scene made in memory: `n` views of 16×16 noise on a ring of
+    /// cameras looking at the origin, as the loader would read them from PNGs and a
+    /// `transforms_train.json` with `camera_angle_x` 0.7 (`dir` is only its root).
     fn tiny_scene(dir: &std::path::Path, n: usize) -> Arc<Dataset> {
-        std::fs::create_dir_all(dir.join("train")).unwrap();
         let mut rng = Pcg32::new(4, 4);
+        let fl = (0.5 * 16.0 / (0.5 * 0.7f64).tan()) as f32;
         let mut frames = Vec::new();
         for i in 0..n {
             let a = i as f32 * std::f32::consts::TAU / n as f32;
@@ -1221,25 +1221,47 @@ mod tests {
                 z[2] * x[0] - z[0] * x[2],
                 z[0] * x[1] - z[1] * x[0],
             ];
-            frames.push(json!({
-                "file_path": format!("./train/r_{i}"),
-                "transform_matrix": [
-                    [x[0], y[0], z[0], pos[0]],
-                    [x[1], y[1], z[1], pos[1]],
-                    [x[2], y[2], z[2], pos[2]],
-                    [0, 0, 0, 1]
-                ],
-            }));
+            let pose = [
+                [x[0], y[0], z[0], pos[0]],
+                [x[1], y[1], z[1], pos[1]],
+                [x[2], y[2], z[2], pos[2]],
+            ];
             let rgb: Vec<f32> = (0..16 * 16 * 3).map(|_| rng.next_f32()).collect();
-            crate::data::save_png_rgb(&dir.join(format!("train/r_{i}.png")), 16, 16, &rgb).unwrap();
+            // What an 8-bit RGB PNG of `rgb` decodes to.
+            let rgba: Vec<u8> = rgb
+                .chunks_exact(3)
+                .flat_map(|p| {
+                    let q = p.iter().map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8);
+                    q.chain(std::iter::once(255))
+                })
+                .collect();
+            frames.push(crate::data::Frame {
+                camera: crate::camera::Camera {
+                    c2w: crate::camera::nerf_to_ngp(&pose, 0.33, [0.5; 3]),
+                    fx: fl,
+                    fy: fl,
+                    cx: 8.0,
+                    cy: 8.0,
+                    width: 16,
+                    height: 16,
+                    distortion: None,
+                },
+                image: crate::data::Image::from_rgba8(16, 16, rgba).unwrap(),
+                file_path: format!("./train/r_{i}"),
+            });
         }
-        let transforms = json!({"camera_angle_x": 0.7, "frames": frames});
-        std::fs::write(
-            dir.join("transforms_train.json"),
-            serde_json::to_string(&transforms).unwrap(),
-        )
-        .unwrap();
-        Arc::new(Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap())
+        Arc::new(Dataset {
+            root: dir.to_path_buf(),
+            split: Split::Train,
+            width: 16,
+            height: 16,
+            frames,
+            aabb_scale: 1,
+            scale: 0.33,
+            offset: [0.5; 3],
+            has_alpha: false,
+            format: crate::data::DatasetFormat::NerfSynthetic,
+        })
     }
 
     /// 4 levels of 2^10 entries: a step in milliseconds.

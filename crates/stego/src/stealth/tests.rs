@@ -4,7 +4,8 @@
 #![allow(clippy::too_many_lines)]
 
 use super::*;
-use ngp::data::{Dataset, LoadOptions, Split};
+use dataset::LoadOptions;
+use ngp::data::{Dataset, Split};
 use ngp::encoding::{GridConfig, reference_indices};
 use ngp::model::Model;
 use ngp::network::{ModelConfig, NerfLayout};
@@ -28,7 +29,7 @@ fn cover_and_hidden(dir: &std::path::Path) -> (Arc<Dataset>, Arc<Dataset>, Model
             ..Default::default()
         };
         generate(&opts, &d).unwrap();
-        Arc::new(Dataset::load(&d, Split::Train, &LoadOptions::default()).unwrap())
+        Arc::new(dataset::load(&d, Split::Train, &LoadOptions::default()).unwrap())
     };
     let model = ModelConfig {
         grid: GridConfig {
@@ -130,7 +131,7 @@ fn cap_trainer(cap: Option<DensityCap>, dir: &std::path::Path) -> Trainer {
         ..Default::default()
     };
     generate(&opts, dir).unwrap();
-    let data = Arc::new(Dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap());
+    let data = Arc::new(dataset::load(dir, Split::Train, &LoadOptions::default()).unwrap());
     let model = ModelConfig {
         grid: GridConfig {
             n_levels: 4,

@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{Map, Value};
 
-use crate::camera::Distortion;
-use crate::error::{Error, Result};
+use ngp::camera::Distortion;
+use ngp::error::{Error, Result};
 
 /// The reference's default scene scale and offset (`nerf_loader.h`).
 pub const NERF_SCALE: f32 = 0.33;
@@ -27,7 +27,7 @@ const IMAGE_EXTENSIONS: [&str; 10] = [
 
 /// One focal-length source for an axis, in the reference's order of precedence.
 #[derive(Clone, Copy, Debug)]
-enum FocalVal {
+pub(crate) enum FocalVal {
     FovDeg(f64),
     Pixels(f64),
     AngleRad(f64),
@@ -45,13 +45,13 @@ impl FocalVal {
 
 /// Intrinsics as read from one JSON object (top level or frame); resolution comes later.
 #[derive(Clone, Debug, Default)]
-struct Intrinsics {
-    fl: [Option<FocalVal>; 2],
+pub(crate) struct Intrinsics {
+    pub(crate) fl: [Option<FocalVal>; 2],
     /// (cx or cy, the w or h it is relative to, if given).
-    pp: [Option<(f64, Option<f64>)>; 2],
+    pub(crate) pp: [Option<(f64, Option<f64>)>; 2],
     /// k1, k2, p1, p2 where present.
-    lens: [Option<f32>; 4],
-    wh: [Option<f64>; 2],
+    pub(crate) lens: [Option<f32>; 4],
+    pub(crate) wh: [Option<f64>; 2],
 }
 
 /// Everything a frame needs to become a camera once its image size is known.
@@ -163,20 +163,6 @@ impl FrameSpec {
             distortion,
         })
     }
-}
-
-/// The reference's `nerf_matrix_to_ngp`: negate camera columns 1 and 2 (OpenGL y up, z back →
-/// y down, z forward), translation · scale + offset, then cycle rows: ngp (x,y,z) = nerf (y,z,x).
-pub fn nerf_to_ngp(m: &[[f32; 4]; 3], scale: f32, offset: [f32; 3]) -> [[f32; 4]; 3] {
-    let mut r = *m;
-    for row in r.iter_mut() {
-        row[1] = -row[1];
-        row[2] = -row[2];
-    }
-    for (i, row) in r.iter_mut().enumerate() {
-        row[3] = row[3] * scale + offset[i];
-    }
-    [r[1], r[2], r[0]]
 }
 
 /// Natural string order (digit runs compare by value), as `SI::natural::compare`.
@@ -324,6 +310,11 @@ impl Ctx<'_> {
                 })?;
             }
         }
+        self.rigid(&field, &m)
+    }
+
+    /// `m`'s rotation checked to be rigid, as `f32`. `field` names the matrix in messages.
+    fn rigid(&self, field: &str, m: &[[f64; 4]; 3]) -> Result<[[f32; 4]; 3]> {
         let mut worst = 0.0f64;
         for a in 0..3 {
             for b in 0..3 {
@@ -398,6 +389,79 @@ pub fn parse_transforms_value(
     })
 }
 
+/// Whether a file's `aabb_scale` is a power of two between 1 and 128.
+fn aabb_scale_ok(v: f64) -> bool {
+    v.fract() == 0.0 && (1.0..=128.0).contains(&v) && (v as u32).is_power_of_two()
+}
+
+/// One frame of a transforms structure made in memory (a converted capture), as a file
+/// would list it: no `sharpness`, the reference's default pose conventions.
+pub(crate) struct MadeFrame {
+    pub(crate) file_path: String,
+    /// Camera-to-world 3×4 (nerf convention); an entry that is not finite stands where a
+    /// file would have `null`.
+    pub(crate) pose: [[f64; 4]; 3],
+    /// The frame's own intrinsics (none where the scene has one camera).
+    pub(crate) own: Intrinsics,
+}
+
+/// The [`Transforms`] that [`parse_transforms_value`] makes of a file with these frames
+/// (listed in this order), `top` as its top-level intrinsics, this `aabb_scale` and no
+/// `scale`, `offset`, `aabb` or `n_frames`: the same checks, in the same order, with the
+/// same messages, without the JSON.
+pub(crate) fn made_transforms(
+    json_path: &Path,
+    base_dir: &Path,
+    aabb_scale: u32,
+    top: &Intrinsics,
+    frames: Vec<MadeFrame>,
+) -> Result<Transforms> {
+    let ctx = Ctx { path: json_path };
+    if !aabb_scale_ok(aabb_scale as f64) {
+        return Err(ctx.err(format!(
+            "aabb_scale: {aabb_scale} is not a power of two between 1 and 128"
+        )));
+    }
+    let mut listed: Vec<(usize, MadeFrame)> = Vec::with_capacity(frames.len());
+    for (idx, f) in frames.into_iter().enumerate() {
+        if f.file_path.is_empty() {
+            return Err(ctx.err(format!("frames[{idx}].file_path: empty")));
+        }
+        listed.push((idx, f));
+    }
+    listed.sort_by(|(_, a), (_, b)| {
+        natural_cmp(
+            &a.file_path.replace('\\', "/"),
+            &b.file_path.replace('\\', "/"),
+        )
+    });
+    let mut specs = Vec::with_capacity(listed.len());
+    for (idx, f) in listed {
+        let field = format!("frames[{idx}] ({}): transform_matrix", f.file_path);
+        for (r, row) in f.pose.iter().enumerate() {
+            if let Some(c) = row.iter().position(|v| !v.is_finite()) {
+                return Err(ctx.err(format!("{field}[{r}][{c}]: not a finite number (null)")));
+            }
+        }
+        specs.push(FrameSpec {
+            json_index: idx,
+            image_path: resolve_image_path(base_dir, &f.file_path),
+            nerf_pose: ctx.rigid(&field, &f.pose)?,
+            file_path: f.file_path,
+            top: top.clone(),
+            own: f.own,
+        });
+    }
+    Ok(Transforms {
+        json_path: json_path.to_path_buf(),
+        scale: NERF_SCALE,
+        offset: NERF_OFFSET,
+        aabb_scale,
+        frames: specs,
+        dropped: Vec::new(),
+    })
+}
+
 /// Where the scene sits in the unit cube: the file's `scale`, `offset` (or `aabb`, which
 /// overrides both) and `aabb_scale`.
 struct Placement {
@@ -425,8 +489,7 @@ impl Ctx<'_> {
         let mut aabb_scale = 1u32;
         if let Some(a) = obj.get("aabb_scale") {
             let v = a.as_f64().unwrap_or(f64::NAN);
-            let ok = v.fract() == 0.0 && (1.0..=128.0).contains(&v) && (v as u32).is_power_of_two();
-            if !ok {
+            if !aabb_scale_ok(v) {
                 return Err(self.err(format!(
                     "aabb_scale: {a} is not a power of two between 1 and 128"
                 )));
@@ -593,26 +656,5 @@ mod tests {
         let mut v = vec!["r_10", "r_2", "r_1", "r_100", "a", "r_02", "r_9x"];
         v.sort_by(|a, b| natural_cmp(a, b));
         assert_eq!(v, vec!["a", "r_1", "r_2", "r_02", "r_9x", "r_10", "r_100"]);
-    }
-
-    #[test]
-    fn pose_conversion_by_hand() {
-        // nerf pose: identity rotation, position (1, 2, 3).
-        let m = [
-            [1.0, 0.0, 0.0, 1.0],
-            [0.0, 1.0, 0.0, 2.0],
-            [0.0, 0.0, 1.0, 3.0],
-        ];
-        let g = nerf_to_ngp(&m, 0.5, [0.1, 0.2, 0.3]);
-        // After column negation rows are (1,0,0 | 0.6), (0,-1,0 | 1.2), (0,0,-1 | 1.8);
-        // cycled: ngp rows = nerf rows 1, 2, 0.
-        assert_eq!(
-            g,
-            [
-                [0.0, -1.0, 0.0, 1.2],
-                [0.0, 0.0, -1.0, 1.8],
-                [1.0, 0.0, 0.0, 0.6],
-            ]
-        );
     }
 }

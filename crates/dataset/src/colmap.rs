@@ -5,7 +5,7 @@
 //! points it sees, as LLFF's `imgs2poses` takes its bounds (see [`depth_bounds`]).
 //!
 //! Camera models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL and OPENCV are read (their
-//! distortion is OpenCV's k1, k2, p1, p2, which is what [`crate::camera::Distortion`]
+//! distortion is OpenCV's k1, k2, p1, p2, which is what [`ngp::camera::Distortion`]
 //! models); any other model is refused with its name. Every read of a binary file is
 //! checked, and counts are capped by what the rest of the file can hold, so a damaged file
 //! gives an error naming the file and the field, never a panic or a huge allocation.
@@ -15,11 +15,11 @@ use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
-use super::DatasetFormat;
-use super::colmap2nerf::{
+use crate::colmap2nerf::{
     ImportCamera, ImportFrame, ImportedScene, colmap_c2w, find_image_root, image_dims,
 };
-use crate::error::{Error, Result};
+use ngp::data::DatasetFormat;
+use ngp::error::{Error, Result};
 
 /// Default `aabb_scale` of a COLMAP import (colmap2nerf's is 32; 16 keeps the grid's finest
 /// cells twice as fine around the cameras' focus, and the unbounded background still fits
@@ -92,7 +92,7 @@ pub struct ColmapImage {
     pub name: String,
 }
 
-pub use super::colmap2nerf::PointsSummary;
+pub use crate::colmap2nerf::PointsSummary;
 
 #[derive(Clone, Debug)]
 pub struct ColmapModel {

@@ -23,10 +23,11 @@ use std::path::{Component, Path, PathBuf};
 
 use serde_json::{Value, json};
 
-use super::DatasetFormat;
-use super::image::image_size;
-use crate::error::{Error, Result};
-use crate::geometry::{cross, dot, norm, quat_to_rotation, scale};
+use crate::transforms::{FocalVal, Intrinsics, MadeFrame, Transforms, made_transforms};
+use ngp::data::DatasetFormat;
+use ngp::data::image::image_size;
+use ngp::error::{Error, Result};
+use ngp::geometry::{cross, dot, norm, quat_to_rotation, scale};
 
 /// colmap2nerf's `--aabb_scale` default (ours are per format: see `colmap` and `llff`).
 pub const COLMAP2NERF_AABB_SCALE: u32 = 32;
@@ -50,11 +51,17 @@ pub struct ImportCamera {
 }
 
 impl ImportCamera {
-    /// The script's per-camera dictionary (k3, k4 = 0, not fisheye).
-    fn json_fields(&self) -> serde_json::Map<String, Value> {
+    /// Width and height, and the script's `camera_angle_x` and `camera_angle_y`.
+    fn size_and_angles(&self) -> ([f64; 2], [f64; 2]) {
         let (w, h) = (self.width as f64, self.height as f64);
         let ax = 2.0 * (w / (2.0 * self.fx)).atan();
         let ay = 2.0 * (h / (2.0 * self.fy)).atan();
+        ([w, h], [ax, ay])
+    }
+
+    /// The script's per-camera dictionary (k3, k4 = 0, not fisheye).
+    fn json_fields(&self) -> serde_json::Map<String, Value> {
+        let ([w, h], [ax, ay]) = self.size_and_angles();
         let v = json!({
             "camera_angle_x": ax,
             "camera_angle_y": ay,
@@ -75,6 +82,27 @@ impl ImportCamera {
         match v {
             Value::Object(m) => m,
             _ => unreachable!("json! of an object literal"),
+        }
+    }
+
+    /// The intrinsics [`transforms`](crate::transforms) reads from [`Self::json_fields`]: a
+    /// number that is not finite is JSON's `null` there, which reads as absent.
+    fn intrinsics(&self) -> Intrinsics {
+        let ([w, h], [ax, ay]) = self.size_and_angles();
+        let finite = |x: f64| x.is_finite().then_some(x);
+        let focal = |fl: f64, angle: f64| {
+            finite(fl)
+                .map(FocalVal::Pixels)
+                .or_else(|| finite(angle).map(FocalVal::AngleRad))
+        };
+        Intrinsics {
+            fl: [focal(self.fx, ax), focal(self.fy, ay)],
+            pp: [
+                finite(self.cx).map(|c| (c, Some(w))),
+                finite(self.cy).map(|c| (c, Some(h))),
+            ],
+            lens: [self.k1, self.k2, self.p1, self.p2].map(|k| finite(k).map(|k| k as f32)),
+            wh: [Some(w), Some(h)],
         }
     }
 }
@@ -173,11 +201,29 @@ pub fn view_alignment(c2w_colmap: &[[[f64; 4]; 3]]) -> f64 {
     norm(sum) / c2w_colmap.len().max(1) as f64
 }
 
-/// The result of [`to_transforms`].
+/// The result of [`to_transforms`]: the instant-ngp transforms of a capture, as colmap2nerf
+/// would write them. [`Converted::transforms`] reads them as the loader reads such a file,
+/// [`Converted::to_json`] is the file.
 #[derive(Clone, Debug)]
 pub struct Converted {
-    pub json: Value,
+    pub aabb_scale: u32,
+    /// The capture's cameras: one → its intrinsics at the top level, several → each frame
+    /// carries its camera's.
+    pub cameras: Vec<ImportCamera>,
+    /// In the capture's order (byte order of the image names).
+    pub frames: Vec<ConvertedFrame>,
     pub norm: Normalisation,
+}
+
+/// One frame of [`Converted`].
+#[derive(Clone, Debug)]
+pub struct ConvertedFrame {
+    /// The image, relative to the folder the transforms belong to.
+    pub file_path: String,
+    /// Index into [`Converted::cameras`].
+    pub camera: usize,
+    /// Camera-to-world 3×4, nerf (OpenGL) convention, after normalisation.
+    pub transform_matrix: [[f64; 4]; 3],
 }
 
 /// Camera-to-world 3×4 of a COLMAP image (world-to-camera `x_c = R(q) x_w + t`).
@@ -504,53 +550,95 @@ pub fn to_transforms(scene: &ImportedScene, aabb_scale: u32, base_dir: &Path) ->
         scene.format == DatasetFormat::Llff || view_alignment(&poses) >= FORWARD_FACING_ALIGNMENT
     });
     let (ms, norm) = normalise(&poses, focus.as_deref());
-    let single = scene.cameras.len() == 1;
-    let frames: Vec<Value> = scene
+    let frames = scene
         .frames
         .iter()
-        .zip(&ms)
-        .map(|(f, m)| {
-            let mut o = serde_json::Map::new();
-            o.insert(
-                "file_path".into(),
-                Value::from(relative_path(base_dir, &f.image_path)),
-            );
-            let rows: Vec<Value> = m
-                .iter()
-                .map(|r| json!(r))
-                .chain(std::iter::once(json!([0.0, 0.0, 0.0, 1.0])))
-                .collect();
-            o.insert("transform_matrix".into(), Value::Array(rows));
-            if !single {
-                let c = &scene.cameras[f.camera];
-                let mut fields = c.json_fields();
-                let (ax, ay) = (
-                    fields["camera_angle_x"].clone(),
-                    fields["camera_angle_y"].clone(),
-                );
-                fields.insert(
-                    "fovx".into(),
-                    json!(ax.as_f64().unwrap_or(0.0).to_degrees()),
-                );
-                fields.insert(
-                    "fovy".into(),
-                    json!(ay.as_f64().unwrap_or(0.0).to_degrees()),
-                );
-                o.extend(fields);
-            }
-            Value::Object(o)
+        .zip(ms)
+        .map(|(f, m)| ConvertedFrame {
+            file_path: relative_path(base_dir, &f.image_path),
+            camera: f.camera,
+            transform_matrix: m,
         })
         .collect();
-    let mut top = if single {
-        scene.cameras[0].json_fields()
-    } else {
-        serde_json::Map::new()
-    };
-    top.insert("aabb_scale".into(), json!(aabb_scale));
-    top.insert("frames".into(), Value::Array(frames));
     Converted {
-        json: Value::Object(top),
+        aabb_scale,
+        cameras: scene.cameras.clone(),
+        frames,
         norm,
+    }
+}
+
+impl Converted {
+    /// The `transforms.json` colmap2nerf would write.
+    pub fn to_json(&self) -> Value {
+        let single = self.cameras.len() == 1;
+        let frames: Vec<Value> = self
+            .frames
+            .iter()
+            .map(|f| {
+                let mut o = serde_json::Map::new();
+                o.insert("file_path".into(), Value::from(f.file_path.clone()));
+                let rows: Vec<Value> = f
+                    .transform_matrix
+                    .iter()
+                    .map(|r| json!(r))
+                    .chain(std::iter::once(json!([0.0, 0.0, 0.0, 1.0])))
+                    .collect();
+                o.insert("transform_matrix".into(), Value::Array(rows));
+                if !single {
+                    let c = &self.cameras[f.camera];
+                    let mut fields = c.json_fields();
+                    let (ax, ay) = (
+                        fields["camera_angle_x"].clone(),
+                        fields["camera_angle_y"].clone(),
+                    );
+                    fields.insert(
+                        "fovx".into(),
+                        json!(ax.as_f64().unwrap_or(0.0).to_degrees()),
+                    );
+                    fields.insert(
+                        "fovy".into(),
+                        json!(ay.as_f64().unwrap_or(0.0).to_degrees()),
+                    );
+                    o.extend(fields);
+                }
+                Value::Object(o)
+            })
+            .collect();
+        let mut top = if single {
+            self.cameras[0].json_fields()
+        } else {
+            serde_json::Map::new()
+        };
+        top.insert("aabb_scale".into(), json!(self.aabb_scale));
+        top.insert("frames".into(), Value::Array(frames));
+        Value::Object(top)
+    }
+
+    /// What [`parse_transforms_value`](crate::transforms::parse_transforms_value) makes of
+    /// [`Self::to_json`], built directly: `json_path` names the transforms in messages,
+    /// `base_dir` is the folder the `file_path`s are relative to.
+    pub fn transforms(&self, json_path: &Path, base_dir: &Path) -> Result<Transforms> {
+        let single = self.cameras.len() == 1;
+        let top = if single {
+            self.cameras[0].intrinsics()
+        } else {
+            Intrinsics::default()
+        };
+        let frames = self
+            .frames
+            .iter()
+            .map(|f| MadeFrame {
+                file_path: f.file_path.clone(),
+                pose: f.transform_matrix,
+                own: if single {
+                    Intrinsics::default()
+                } else {
+                    self.cameras[f.camera].intrinsics()
+                },
+            })
+            .collect();
+        made_transforms(json_path, base_dir, self.aabb_scale, &top, frames)
     }
 }
 

@@ -8,6 +8,7 @@ use std::path::Path;
 use serde_json::{Value, json};
 
 use super::*;
+use ngp::data::srgb_to_linear;
 
 /// Writes an RGBA8 PNG.
 fn write_png(path: &Path, w: u32, h: u32, rgba: &[u8]) {
@@ -74,7 +75,7 @@ fn close(a: f32, b: f32) -> bool {
 fn nerf_synthetic_pose_intrinsics_and_pixels() {
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train"]);
-    let d = Dataset::load(t.path(), Split::Train, &opts(1)).unwrap();
+    let d = load(t.path(), Split::Train, &opts(1)).unwrap();
     assert_eq!(d.format, DatasetFormat::NerfSynthetic);
     assert_eq!((d.width, d.height, d.frames.len()), (4, 4, 1));
     assert_eq!((d.aabb_scale, d.scale, d.offset), (1, 0.33, [0.5; 3]));
@@ -120,7 +121,7 @@ fn nerf_synthetic_pose_intrinsics_and_pixels() {
 fn downscale_scales_intrinsics_and_averages() {
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train"]);
-    let d = Dataset::load(t.path(), Split::Train, &opts(2)).unwrap();
+    let d = load(t.path(), Split::Train, &opts(2)).unwrap();
     assert_eq!((d.width, d.height), (2, 2));
     let c = &d.frames[0].camera;
     assert!(close(c.fx, 1.0) && close(c.cx, 1.0) && close(c.cy, 1.0));
@@ -146,30 +147,30 @@ fn downscale_scales_intrinsics_and_averages() {
         );
     }
     // Same cameras without decoding pixels.
-    let (cams, meta) = Dataset::load_cameras(t.path(), Split::Train, &opts(2)).unwrap();
+    let (cams, meta) = load_cameras(t.path(), Split::Train, &opts(2)).unwrap();
     assert_eq!((meta.width, meta.height, meta.n), (2, 2, 1));
     assert_eq!(cams[0].c2w, c.c2w);
     assert_eq!((cams[0].fx, cams[0].cx), (c.fx, c.cx));
     // Too coarse for the image.
-    assert!(Dataset::load(t.path(), Split::Train, &opts(8)).is_err());
+    assert!(load(t.path(), Split::Train, &opts(8)).is_err());
 }
 
 #[test]
 fn missing_split_falls_back() {
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train", "test"]);
-    let d = Dataset::load(t.path(), Split::Val, &opts(1)).unwrap();
+    let d = load(t.path(), Split::Val, &opts(1)).unwrap();
     assert_eq!(d.split, Split::Val);
-    let (_, m) = Dataset::load_cameras(t.path(), Split::Val, &opts(1)).unwrap();
+    let (_, m) = load_cameras(t.path(), Split::Val, &opts(1)).unwrap();
     assert!(m.json_path.ends_with("transforms_test.json"));
 
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train", "val"]);
-    let (_, m) = Dataset::load_cameras(t.path(), Split::Test, &opts(1)).unwrap();
+    let (_, m) = load_cameras(t.path(), Split::Test, &opts(1)).unwrap();
     assert!(m.json_path.ends_with("transforms_val.json"));
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train"]);
-    let e = Dataset::load(t.path(), Split::Test, &opts(1))
+    let e = load(t.path(), Split::Test, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -179,7 +180,7 @@ fn missing_split_falls_back() {
     );
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["test"]);
-    let e = Dataset::load(t.path(), Split::Train, &opts(1))
+    let e = load(t.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -212,8 +213,8 @@ fn ingp(dir: &Path, extra: impl FnOnce(&mut Value)) {
 fn instant_ngp_every_eighth_and_intrinsics() {
     let t = tempfile::tempdir().unwrap();
     ingp(t.path(), |_| {});
-    let test = Dataset::load(t.path(), Split::Test, &opts(1)).unwrap();
-    let train = Dataset::load(t.path(), Split::Train, &opts(1)).unwrap();
+    let test = load(t.path(), Split::Test, &opts(1)).unwrap();
+    let train = load(t.path(), Split::Train, &opts(1)).unwrap();
     assert_eq!(test.format, DatasetFormat::InstantNgp);
     // Natural order img_1..img_10; indices 0 and 8 are held out.
     let names = |d: &Dataset| {
@@ -227,7 +228,7 @@ fn instant_ngp_every_eighth_and_intrinsics() {
     assert_eq!(tr.len(), 8);
     assert_eq!(tr[0], "images/img_2.png");
     assert_eq!(tr[7], "images/img_10.png");
-    let (_, m) = Dataset::load_cameras(t.path(), Split::Val, &opts(1)).unwrap();
+    let (_, m) = load_cameras(t.path(), Split::Val, &opts(1)).unwrap();
     assert_eq!(m.file_paths, names(&test));
 
     assert_eq!(train.aabb_scale, 4);
@@ -239,7 +240,7 @@ fn instant_ngp_every_eighth_and_intrinsics() {
     assert_eq!((c.fx, c.fy, c.cx, c.cy), (3.0, 3.5, 2.0, 2.0));
     assert_eq!(
         c.distortion,
-        Some(crate::camera::Distortion {
+        Some(ngp::camera::Distortion {
             k1: 0.1,
             k2: -0.02,
             p1: 0.001,
@@ -280,7 +281,7 @@ fn sharpness_filter_drops_missing_images() {
         frames.push(json!({"file_path": "images/img_11.png", "sharpness": 10.0,
                            "transform_matrix": identity_pose()}));
     });
-    let (_, m) = Dataset::load_cameras(t.path(), Split::Train, &opts(1)).unwrap();
+    let (_, m) = load_cameras(t.path(), Split::Train, &opts(1)).unwrap();
     assert_eq!(m.dropped, vec!["images/img_11.png".to_string()]);
     assert_eq!(m.n, 8);
     // Without sharpness entries a missing image is an error naming the file.
@@ -291,7 +292,7 @@ fn sharpness_filter_drops_missing_images() {
             .unwrap()
             .push(json!({"file_path": "images/img_11.png", "transform_matrix": identity_pose()}));
     });
-    let e = Dataset::load(t.path(), Split::Train, &opts(1))
+    let e = load(t.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -306,7 +307,7 @@ fn synth_err(v: Value) -> String {
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train"]);
     write_json(&t.path().join("transforms_train.json"), &v);
-    match Dataset::load(t.path(), Split::Train, &opts(1)) {
+    match load(t.path(), Split::Train, &opts(1)) {
         Ok(_) => panic!("loaded {v}"),
         Err(e) => e.to_string(),
     }
@@ -385,7 +386,7 @@ fn errors_name_file_and_field() {
     let t = tempfile::tempdir().unwrap();
     synthetic(t.path(), &["train"]);
     std::fs::write(t.path().join("transforms_train.json"), "{\"frames\": [").unwrap();
-    let e = Dataset::load(t.path(), Split::Train, &opts(1))
+    let e = load(t.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -401,7 +402,7 @@ fn errors_name_file_and_field() {
             {"file_path": "./train/r_0", "transform_matrix": identity_pose()},
             {"file_path": "./train/r_1", "transform_matrix": identity_pose()}]}),
     );
-    let e = Dataset::load(t.path(), Split::Train, &opts(1))
+    let e = load(t.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -409,29 +410,29 @@ fn errors_name_file_and_field() {
         e.contains("r_1.png") && e.contains("2x2") && e.contains("4x4"),
         "{e}"
     );
-    assert!(Dataset::load_cameras(t.path(), Split::Train, &opts(1)).is_err());
+    assert!(load_cameras(t.path(), Split::Train, &opts(1)).is_err());
 
     // Corrupt image file.
     std::fs::write(t.path().join("train/r_1.png"), b"\x89PNG garbage").unwrap();
-    let e = Dataset::load(t.path(), Split::Train, &opts(1))
+    let e = load(t.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
     assert!(e.contains("r_1.png"), "{e}");
 
     // Downscale 0, empty folder, missing folder.
-    let e = Dataset::load(t.path(), Split::Train, &opts(0))
+    let e = load(t.path(), Split::Train, &opts(0))
         .err()
         .unwrap()
         .to_string();
     assert!(e.contains("downscale"), "{e}");
     let empty = tempfile::tempdir().unwrap();
-    let e = Dataset::load(empty.path(), Split::Train, &opts(1))
+    let e = load(empty.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
     assert!(e.contains("transforms.json"), "{e}");
-    let e = Dataset::load(&empty.path().join("nope"), Split::Train, &opts(1))
+    let e = load(&empty.path().join("nope"), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -442,7 +443,7 @@ fn errors_name_file_and_field() {
     ingp(t.path(), |v| {
         v["frames"].as_array_mut().unwrap().truncate(1);
     });
-    let e = Dataset::load(t.path(), Split::Train, &opts(1))
+    let e = load(t.path(), Split::Train, &opts(1))
         .err()
         .unwrap()
         .to_string();
@@ -450,7 +451,7 @@ fn errors_name_file_and_field() {
         e.contains("transforms.json") && e.contains("train split has no frames"),
         "{e}"
     );
-    assert!(Dataset::load(t.path(), Split::Test, &opts(1)).is_ok());
+    assert!(load(t.path(), Split::Test, &opts(1)).is_ok());
 }
 
 #[test]
@@ -461,8 +462,8 @@ fn cameras_without_images_use_json_size() {
         &json!({"camera_angle_x": std::f64::consts::FRAC_PI_2, "w": 8, "h": 6, "frames": [
             {"file_path": "a.png", "transform_matrix": pose_looking_y()}]}),
     );
-    let (cams, m) = Dataset::load_cameras(t.path(), Split::Test, &opts(1)).unwrap();
+    let (cams, m) = load_cameras(t.path(), Split::Test, &opts(1)).unwrap();
     assert_eq!((m.width, m.height), (8, 6));
     assert_eq!((cams[0].fx, cams[0].cx, cams[0].cy), (4.0, 4.0, 3.0));
-    assert!(Dataset::load(t.path(), Split::Test, &opts(1)).is_err());
+    assert!(load(t.path(), Split::Test, &opts(1)).is_err());
 }

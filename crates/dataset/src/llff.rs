@@ -16,17 +16,17 @@
 //! then the script's world flips, up→z rotation, recentring and scale to mean distance 4.)
 //! One departure, for forward-facing captures: the centre the cameras look at is taken from
 //! the bounds (the harmonic mean of near and far along each camera's axis, see
-//! [`super::colmap2nerf::normalise`]) instead of the intersection of nearly parallel axes.
+//! [`crate::colmap2nerf::normalise`]) instead of the intersection of nearly parallel axes.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use rayon::prelude::*;
 
-use super::DatasetFormat;
-use super::colmap2nerf::{ImportCamera, ImportFrame, ImportedScene, find_image_root, image_dims};
-use super::transforms::ORTHONORMAL_TOL;
-use crate::error::{Error, Result};
+use crate::colmap2nerf::{ImportCamera, ImportFrame, ImportedScene, find_image_root, image_dims};
+use crate::transforms::ORTHONORMAL_TOL;
+use ngp::data::DatasetFormat;
+use ngp::error::{Error, Result};
 
 /// Default `aabb_scale` of an LLFF import (forward-facing captures: the background reaches
 /// far behind the focus). Overridden by `LoadOptions::aabb_scale`.
