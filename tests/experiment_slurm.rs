@@ -198,7 +198,10 @@ fn cancelled_and_resubmitted(cluster: &SlurmCluster, d: &Path, pairs: &[String],
                 .ends_with(".done")
         })
         .count();
-    assert!(finished_before < 3, "every model's job finished before the cancel");
+    assert!(
+        finished_before < 3,
+        "every model's job finished before the cancel"
+    );
     // Submitted again: only what has not finished runs; a stego job resumes.
     let st = cluster
         .command("bash")
