@@ -9,6 +9,7 @@
 
 pub use attack;
 pub use backend;
+pub use capture;
 pub use dataset;
 pub use lab as experiments;
 pub use mesh;

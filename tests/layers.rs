@@ -1,9 +1,9 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! lab, the show layer (paths, video, viewer) and the meshes, the lab on the attacks, those
-//! on the stego layer, the stego layer on the device boundary and the capture readers
-//! (dataset), those on the engine (and its wgpu backend), and the engine on no other crate of
-//! ours, nor on wgpu or clap. Read from `cargo metadata` (the resolved graph, so a dependency of a dependency
-//! counts too).
+//! lab, the show layer (paths, video, viewer), the meshes and the capture pipeline, the lab
+//! on the attacks, those on the stego layer, the stego layer on the device boundary and the
+//! capture readers (dataset), those on the engine (and its wgpu backend), and the engine on
+//! no other crate of ours, nor on wgpu or clap. Read from `cargo metadata` (the resolved
+//! graph, so a dependency of a dependency counts too).
 
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -11,10 +11,13 @@ use std::process::Command;
 
 /// Each crate of the workspace and the crates of ours it may depend on (normal and build
 /// dependencies; tests may use more).
-const ALLOWED: [(&str, &[&str]); 14] = [
+const ALLOWED: [(&str, &[&str]); 15] = [
     ("stegongp-ngp", &[]),
     // Captures on disk (transforms.json, COLMAP, LLFF) read into the engine's datasets.
     ("stegongp-dataset", &["stegongp-ngp"]),
+    // The capture pipeline (`process`): ffmpeg and COLMAP driven, the capture checked by
+    // the loaders.
+    ("stegongp-capture", &["stegongp-ngp", "stegongp-dataset"]),
     ("stegongp-gpu", &["stegongp-ngp"]),
     ("stegongp-backend", &["stegongp-ngp", "stegongp-gpu"]),
     ("stegongp-synth", &["stegongp-ngp", "stegongp-dataset"]),
@@ -110,6 +113,7 @@ const ALLOWED: [(&str, &[&str]); 14] = [
         &[
             "stegongp-ngp",
             "stegongp-dataset",
+            "stegongp-capture",
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
@@ -125,9 +129,11 @@ const ALLOWED: [(&str, &[&str]); 14] = [
 
 /// Crates of the outside world a layer must not reach: the engine knows no device and no
 /// command line.
-const FORBIDDEN: [(&str, &[&str]); 4] = [
+const FORBIDDEN: [(&str, &[&str]); 5] = [
     ("stegongp-ngp", &["wgpu", "clap", "anyhow", "indicatif"]),
     ("stegongp-dataset", &["wgpu", "clap", "anyhow", "indicatif"]),
+    // The program draws the pipeline's progress.
+    ("stegongp-capture", &["wgpu", "indicatif"]),
     ("stegongp-gpu", &["clap", "anyhow", "indicatif"]),
     ("stegongp-synth", &["wgpu"]),
 ];

@@ -106,7 +106,7 @@ pub fn resize_area(src: &[u8], ch: usize, w: usize, h: usize, nw: usize, nh: usi
 /// is renamed into place at the end, and must be on disk when it is.
 pub fn write_png(path: &Path, w: u32, h: u32, ch: usize, px: &[u8]) -> Result<()> {
     use std::io::Write;
-    let bytes = stegongp::ngp::data::png_bytes(w, h, ch, px, true)
+    let bytes = ngp::data::png_bytes(w, h, ch, px, true)
         .with_context(|| format!("{}: encoding", path.display()))?;
     let mut file = std::fs::File::create(path)
         .with_context(|| format!("{}: cannot create", path.display()))?;

@@ -12,7 +12,7 @@ pub fn check(out: &Path, input: &Path, force: bool) -> Result<()> {
     if name.is_none() {
         bail!("{}: give the output folder a name", out.display());
     }
-    super::super::common::check_parent_dir(out)?;
+    check_parent_dir(out)?;
     if out.exists() || out.is_symlink() {
         if !out.is_dir() || out.is_symlink() {
             bail!(
@@ -42,6 +42,22 @@ pub fn check(out: &Path, input: &Path, force: bool) -> Result<()> {
             "{}: the output would lie inside the input folder {}; give another --out",
             out.display(),
             input.display()
+        );
+    }
+    Ok(())
+}
+
+/// The output's parent folder must exist (the program's `check_parent_dir`, with its
+/// message).
+fn check_parent_dir(path: &Path) -> Result<()> {
+    if let Some(dir) = path.parent()
+        && !dir.as_os_str().is_empty()
+        && !dir.is_dir()
+    {
+        bail!(
+            "{}: directory {} does not exist",
+            path.display(),
+            dir.display()
         );
     }
     Ok(())
@@ -142,7 +158,7 @@ impl Staging {
             });
         }
         self.committed = true;
-        stegongp::util::sync_folder_of(&self.dest)?;
+        ngp::util::sync_folder_of(&self.dest)?;
         if let Some(old) = old {
             std::fs::remove_dir_all(&old).with_context(|| {
                 format!(

@@ -3,14 +3,14 @@
 //! and the sharpest frame of each of `N` equal stretches of the clip kept, as colmap2nerf
 //! scores frames (variance of the Laplacian) but choosing instead of merely recording.
 
-use super::pixels::{sharpness, write_png};
-use super::tools::{Tool, first_line};
+use crate::Progress;
+use crate::pixels::{sharpness, write_png};
+use crate::tools::{Tool, first_line};
 use anyhow::{Context, Result, anyhow, bail};
-use indicatif::ProgressBar;
+use ngp::data::image::MAX_IMAGE_PIXELS;
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 use std::process::Stdio;
-use stegongp::ngp::data::image::MAX_IMAGE_PIXELS;
 
 /// What ffprobe says of a video's first video stream.
 #[derive(Clone, Debug)]
@@ -209,7 +209,7 @@ pub fn extract(
     probe: &Probe,
     want: &Wanted,
     images: &Path,
-    pb: &ProgressBar,
+    pb: &dyn Progress,
 ) -> Result<Extracted> {
     let mut child = ffmpeg
         .command()

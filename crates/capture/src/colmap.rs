@@ -3,9 +3,9 @@
 //! releases), each stage's output kept in `colmap.log` and read for progress, the largest
 //! model kept, and `model_analyzer`'s figures read back.
 
-use super::tools::{Tool, cpu_seconds, first_line, version_after};
+use crate::Progress;
+use crate::tools::{Tool, cpu_seconds, first_line, version_after};
 use anyhow::{Context, Result, anyhow, bail};
-use indicatif::ProgressBar;
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::ffi::OsString;
 use std::io::{BufRead, BufReader, Write};
@@ -155,7 +155,7 @@ impl Colmap {
         cmd: &str,
         args: &[OsString],
         log: &mut Log,
-        pb: &ProgressBar,
+        pb: &dyn Progress,
         progress: fn(&str) -> Option<(u64, u64)>,
     ) -> Result<(f64, f64)> {
         let (t0, cpu0) = (Instant::now(), cpu_seconds());

@@ -4,17 +4,18 @@
 //! GPU unless asked, and the mapper's global bundle adjustment stopped at a relative
 //! tolerance of 1e-6 as nerfstudio does (COLMAP's default, 0, runs it to its iteration cap).
 
-use super::colmap::{
+use crate::Ui;
+use crate::colmap::{
     Analysis, Colmap, Log, extraction_progress, mapping_progress, matching_progress,
 };
 use anyhow::{Context, Result};
-use indicatif::ProgressBar;
+use dataset::colmap::read_model;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use stegongp::dataset::colmap::read_model;
 
 /// How COLMAP matches features between images.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Matcher {
     /// A video's frames with `sequential` (each with its next 10, and 2, 4, 8… ahead),
@@ -30,7 +31,8 @@ pub enum Matcher {
 pub const EXHAUSTIVE_UP_TO: usize = 200;
 
 /// The camera models the loaders read.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 pub enum CameraModel {
     /// fx, fy, cx, cy and k1, k2, p1, p2 (colmap2nerf's and nerfstudio's default).
     Opencv,
@@ -93,14 +95,6 @@ fn opt(
     Ok(())
 }
 
-/// A stage's progress bar on standard error (hidden when that is not a terminal).
-pub fn bar(len: u64, what: &str) -> ProgressBar {
-    super::super::common::progress(
-        len,
-        &format!("{{spinner}} [{{elapsed_precise}}] {{bar:30}} {{pos}}/{{len}} {what}"),
-    )
-}
-
 fn paths(args: &mut Vec<OsString>, pairs: &[(&str, &Path)]) {
     for (k, p) in pairs {
         args.push(format!("--{k}").into());
@@ -115,6 +109,7 @@ pub fn reconstruct(
     work: &Path,
     n: usize,
     log: &mut Log,
+    ui: &dyn Ui,
 ) -> Result<Sfm> {
     let (db, images, sparse) = (
         work.join("database.db"),
@@ -148,8 +143,8 @@ pub fn reconstruct(
         let names: Vec<&str> = names.iter().map(String::as_str).collect();
         opt(&mut a, colmap, log, cmd, &names, v)?;
     }
-    let pb = bar(n as u64, "images: features");
-    let features = colmap.run(cmd, &a, log, &pb, extraction_progress)?;
+    let pb = ui.bar(n as u64, "images: features");
+    let features = colmap.run(cmd, &a, log, &*pb, extraction_progress)?;
     pb.finish();
 
     let cmd = match o.matcher {
@@ -166,8 +161,8 @@ pub fn reconstruct(
         let names: Vec<&str> = names.iter().map(String::as_str).collect();
         opt(&mut a, colmap, log, cmd, &names, v)?;
     }
-    let pb = bar(0, "matched");
-    let matching = colmap.run(cmd, &a, log, &pb, matching_progress)?;
+    let pb = ui.bar(0, "matched");
+    let matching = colmap.run(cmd, &a, log, &*pb, matching_progress)?;
     pb.finish();
 
     let cmd = "mapper";
@@ -190,8 +185,8 @@ pub fn reconstruct(
         &["Mapper.ba_global_function_tolerance"],
         "1e-6",
     )?;
-    let pb = bar(n as u64, "images registered");
-    let mapping = colmap.run(cmd, &a, log, &pb, mapping_progress);
+    let pb = ui.bar(n as u64, "images registered");
+    let mapping = colmap.run(cmd, &a, log, &*pb, mapping_progress);
     pb.finish();
     // COLMAP's mapper exits with an error when no pair of images starts a model: that is
     // "nothing registered", not a crash.

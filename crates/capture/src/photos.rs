@@ -2,13 +2,13 @@
 //! shrunk to the size cap and written as PNG. Every photo is read through the loaders'
 //! own decoder first, so a file `train` could not read is named here, not after COLMAP.
 
-use super::pixels::{capped_size, copy_synced, resize_area, write_png};
+use crate::Progress;
+use crate::pixels::{capped_size, copy_synced, resize_area, write_png};
 use anyhow::{Context, Result, bail};
-use indicatif::ProgressBar;
+use ngp::data::image::{decode_image_file, image_size};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use stegongp::ngp::data::image::{decode_image_file, image_size};
 
 fn is_photo(p: &Path) -> bool {
     let ext = p
@@ -68,7 +68,7 @@ pub fn import(
     photos: &[PathBuf],
     max_side: u32,
     images: &Path,
-    pb: &ProgressBar,
+    pb: &dyn Progress,
 ) -> Result<(Vec<String>, (u32, u32))> {
     let plans = plan(photos, max_side)?;
     let outs: Vec<(u32, u32)> = plans.iter().map(|p| p.resize.unwrap_or(p.size)).collect();
