@@ -4,14 +4,14 @@
 //! "Layout"): [`ngp`] the engine (knows nothing of keys or devices), [`gpu`] its wgpu
 //! backend, [`backend`] the device boundary (`--device`), [`synth`] generated scenes,
 //! [`stego`] keys, the training recipe, stealth and [`steganalysis`], and
-//! [`experiments`] (the `lab` crate), [`show`] camera paths, video and the viewer, [`mesh`]
-//! meshes out of a model's density.
+//! [`experiments`] the paper's experiments and their plans of jobs, [`show`] camera paths,
+//! video and the viewer, [`mesh`] meshes out of a model's density.
 
 pub use attack;
 pub use backend;
 pub use capture;
 pub use dataset;
-pub use lab as experiments;
+pub use experiments;
 pub use mesh;
 pub use ngp;
 pub use ngp::{Error, Result, error, rng, util};

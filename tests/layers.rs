@@ -1,6 +1,6 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! lab, the show layer (paths, video, viewer), the meshes and the capture pipeline, the lab
-//! on the attacks, those on the stego layer, the stego layer on the device boundary and the
+//! experiments, the show layer (paths, video, viewer), the meshes and the capture pipeline, the
+//! experiments on the attacks, those on the stego layer, the stego layer on the device boundary and the
 //! capture readers (dataset), those on the engine (and its wgpu backend), and the engine on
 //! no other crate of ours, nor on wgpu or clap. Read from `cargo metadata` (the resolved
 //! graph, so a dependency of a dependency counts too).
@@ -58,7 +58,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
         ],
     ),
     (
-        "stegongp-lab",
+        "stegongp-experiments",
         &[
             "stegongp-ngp",
             "stegongp-dataset",
@@ -91,7 +91,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
             "stegongp-stego",
             "stegongp-training",
             "stegongp-synth",
-            "stegongp-lab",
+            "stegongp-experiments",
             "stegongp-show",
             "stegongp-attack",
         ],
@@ -119,7 +119,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
             "stegongp-stego",
             "stegongp-training",
             "stegongp-synth",
-            "stegongp-lab",
+            "stegongp-experiments",
             "stegongp-show",
             "stegongp-attack",
             "stegongp-mesh",
@@ -236,5 +236,5 @@ fn dependencies_run_down_the_layers() {
             .iter()
             .all(|d| !ours.contains(d.as_str()))
     );
-    assert!(deps["stegongp"].contains("stegongp-lab"));
+    assert!(deps["stegongp"].contains("stegongp-experiments"));
 }

@@ -70,7 +70,7 @@ fn dataset(dir: &Path) -> Result<(), String> {
 }
 
 fn pairs(dir: &Path) -> Result<(), String> {
-    lab::pairs::read_pairs_file(&dir.join("pairs.json"))
+    experiments::pairs::read_pairs_file(&dir.join("pairs.json"))
         .map(|_| ())
         .map_err(|e| e.to_string())
 }

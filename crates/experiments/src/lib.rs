@@ -1,6 +1,9 @@
 //! The StegoNGP paper's experiments, and ours: each trains the models it needs on the given
 //! (or generated) scenes, evaluates held-out views, and writes a Markdown + JSON report with
 //! PNG image grids into its output directory.
+//!
+//! It drives the recipe, the attacks and the steganalysis of the layers below; it knows no
+//! command line (neither clap nor anyhow) and nothing of the viewer or video.
 
 pub mod detectability;
 pub mod jobs;
