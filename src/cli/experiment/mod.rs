@@ -1,13 +1,15 @@
-mod paper;
+//! `stegongp experiment`: the options of the experiments, their defaults, and what they
+//! print; the experiments themselves, their plans of jobs and Slurm's scripts are
+//! [`stegongp::experiments`]'.
+
 mod plan;
-mod slurm;
-mod tee;
 
 use super::common::{DeviceArg, ensure_locked_dir};
 use anyhow::{Result, bail};
 use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::backend::Device;
+use stegongp::experiments::paper;
 use stegongp::experiments::report::Report;
 use stegongp::experiments::{
     DetectOptions, ExpConfig, Experiment, JobMode, Mode, PairSpec, PairsOptions, RobustnessOptions,
@@ -202,7 +204,7 @@ pub fn run(a: Args) -> Result<()> {
 fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig, Report)> {
     let name: Experiment = a.name.parse()?;
     if a.paper_scale {
-        paper::configure(&mut a)?;
+        paper_scale(&mut a)?;
     }
     if a.random_scene {
         a.training.schedule = Schedule::RandomScene;
@@ -232,6 +234,50 @@ fn experiment(mut a: Args, jobs: Arc<JobMode>, lock: bool) -> Result<(ExpConfig,
     let cfg = exp_config(&a, name, steps, (cover, hidden), device, jobs);
     let report = run_named(name, &a, &cfg, res)?;
     Ok((cfg, report))
+}
+
+/// Turns `--paper-scale --cover ROOT` into the paper's pairs and budget
+/// ([`stegongp::experiments::paper`]), or refuses what does not fit it.
+fn paper_scale(a: &mut Args) -> Result<()> {
+    use paper::{BATCH, RES, STEPS};
+    if a.name != "pairs" {
+        bail!(
+            "--paper-scale is the paper's Table 1: `experiment pairs --paper-scale --cover ROOT`"
+        );
+    }
+    if !a.pairs.is_empty() || a.pairs_file.is_some() || !a.hidden.is_empty() {
+        bail!("--paper-scale makes its own pairs: leave out --pair, --pairs and --hidden");
+    }
+    if a.steps.is_some() || a.minutes.is_some() || a.batch.is_some() || a.res.is_some() {
+        bail!(
+            "--paper-scale sets the budget ({STEPS} steps of {BATCH} samples a scene) and the logos' size ({RES} px): leave out --steps, --minutes, --batch and --res"
+        );
+    }
+    let Some(root) = a.cover.take() else {
+        bail!(
+            "--paper-scale needs --cover ROOT: the NeRF-synthetic folder holding {}",
+            paper::scene_names()
+        );
+    };
+    let missing = paper::missing_scenes(&root);
+    if !missing.is_empty() {
+        bail!(
+            "{}: --paper-scale needs the eight NeRF-synthetic scenes there ({}); missing: {}",
+            root.display(),
+            paper::scene_names(),
+            missing.join(", ")
+        );
+    }
+    let root = std::fs::canonicalize(&root)?;
+    let data = std::path::absolute(a.out.join("data"))?;
+    a.pairs = paper::pairs(&root, &data);
+    a.steps = Some(STEPS);
+    a.batch = Some(BATCH);
+    // Every test view, as the paper scores them (unless fewer are asked for).
+    if a.eval_views == 8 {
+        a.eval_views = paper::TEST_VIEWS;
+    }
+    Ok(())
 }
 
 impl Args {

@@ -4,8 +4,8 @@
 //! job after all of them (`afterany`, so that it runs and lists what failed). Running it
 //! again submits only the jobs not finished. Slurm does the scheduling; we only describe.
 
-use super::plan::{Plan, REPORT_JOB};
-use anyhow::{Context, Result, bail};
+use crate::plan::{Plan, REPORT_JOB, bare, context};
+use ngp::error::{Error, Result};
 use serde_json::Value;
 use std::collections::HashMap;
 use std::fmt::Write as _;
@@ -18,7 +18,7 @@ fn sh(s: &str) -> String {
 
 /// Each training job's wave: 0 for a job that waits for none, else one more than the
 /// latest wave among those it waits for.
-pub(super) fn waves(jobs: &[Value]) -> Result<Vec<Vec<String>>> {
+pub fn waves(jobs: &[Value]) -> Result<Vec<Vec<String>>> {
     let train: Vec<&Value> = jobs.iter().filter(|j| j["kind"] == "train").collect();
     let mut wave: HashMap<String, usize> = HashMap::new();
     // A plan lists a job after those it waits for; more passes than jobs means a cycle.
@@ -44,7 +44,9 @@ pub(super) fn waves(jobs: &[Value]) -> Result<Vec<Vec<String>>> {
         }
     }
     if wave.len() != train.len() {
-        bail!("the plan's jobs wait for jobs it does not have, or for each other");
+        return Err(Error::Other(
+            "the plan's jobs wait for jobs it does not have, or for each other".into(),
+        ));
     }
     let n = wave.values().max().map_or(0, |m| m + 1);
     let mut out = vec![Vec::new(); n];
@@ -67,11 +69,11 @@ fn time_limit(jobs: &[Value], ids: &[String]) -> String {
 }
 
 /// Writes `DIR/submit.sh` and the scripts it submits; returns the path of submit.sh.
-pub(super) fn write(plan: &Plan, extra: &[String]) -> Result<PathBuf> {
+pub fn write(plan: &Plan, extra: &[String]) -> Result<PathBuf> {
     let dir = &plan.dir;
     let sdir = dir.join("slurm");
     std::fs::create_dir_all(sdir.join("logs"))
-        .with_context(|| format!("{}: cannot create", sdir.display()))?;
+        .map_err(context(format!("{}: cannot create", sdir.display())))?;
     let d = dir.display().to_string();
     let bin = plan.doc["binary"]
         .as_str()
@@ -107,7 +109,8 @@ pub(super) fn write(plan: &Plan, extra: &[String]) -> Result<PathBuf> {
         s,
         "#!/bin/bash\n# Submits the unfinished jobs of the plan in {d} to Slurm (written by stegongp experiment {name} --plan --slurm).\n# Run it again after a failure or a cancellation: it submits only what has not finished.\nset -euo pipefail\nD={}\nS=\"$D/slurm\"\nCOMMON=({common})\nafter=\"\"\nall=\"\"",
         sh(&d)
-    )?;
+    )
+    .map_err(bare)?;
     s += "# The jobs of list $1 that have not finished, as an array after the previous wave.\n";
     s += "submit_wave() {\n  local list=\"$D/waves/$1\" pending; shift\n  pending=\"$S/pending-$(basename \"$list\" .txt)-$(date +%s)-$$.txt\"\n";
     s += "  : > \"$pending\"\n  while read -r id; do [ -e \"$D/jobs/$id.done\" ] || echo \"$id\" >> \"$pending\"; done < \"$list\"\n";
@@ -118,14 +121,15 @@ pub(super) fn write(plan: &Plan, extra: &[String]) -> Result<PathBuf> {
     let jobs = plan.jobs();
     for (k, ids) in waves(jobs)?.iter().enumerate() {
         let list = format!("{k:02}.txt");
-        writeln!(s, "submit_wave {list} --time={}", time_limit(jobs, ids))?;
+        writeln!(s, "submit_wave {list} --time={}", time_limit(jobs, ids)).map_err(bare)?;
     }
     let report_time = time_limit(jobs, &[REPORT_JOB.to_string()]);
     s += "dep=(); [ -n \"$all\" ] && dep=(--dependency=\"afterany${all}\")\n";
     writeln!(
         s,
         "id=$(sbatch \"${{COMMON[@]}}\" \"${{dep[@]}}\" --time={report_time} --output=\"$S/logs/report-%j.out\" \"$S/report.sh\")\necho \"report: Slurm job ${{id%%;*}} (then: $D/{name}/report.md)\""
-    )?;
+    )
+    .map_err(bare)?;
     let path = dir.join("submit.sh");
     write_script(&path, &s)?;
     Ok(path)
@@ -133,31 +137,32 @@ pub(super) fn write(plan: &Plan, extra: &[String]) -> Result<PathBuf> {
 
 fn write_script(path: &Path, text: &str) -> Result<()> {
     use std::os::unix::fs::PermissionsExt;
-    stegongp::util::write_atomic(path, text.as_bytes())?;
-    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o755))
-        .with_context(|| format!("{}: cannot make it executable", path.display()))
+    ngp::util::write_atomic(path, text.as_bytes())?;
+    std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o755)).map_err(context(
+        format!("{}: cannot make it executable", path.display()),
+    ))
 }
 
 /// Runs submit.sh (sbatch must be on PATH), its output (the Slurm job ids) shown.
-pub(super) fn submit(script: &Path) -> Result<()> {
+pub fn submit(script: &Path) -> Result<()> {
     let found = std::env::var_os("PATH")
         .map(|p| std::env::split_paths(&p).any(|d| d.join("sbatch").is_file()))
         .unwrap_or(false);
     if !found {
-        bail!(
+        return Err(Error::Other(format!(
             "sbatch is not on PATH: this machine cannot submit to Slurm (run {} on a login node of the cluster, or run the jobs another way: see plan.json)",
             script.display()
-        );
+        )));
     }
     let status = std::process::Command::new("bash")
         .arg(script)
         .status()
-        .with_context(|| format!("running {}", script.display()))?;
+        .map_err(context(format!("running {}", script.display())))?;
     if !status.success() {
-        bail!(
+        return Err(Error::Other(format!(
             "{} failed ({status}): sbatch refused a job (see above)",
             script.display()
-        );
+        )));
     }
     Ok(())
 }

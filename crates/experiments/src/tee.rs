@@ -2,14 +2,15 @@
 //! a file in the plan's folder, whichever scheduler ran it and wherever that one sends its
 //! own output, so that `collect` can show why a job did not finish.
 
-use anyhow::{Context, Result};
+use crate::plan::{bare, context};
+use ngp::error::Result;
 use std::fs::File;
 use std::io::{Read, Write};
 use std::os::fd::{FromRawFd, OwnedFd};
 use std::path::Path;
 
 /// Stderr copied into a file until [`Tee::stop`].
-pub struct Tee {
+pub(crate) struct Tee {
     /// The process's stderr as it was, restored by `stop`.
     saved: OwnedFd,
     copier: std::thread::JoinHandle<()>,
@@ -22,13 +23,18 @@ impl Tee {
             .create(true)
             .append(true)
             .open(log)
-            .with_context(|| format!("{}: cannot open the job's log", log.display()))?;
+            .map_err(context(format!(
+                "{}: cannot open the job's log",
+                log.display()
+            )))?;
         let mut fds = [0i32; 2];
         // SAFETY: plain POSIX calls on descriptors this function owns; every result is
         // checked, and each descriptor is owned by exactly one OwnedFd/File afterwards.
         let (read_end, saved) = unsafe {
             if libc::pipe(fds.as_mut_ptr()) != 0 {
-                return Err(std::io::Error::last_os_error()).context("pipe for the job's log");
+                return Err(context("pipe for the job's log")(
+                    std::io::Error::last_os_error(),
+                ));
             }
             let saved = libc::dup(2);
             if saved < 0 || libc::dup2(fds[1], 2) < 0 {
@@ -38,12 +44,12 @@ impl Tee {
                 if saved >= 0 {
                     libc::close(saved);
                 }
-                return Err(e).context("redirecting stderr into the job's log");
+                return Err(context("redirecting stderr into the job's log")(e));
             }
             libc::close(fds[1]);
             (File::from_raw_fd(fds[0]), OwnedFd::from_raw_fd(saved))
         };
-        let mut terminal = File::from(saved.try_clone()?);
+        let mut terminal = File::from(saved.try_clone().map_err(bare)?);
         let copier = std::thread::spawn(move || {
             let mut read_end = read_end;
             let mut buf = [0u8; 8192];
