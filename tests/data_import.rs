@@ -524,6 +524,32 @@ fn colmap_bin_text_and_llff_recover_the_known_poses() {
     assert_eq!((d.frames.len(), d.width, d.aabb_scale), (N - 2, RES, 8));
     assert_eq!(d.format, DatasetFormat::Colmap);
     same_cameras(&d.cameras(), &train, 0.0);
+
+    // Both splits of one import (`train --checkpoints`) are the splits loaded one by one,
+    // COLMAP and LLFF alike: the same frames, cameras and pixels.
+    for cap in [&fx.cap, &fx.llff] {
+        let mut capture = stegongp::dataset::Capture::new(cap, &o8);
+        for split in [Split::Train, Split::Test] {
+            let got = capture.load(split).unwrap();
+            let one = stegongp::dataset::load(cap, split, &o8).unwrap();
+            assert_eq!(got.split, split);
+            assert_eq!(got.frames.len(), one.frames.len(), "{split}");
+            same_cameras(&got.cameras(), &one.cameras(), 0.0);
+            for (a, b) in got.frames.iter().zip(&one.frames) {
+                assert_eq!(a.file_path, b.file_path);
+                let px = |im: &stegongp::ngp::data::Image| {
+                    (0..im.height)
+                        .flat_map(|y| (0..im.width).map(move |x| im.linear_premul(x, y)))
+                        .collect::<Vec<_>>()
+                };
+                assert!(
+                    px(&a.image) == px(&b.image),
+                    "{}: pixels differ",
+                    a.file_path
+                );
+            }
+        }
+    }
 }
 
 #[test]

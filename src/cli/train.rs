@@ -6,7 +6,7 @@ use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::Arc;
 use stegongp::backend::{Device, DeviceReport};
-use stegongp::dataset::LoadOptions;
+use stegongp::dataset::{Capture, LoadOptions};
 use stegongp::ngp::data::{Dataset, Split};
 use stegongp::ngp::eval::Protocol;
 use stegongp::ngp::network::ModelConfig;
@@ -258,7 +258,9 @@ fn load_recipe(a: &Args) -> Result<(Checked, Option<Dataset>)> {
         images: a.images.clone(),
         aabb_scale: a.aabb_scale,
     };
-    let cover = stegongp::dataset::load(&a.scene, Split::Train, &opts)?;
+    // The cover's capture is imported once for its training images and its test views.
+    let mut capture = Capture::new(&a.scene, &opts);
+    let cover = capture.load(Split::Train)?;
     let model = ModelConfig {
         grid: a.grid.grid(),
         aabb_scale: cover.aabb_scale,
@@ -307,7 +309,8 @@ fn load_recipe(a: &Args) -> Result<(Checked, Option<Dataset>)> {
         None
     } else {
         Some(
-            stegongp::dataset::load(&a.scene, Split::Test, &opts)
+            capture
+                .load(Split::Test)
                 .context("loading test views for --checkpoints")?,
         )
     };

@@ -190,9 +190,51 @@ struct Loaded {
     images_dir: Option<String>,
 }
 
-/// Parses the split's JSON (or imports and converts a COLMAP / LLFF capture) and keeps the
-/// split's frames.
-fn split_frames(dir: &Path, split: Split, opts: &LoadOptions) -> Result<Loaded> {
+/// A COLMAP / LLFF capture imported and converted once, for every split taken from it
+/// ([`load_splits`]): all its frames, the held-out ones' names and the image folder.
+struct Imported {
+    model: PathBuf,
+    t: Transforms,
+    held: HashSet<String>,
+    images_dir: String,
+}
+
+/// Imports and converts the COLMAP / LLFF capture of `src`.
+fn import_converted(src: &Source, opts: &LoadOptions) -> Result<Imported> {
+    let scene = match src.format {
+        DatasetFormat::Llff => llff::import(
+            src.json_path.parent().unwrap_or(Path::new(".")),
+            opts.images.as_deref(),
+        )?,
+        _ => colmap::import(&src.json_path, opts.images.as_deref())?,
+    };
+    let aabb = opts.aabb_scale.unwrap_or(scene.default_aabb_scale);
+    let conv = to_transforms(&scene, aabb, &scene.root);
+    let t = conv.transforms(&src.json_path, &scene.root)?;
+    // Hold out every 8th image in byte order of the names (frames are in that order in the
+    // conversion; the transforms are sorted naturally).
+    let held = conv
+        .frames
+        .iter()
+        .step_by(8)
+        .map(|f| f.file_path.clone())
+        .collect();
+    Ok(Imported {
+        model: src.json_path.clone(),
+        t,
+        held,
+        images_dir: scene.images_dir,
+    })
+}
+
+/// Parses the split's JSON (or imports and converts a COLMAP / LLFF capture, or takes the
+/// one `imported` holds from an earlier split) and keeps the split's frames.
+fn split_frames(
+    dir: &Path,
+    split: Split,
+    opts: &LoadOptions,
+    imported: &mut Option<Imported>,
+) -> Result<Loaded> {
     if opts.downscale == 0 {
         return Err(Error::Config("downscale must be at least 1".into()));
     }
@@ -202,28 +244,15 @@ fn split_frames(dir: &Path, split: Split, opts: &LoadOptions) -> Result<Loaded> 
     let src = locate(dir, split)?;
     let (mut t, images_dir) = match src.format {
         DatasetFormat::Colmap | DatasetFormat::Llff => {
-            let scene = match src.format {
-                DatasetFormat::Llff => llff::import(
-                    src.json_path.parent().unwrap_or(Path::new(".")),
-                    opts.images.as_deref(),
-                )?,
-                _ => colmap::import(&src.json_path, opts.images.as_deref())?,
+            let i = match imported {
+                Some(i) if i.model == src.json_path => i,
+                slot => slot.insert(import_converted(&src, opts)?),
             };
-            let aabb = opts.aabb_scale.unwrap_or(scene.default_aabb_scale);
-            let conv = to_transforms(&scene, aabb, &scene.root);
-            let mut t = conv.transforms(&src.json_path, &scene.root)?;
-            // Hold out every 8th image in byte order of the names (frames are in that order
-            // in the conversion; the transforms are sorted naturally).
-            let held: HashSet<String> = conv
-                .frames
-                .iter()
-                .step_by(8)
-                .map(|f| f.file_path.clone())
-                .collect();
+            let mut t = i.t.clone();
             let want_held = split != Split::Train;
             t.frames
-                .retain(|f| held.contains(&f.file_path) == want_held);
-            (t, Some(scene.images_dir))
+                .retain(|f| i.held.contains(&f.file_path) == want_held);
+            (t, Some(i.images_dir.clone()))
         }
         _ => {
             let mut t = parse_transforms(&src.json_path)?;
@@ -331,7 +360,41 @@ fn meta(dir: &Path, split: Split, l: &Loaded, w: u32, h: u32) -> DatasetMeta {
 /// instant-ngp: Test/Val = frames with index % 8 == 0 (after the reference's natural sort
 /// and missing-image filter), Train = the rest. Images are decoded in parallel.
 pub fn load(dir: &Path, split: Split, opts: &LoadOptions) -> Result<Dataset> {
-    let Loaded { src, t, .. } = split_frames(dir, split, opts)?;
+    load_from(dir, split, opts, &mut None)
+}
+
+/// One capture, its splits loaded from a single import: a COLMAP or LLFF capture is read
+/// and converted once for every split taken from it (each split decodes its own images),
+/// where [`load`] imports it again for each.
+pub struct Capture {
+    dir: PathBuf,
+    opts: LoadOptions,
+    imported: Option<Imported>,
+}
+
+impl Capture {
+    /// The capture at `dir`, read as `opts` say; nothing is read before [`Self::load`].
+    pub fn new(dir: &Path, opts: &LoadOptions) -> Self {
+        Capture {
+            dir: dir.to_path_buf(),
+            opts: opts.clone(),
+            imported: None,
+        }
+    }
+
+    /// [`load`] of one split.
+    pub fn load(&mut self, split: Split) -> Result<Dataset> {
+        load_from(&self.dir, split, &self.opts, &mut self.imported)
+    }
+}
+
+fn load_from(
+    dir: &Path,
+    split: Split,
+    opts: &LoadOptions,
+    imported: &mut Option<Imported>,
+) -> Result<Dataset> {
+    let Loaded { src, t, .. } = split_frames(dir, split, opts, imported)?;
     let n = opts.downscale;
     let decoded: Vec<Result<((u32, u32), Image)>> = t
         .frames
@@ -389,7 +452,7 @@ pub fn load_cameras(
     split: Split,
     opts: &LoadOptions,
 ) -> Result<(Vec<Camera>, DatasetMeta)> {
-    let l = split_frames(dir, split, opts)?;
+    let l = split_frames(dir, split, opts, &mut None)?;
     let t = &l.t;
     let sizes: Vec<Result<(u32, u32)>> = t
         .frames
