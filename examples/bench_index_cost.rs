@@ -10,11 +10,11 @@ use std::sync::Arc;
 use stegongp::dataset::LoadOptions;
 use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
+use stegongp::score::eval::{evaluate, spread_views};
 use stegongp::stego::{generate_prf, generate_primes};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 

@@ -7,8 +7,8 @@
 //! LPIPS, which `eval` adds unless `--no-lpips`, is timed after them.
 
 use std::time::Instant;
-use stegongp::ngp::metrics::{psnr, ssim};
 use stegongp::ngp::rng::Pcg32;
+use stegongp::score::metrics::{psnr, ssim};
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();
@@ -53,7 +53,7 @@ fn main() {
     );
     // LPIPS, as `eval` computes it by default: the ground truth's and the render's features
     // side by side (the empty image's are computed once per size).
-    let net = stegongp::ngp::lpips::Lpips::embedded();
+    let net = stegongp::score::lpips::Lpips::embedded();
     let mut lp = f64::INFINITY;
     for _ in 0..rounds.min(2) {
         let t = Instant::now();

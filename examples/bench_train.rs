@@ -21,9 +21,9 @@ use stegongp::backend::{Device, DeviceRequest};
 use stegongp::dataset::LoadOptions;
 use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate_on, spread_views};
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
+use stegongp::score::eval::{evaluate_on, spread_views};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 use stegongp::training::recipe::{Budget, Recipe, StepOptions, StoredLoss};
 

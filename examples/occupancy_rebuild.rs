@@ -8,9 +8,9 @@
 use stegongp::dataset::LoadOptions;
 use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{RenderOptions, rebuild_occupancy};
+use stegongp::score::eval::{evaluate, spread_views};
 use stegongp::stego::load_key;
 
 fn main() {

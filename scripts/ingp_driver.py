@@ -55,7 +55,7 @@ def srgb(x):
 def ssim_luminance(a, b):
     """common.py's SSIM: Rec. 709 luminance, a separable 5-tap blur (scipy's 'reflect'
     edges), K1 0.01, K2 0.03, the map's mean. The same definition as
-    crates/ngp/src/metrics.rs's ssim_instant_ngp."""
+    crates/score/src/metrics.rs's ssim_instant_ngp."""
     from scipy.ndimage import convolve1d
 
     k = np.array([0.120078, 0.233881, 0.292082, 0.233881, 0.120078])

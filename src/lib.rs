@@ -5,7 +5,8 @@
 //! backend, [`backend`] the device boundary (`--device`), [`synth`] generated scenes,
 //! [`stego`] keys, the training recipe, stealth and [`steganalysis`], and
 //! [`experiments`] the paper's experiments and their plans of jobs, [`show`] camera paths,
-//! video and the viewer, [`mesh`] meshes out of a model's density.
+//! video and the viewer, [`mesh`] meshes out of a model's density, [`score`] metrics, LPIPS
+//! and evaluation protocols.
 
 pub use attack;
 pub use backend;
@@ -15,6 +16,7 @@ pub use experiments;
 pub use mesh;
 pub use ngp;
 pub use ngp::{Error, Result, error, rng, util};
+pub use score;
 pub use show;
 pub use stego;
 pub use stego::steganalysis;

@@ -5,11 +5,11 @@
 use std::sync::Arc;
 use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
+use stegongp::score::eval::{evaluate, spread_views};
 use stegongp::stego::{Key, generate_prf, open_scene};
 use stegongp::synth::SceneKind;
 use testkit::scenes::generated;

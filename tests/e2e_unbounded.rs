@@ -9,7 +9,6 @@ use stegongp::dataset::LoadOptions;
 use stegongp::ngp::camera::Camera;
 use stegongp::ngp::data::{Dataset, Split, aabb_for_scale};
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::evaluate;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::nerf::NerfNetwork;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
@@ -18,6 +17,7 @@ use stegongp::ngp::render::image::{RenderOptions, SceneView, rebuild_occupancy, 
 use stegongp::ngp::render::march::Marcher;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::rng::Pcg32;
+use stegongp::score::eval::evaluate;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 fn model_config(aabb_scale: u32) -> ModelConfig {

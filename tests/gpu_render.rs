@@ -10,13 +10,13 @@ use stegongp::gpu::{GpuRenderer, rebuild_occupancy_gpu, refine_occupancy_gpu, te
 use stegongp::ngp::camera::{Camera, Distortion};
 use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::{LevelIndices, reference_indices};
-use stegongp::ngp::metrics::psnr;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::occupancy::{GRID_SIZE, N_CELLS, OccupancyGrid, morton3d_invert};
 use stegongp::ngp::render::image::{
     RenderOptions, RenderedImage, SceneView, rebuild_occupancy, refine_occupancy, render_image,
 };
+use stegongp::score::metrics::psnr;
 use stegongp::stego::SchemeKind;
 use stegongp::synth::SceneKind;
 use stegongp::training::recipe::StepOptions;

@@ -8,11 +8,11 @@ use std::time::Instant;
 use stegongp::gpu::{GpuContext, GpuTrainer, test_context};
 use stegongp::ngp::data::Dataset;
 use stegongp::ngp::encoding::reference_indices;
-use stegongp::ngp::eval::{evaluate, spread_views};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::render::image::RenderOptions;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
+use stegongp::score::eval::{evaluate, spread_views};
 use stegongp::synth::SceneKind;
 use testkit::scenes::generated;
 

@@ -1,9 +1,10 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! experiments, the show layer (paths, video, viewer), the meshes and the capture pipeline, the
-//! experiments on the attacks, those on the stego layer, the stego layer on the device boundary and the
-//! capture readers (dataset), those on the engine (and its wgpu backend), and the engine on
-//! no other crate of ours, nor on wgpu or clap. Read from `cargo metadata` (the resolved
-//! graph, so a dependency of a dependency counts too).
+//! experiments, the show layer (paths, video, viewer), the meshes and the capture pipeline,
+//! the experiments on the attacks, those on the stego layer, the stego layer on the device
+//! boundary and the capture readers (dataset), those on the engine (and its wgpu backend),
+//! the experiments and the app on the scoring too (which reads the engine alone), and the
+//! engine on no other crate of ours, nor on wgpu or clap. Read from `cargo metadata` (the
+//! resolved graph, so a dependency of a dependency counts too).
 
 use serde_json::Value;
 use std::collections::{BTreeMap, BTreeSet};
@@ -11,7 +12,7 @@ use std::process::Command;
 
 /// Each crate of the workspace and the crates of ours it may depend on (normal and build
 /// dependencies; tests may use more).
-const ALLOWED: [(&str, &[&str]); 15] = [
+const ALLOWED: [(&str, &[&str]); 16] = [
     ("stegongp-ngp", &[]),
     // Captures on disk (transforms.json, COLMAP, LLFF) read into the engine's datasets.
     ("stegongp-dataset", &["stegongp-ngp"]),
@@ -23,6 +24,9 @@ const ALLOWED: [(&str, &[&str]); 15] = [
     ("stegongp-synth", &["stegongp-ngp", "stegongp-dataset"]),
     // Meshes out of a model's density: the engine alone (the caller passes the density).
     ("stegongp-mesh", &["stegongp-ngp"]),
+    // Metrics, LPIPS and the evaluation protocols: they render through the engine's
+    // `RenderBackend` and score; the engine knows nothing of them.
+    ("stegongp-score", &["stegongp-ngp"]),
     (
         "stegongp-stego",
         &[
@@ -42,6 +46,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
             "stegongp-gpu",
             "stegongp-backend",
             "stegongp-stego",
+            "stegongp-score",
         ],
     ),
     // Edits of a published model (noise, pruning, fine-tuning, purification): they read
@@ -68,6 +73,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
             "stegongp-training",
             "stegongp-synth",
             "stegongp-attack",
+            "stegongp-score",
         ],
     ),
     (
@@ -94,6 +100,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
             "stegongp-experiments",
             "stegongp-show",
             "stegongp-attack",
+            "stegongp-score",
         ],
     ),
     (
@@ -123,6 +130,7 @@ const ALLOWED: [(&str, &[&str]); 15] = [
             "stegongp-show",
             "stegongp-attack",
             "stegongp-mesh",
+            "stegongp-score",
         ],
     ),
 ];

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 use stegongp::ngp::data::load_png_rgb;
-use stegongp::ngp::lpips::{EMBEDDED_WEIGHTS, Lpips};
+use stegongp::score::lpips::{EMBEDDED_WEIGHTS, Lpips};
 
 fn fixtures() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/lpips")
@@ -131,11 +131,11 @@ fn eval_reports_lpips_unless_skipped() {
     use stegongp::dataset::LoadOptions;
     use stegongp::ngp::data::Split;
     use stegongp::ngp::encoding::reference_indices;
-    use stegongp::ngp::eval::{evaluate, evaluate_with};
     use stegongp::ngp::model::Model;
     use stegongp::ngp::network::{ModelConfig, NerfLayout};
     use stegongp::ngp::render::image::RenderOptions;
     use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
+    use stegongp::score::eval::{evaluate, evaluate_with};
     use stegongp::synth::{SceneKind, SynthOptions, generate};
 
     let dir = tempfile::tempdir().unwrap();

@@ -3,10 +3,10 @@ use anyhow::{Result, bail};
 use std::path::PathBuf;
 use stegongp::backend::DeviceReport;
 use stegongp::ngp::data::save_png_rgb;
-use stegongp::ngp::eval::{EvalResult, Protocol, evaluate_under};
-use stegongp::ngp::lpips::Lpips;
 use stegongp::ngp::render::image::Background;
 use stegongp::ngp::render::image::SCORING_MIN_TRANSMITTANCE;
+use stegongp::score::eval::{EvalResult, Protocol, evaluate_under};
+use stegongp::score::lpips::Lpips;
 use stegongp::stego::options::choice;
 
 #[derive(clap::Args, Debug)]
@@ -141,7 +141,7 @@ pub fn run(a: Args) -> Result<()> {
         if !a.no_lpips && r.lpips.is_none() {
             println!(
                 "LPIPS: no view is large enough (AlexNet needs at least {0}×{0} pixels)",
-                stegongp::ngp::lpips::MIN_SIZE
+                stegongp::score::lpips::MIN_SIZE
             );
         }
     }

@@ -8,9 +8,9 @@ use std::sync::Arc;
 use stegongp::backend::{Device, DeviceReport};
 use stegongp::dataset::{Capture, LoadOptions};
 use stegongp::ngp::data::{Dataset, Split};
-use stegongp::ngp::eval::Protocol;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::Background;
+use stegongp::score::eval::Protocol;
 use stegongp::stego::options::choice;
 use stegongp::training::checkpoints::{Checkpoint, CheckpointPlan, PhaseTotals};
 use stegongp::training::recipe::{

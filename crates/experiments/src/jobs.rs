@@ -11,10 +11,10 @@
 
 use ngp::data::Dataset;
 use ngp::error::{Error, Result};
-use ngp::eval::EvalResult;
 use ngp::model::Model;
 use ngp::network::{ModelConfig, NerfLayout};
 use ngp::occupancy::OccupancyGrid;
+use score::eval::EvalResult;
 use serde_json::{Value, json};
 use std::path::PathBuf;
 use std::sync::Mutex;

@@ -21,12 +21,12 @@ use super::setup::{
 };
 use super::store::{read_stored, reuse_or_train};
 use ngp::error::{Error, Result};
-use ngp::eval::{ground_truth, spread_views};
-use ngp::lpips::Lpips;
-use ngp::metrics::{psnr, ssim};
 use ngp::model::Model;
 use ngp::network::ModelConfig;
 use ngp::render::image::RenderOptions;
+use score::eval::{ground_truth, spread_views};
+use score::lpips::Lpips;
+use score::metrics::{psnr, ssim};
 use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 use stego::{Key, open_scene_on};

@@ -10,12 +10,12 @@ use dataset::LoadOptions;
 use ngp::data::{Dataset, Split};
 use ngp::encoding::GridConfig;
 use ngp::error::{Error, Result};
-use ngp::eval::{EvalResult, evaluate_on, spread_views};
-use ngp::lpips::Lpips;
 use ngp::model::Model;
 use ngp::network::ModelConfig;
 use ngp::render::image::RenderOptions;
 use ngp::rng::Pcg32;
+use score::eval::{EvalResult, evaluate_on, spread_views};
+use score::lpips::Lpips;
 use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -467,7 +467,7 @@ impl Ctx<'_> {
 
     pub(crate) fn gt(&self, scene: &Scene) -> Vec<f32> {
         let which = spread_views(scene.test.frames.len(), self.cfg.eval_views);
-        ngp::eval::ground_truth(&scene.test, which[0], [1.0; 3])
+        score::eval::ground_truth(&scene.test, which[0], [1.0; 3])
     }
 
     pub(crate) fn size(&self) -> (u32, u32) {

@@ -46,7 +46,6 @@ mod tests {
         round_trips::<Split>();
         round_trips::<Background>();
         round_trips::<Schedule>();
-        round_trips::<crate::eval::Protocol>();
         let e = Schedule::from_name("fast").unwrap_err();
         assert!(
             e.contains("`fast`") && e.contains("mixed, random-scene"),

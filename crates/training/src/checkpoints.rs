@@ -7,11 +7,11 @@ use backend::Device;
 use ngp::data::Dataset;
 use ngp::encoding::{GridLayout, reference_indices};
 use ngp::error::Result;
-use ngp::eval::{Protocol, evaluate_under, spread_views};
-use ngp::lpips::Lpips;
 use ngp::network::{ModelConfig, NerfLayout};
 use ngp::occupancy::OccupancyGrid;
 use ngp::render::image::{Background, RenderOptions};
+use score::eval::{Protocol, evaluate_under, spread_views};
+use score::lpips::Lpips;
 use serde::Serialize;
 
 /// What to score, and when.

@@ -21,8 +21,8 @@
 mod conv;
 mod weights;
 
-use crate::error::{Error, Result};
 use conv::{Conv, Map, max_pool_3x2, normalize_channels, out_len};
+use ngp::error::{Error, Result};
 use rayon::prelude::*;
 use std::path::Path;
 use std::sync::OnceLock;

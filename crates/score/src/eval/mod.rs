@@ -7,13 +7,13 @@ pub mod protocol;
 
 pub use protocol::Protocol;
 
-use crate::camera::Camera;
-use crate::data::Dataset;
-use crate::error::Result;
 use crate::lpips::{Lpips, LpipsFeatures};
 use crate::metrics::psnr;
-use crate::render::RenderBackend;
-use crate::render::image::{RenderOptions, RenderedImage, SceneView, render_image};
+use ngp::camera::Camera;
+use ngp::data::Dataset;
+use ngp::error::Result;
+use ngp::render::RenderBackend;
+use ngp::render::image::{RenderOptions, RenderedImage, SceneView, render_image};
 use serde::Serialize;
 use std::convert::Infallible;
 
@@ -256,8 +256,8 @@ pub fn spread_views(total: usize, n: usize) -> Vec<usize> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::{DatasetFormat, Frame, Image, Split};
-    use crate::render::image::RenderProfile;
+    use ngp::data::{DatasetFormat, Frame, Image, Split};
+    use ngp::render::image::RenderProfile;
 
     /// A split of one-pixel frames, each half covered (α = 0.5) by linear grey 1, i.e.
     /// premultiplied 0.5; frame `i`'s camera sits at x = `i` so a renderer knows the frame.
@@ -388,7 +388,7 @@ mod tests {
     #[test]
     fn our_ground_truth_is_the_training_target() {
         // Eval's truth under our protocol must stay the target training fits (target_on).
-        let mut rng = crate::rng::Pcg32::new(3, 5);
+        let mut rng = ngp::rng::Pcg32::new(3, 5);
         let rgba: Vec<u8> = (0..4 * 7 * 5)
             .map(|_| (rng.next_f32() * 255.0) as u8)
             .collect();

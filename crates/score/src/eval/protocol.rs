@@ -28,11 +28,11 @@
 //! `render_buffer.cu` 253–256, before `tonemap_kernel` adds it). Its commit message
 //! (2b6a55f) names it as the setting that reproduces the paper's lego PSNR.
 
-use crate::choice::Choice;
-use crate::data::Image;
-use crate::data::color::{linear_to_srgb, linear_to_srgb_exact, srgb_to_linear};
 use crate::metrics::{ssim, ssim_instant_ngp};
-use crate::render::image::RenderedImage;
+use ngp::choice::Choice;
+use ngp::data::Image;
+use ngp::data::color::{linear_to_srgb, linear_to_srgb_exact, srgb_to_linear};
+use ngp::render::image::RenderedImage;
 
 /// The rules a view is scored under (`eval --protocol`).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -226,6 +226,7 @@ mod tests {
     fn names_parse_and_instant_ngp_scores_on_black_whatever_is_asked() {
         for &p in Protocol::ALL {
             assert_eq!(Protocol::from_name(p.name()), Ok(p));
+            assert!(!p.help().is_empty(), "{p:?} has no help");
         }
         assert_eq!(Protocol::default(), Protocol::StegoNgp);
         assert_eq!(Protocol::StegoNgp.background(WHITE), WHITE);

@@ -247,7 +247,7 @@ pub fn ssim_instant_ngp(pred: &[f32], gt: &[f32], width: usize, height: usize) -
 #[allow(clippy::needless_range_loop)]
 mod tests {
     use super::*;
-    use crate::rng::Pcg32;
+    use ngp::rng::Pcg32;
 
     fn random_image(w: usize, h: usize, seed: u64) -> Vec<f32> {
         let mut r = Pcg32::new(seed, 1);
