@@ -9,9 +9,10 @@ use stegongp::dataset::LoadOptions;
 use stegongp::ngp::data::Split;
 use stegongp::ngp::encoding::reference_indices;
 use stegongp::ngp::model::Model;
-use stegongp::ngp::render::image::{RenderOptions, rebuild_occupancy};
+use stegongp::ngp::render::image::RenderOptions;
 use stegongp::score::eval::{evaluate, spread_views};
 use stegongp::stego::load_key;
+use stegongp::stego::occupancy::rebuild_occupancy;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();

@@ -13,11 +13,12 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::network::nerf::NerfNetwork;
 use stegongp::ngp::network::{ModelConfig, NerfLayout};
 use stegongp::ngp::occupancy::OccupancyGrid;
-use stegongp::ngp::render::image::{RenderOptions, SceneView, rebuild_occupancy, render_image};
+use stegongp::ngp::render::image::{RenderOptions, SceneView, render_image};
 use stegongp::ngp::render::march::Marcher;
 use stegongp::ngp::train::{SceneSpec, TrainConfig, Trainer};
 use stegongp::rng::Pcg32;
 use stegongp::score::eval::evaluate;
+use stegongp::stego::occupancy::rebuild_occupancy;
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 
 fn model_config(aabb_scale: u32) -> ModelConfig {

@@ -13,11 +13,10 @@ use stegongp::ngp::encoding::{LevelIndices, reference_indices};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::occupancy::{GRID_SIZE, N_CELLS, OccupancyGrid, morton3d_invert};
-use stegongp::ngp::render::image::{
-    RenderOptions, RenderedImage, SceneView, rebuild_occupancy, refine_occupancy, render_image,
-};
+use stegongp::ngp::render::image::{RenderOptions, RenderedImage, SceneView, render_image};
 use stegongp::score::metrics::psnr;
 use stegongp::stego::SchemeKind;
+use stegongp::stego::occupancy::{rebuild_occupancy, refine_occupancy};
 use stegongp::synth::SceneKind;
 use stegongp::training::recipe::StepOptions;
 use testkit::keys::seeded_key;

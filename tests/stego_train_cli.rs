@@ -311,11 +311,11 @@ fn rebuild_grid_scores_a_plain_scene_as_a_hidden_one_is_scored() {
     use stegongp::ngp::data::Split;
     use stegongp::ngp::encoding::reference_indices;
     use stegongp::ngp::model::Model;
-    use stegongp::ngp::render::image::{
-        KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, RenderOptions, rebuild_occupancy,
-        refine_occupancy,
-    };
+    use stegongp::ngp::render::image::RenderOptions;
     use stegongp::score::eval::evaluate_with;
+    use stegongp::stego::occupancy::{
+        KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, rebuild_occupancy, refine_occupancy,
+    };
     let d = tempfile::tempdir().unwrap();
     let (cover, text, key, model) = cover_text_key(d.path(), "24");
     ok(&stegongp(&[

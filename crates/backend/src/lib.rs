@@ -14,7 +14,7 @@ use ngp::model::Model;
 use ngp::network::ModelConfig;
 use ngp::occupancy::{OccupancyGrid, RefineReport};
 pub use ngp::render::RenderBackend;
-use ngp::render::image::{rebuild_occupancy_in_box, refine_occupancy};
+use ngp::render::march::log_density_at;
 pub use ngp::train::TrainBackend;
 use ngp::train::{SceneSpec, TrainConfig, Trainer};
 use serde::Serialize;
@@ -239,15 +239,11 @@ impl Device {
         seed: u64,
     ) -> Result<RefineReport> {
         match self {
-            Device::Cpu { .. } => Ok(refine_occupancy(
-                &model.net,
-                model.params(),
-                indices,
-                grid,
-                model.config.aabb_scale,
+            Device::Cpu { .. } => Ok(grid.refine_near_occupied(
                 rounds,
                 first_round,
                 seed,
+                log_density_at(&model.net, model.params(), indices, model.config.aabb_scale),
             )),
             #[cfg(feature = "gpu")]
             Device::Gpu(ctx) => {
@@ -269,14 +265,12 @@ impl Device {
         seed: u64,
     ) -> Result<OccupancyGrid> {
         match self {
-            Device::Cpu { .. } => Ok(rebuild_occupancy_in_box(
-                &model.net,
-                model.params(),
-                indices,
+            Device::Cpu { .. } => Ok(OccupancyGrid::rebuild_in_box(
                 model.config.aabb_scale,
                 scene_box,
                 samples_per_cell,
                 seed,
+                log_density_at(&model.net, model.params(), indices, model.config.aabb_scale),
             )),
             #[cfg(feature = "gpu")]
             Device::Gpu(ctx) => {

@@ -716,13 +716,13 @@ fn rebuild_on_device(
     Ok(occ)
 }
 
-/// How a key holder recovers a hidden scene's grid ([`rebuild_occupancy`] on the CPU), on
-/// the device: [`OccupancyGrid::rebuild`] of `model`'s field under `indices` with
-/// `samples_per_cell` points per cell and `seed`. Uploads the weights; a
-/// [`GpuRenderer`] that holds them already rebuilds with
+/// How a key holder recovers a hidden scene's grid (on the CPU, [`OccupancyGrid::rebuild`]
+/// of [`log_density_at`]), on the device: [`OccupancyGrid::rebuild`] of `model`'s field
+/// under `indices` with `samples_per_cell` points per cell and `seed`. Uploads the weights;
+/// a [`GpuRenderer`] that holds them already rebuilds with
 /// [`GpuRenderer::rebuild_occupancy`].
 ///
-/// [`rebuild_occupancy`]: ngp::render::image::rebuild_occupancy
+/// [`log_density_at`]: ngp::render::march::log_density_at
 pub fn rebuild_occupancy_gpu(
     ctx: &GpuContext,
     model: &Model,

@@ -37,6 +37,7 @@ pub mod diagnostics;
 pub mod index;
 pub mod keyfile;
 pub mod keys;
+pub mod occupancy;
 pub mod options;
 pub mod permute;
 pub mod prf;

@@ -6,13 +6,14 @@
 //! the experiments and the tests.
 
 use super::keys::Key;
+use super::occupancy::{KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL};
 use super::stealth::{hidden_indices, robust_indices};
 use backend::{Device, RenderBackend};
 use ngp::encoding::{LevelIndices, reference_indices};
 use ngp::error::Result;
 use ngp::model::Model;
 use ngp::occupancy::OccupancyGrid;
-use ngp::render::image::{KEY_HOLDER_REFINE_SAMPLES, KEY_HOLDER_SAMPLES_PER_CELL, SceneView};
+use ngp::render::image::SceneView;
 
 /// What renders: index functions and, for a key, the rebuilt grid.
 pub struct OpenedScene {

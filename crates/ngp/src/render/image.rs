@@ -8,7 +8,7 @@ use crate::camera::Camera;
 use crate::encoding::LevelIndices;
 use crate::encoding::grid::GridTable;
 use crate::network::nerf::{CHUNK, NerfNetwork, Workspace};
-use crate::occupancy::{OccupancyGrid, RefineReport};
+use crate::occupancy::OccupancyGrid;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -423,95 +423,4 @@ impl WaveBuffers {
             keep
         });
     }
-}
-
-/// Density samples per cell when a key holder rebuilds a hidden scene's grid. Measured on
-/// a plain model of a 200 px text scene (12 views, benchmarks/stego.md, "The key holder's occupancy grid"): against the grid stored
-/// by training (33.07 dB), one random point per cell gives 30.25 dB (thin strokes fall
-/// between samples and get culled), 4 stratified points 32.92 dB, 8 points 32.97 dB.
-pub const KEY_HOLDER_SAMPLES_PER_CELL: usize = 4;
-
-/// Points more per cell, after the rebuild's [`KEY_HOLDER_SAMPLES_PER_CELL`], in the cells
-/// next to occupied ones ([`OccupancyGrid::refine_near_occupied`]): 32 in all there. A 800 px
-/// text model rendered through its stored grid scores 36.01 dB; through a grid rebuilt with
-/// 4 points a cell 32.53 dB (strokes between the points culled), with 32 in every cell 35.72
-/// dB in 21 s, with 4 and these near the occupied cells 35.80 dB in 3.9 s, 3.5 % of the
-/// cells sampled again (benchmarks/stego.md, "The key holder's grid at 800 px").
-pub const KEY_HOLDER_REFINE_SAMPLES: usize = 28;
-
-/// [`OccupancyGrid::refine_near_occupied`] of a rebuilt `grid` with the CPU network's
-/// densities under `indices`: the rounds after the first `first_round`.
-#[allow(clippy::too_many_arguments)]
-pub fn refine_occupancy(
-    net: &NerfNetwork,
-    params: &[f32],
-    indices: &LevelIndices,
-    grid: &mut OccupancyGrid,
-    aabb_scale: u32,
-    rounds: usize,
-    first_round: usize,
-    seed: u64,
-) -> RefineReport {
-    grid.refine_near_occupied(
-        rounds,
-        first_round,
-        seed,
-        log_density_at(net, params, indices, aabb_scale),
-    )
-}
-
-/// The CPU network's log-density under `indices` at ngp-space points, as a rebuild and its
-/// refinement sample it.
-fn log_density_at<'a>(
-    net: &'a NerfNetwork,
-    params: &'a [f32],
-    indices: &'a LevelIndices,
-    aabb_scale: u32,
-) -> impl FnMut(&[[f32; 3]]) -> Vec<f32> + 'a {
-    let marcher = Marcher::new(aabb_scale);
-    move |pos| {
-        let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
-        net.density_batch(params, indices, &warped)
-    }
-}
-
-/// [`OccupancyGrid::rebuild`] from the CPU network under `indices` (how a key holder
-/// recovers a hidden scene's grid, which is never stored).
-pub fn rebuild_occupancy(
-    net: &NerfNetwork,
-    params: &[f32],
-    indices: &LevelIndices,
-    aabb_scale: u32,
-    samples_per_cell: usize,
-    seed: u64,
-) -> OccupancyGrid {
-    rebuild_occupancy_in_box(
-        net,
-        params,
-        indices,
-        aabb_scale,
-        None,
-        samples_per_cell,
-        seed,
-    )
-}
-
-/// [`rebuild_occupancy`] of a scene confined to the box of `scene_box` (its key's box,
-/// [`OccupancyGrid::rebuild_in_box`]).
-pub fn rebuild_occupancy_in_box(
-    net: &NerfNetwork,
-    params: &[f32],
-    indices: &LevelIndices,
-    aabb_scale: u32,
-    scene_box: Option<u32>,
-    samples_per_cell: usize,
-    seed: u64,
-) -> OccupancyGrid {
-    OccupancyGrid::rebuild_in_box(
-        aabb_scale,
-        scene_box,
-        samples_per_cell,
-        seed,
-        log_density_at(net, params, indices, aabb_scale),
-    )
 }

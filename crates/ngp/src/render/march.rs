@@ -2,6 +2,8 @@
 //! (exponential steps with cone angle 1/256 for larger aabb scales), samples only in occupied
 //! occupancy-grid cells, empty cells skipped to the next voxel boundary (spec §3.2).
 
+use crate::encoding::LevelIndices;
+use crate::network::nerf::NerfNetwork;
 use crate::occupancy::{GRID_SIZE, MIN_CONE_STEPSIZE, OccupancyGrid, mip_from_dt, pow2};
 
 /// Most samples along one training ray (`NERF_STEPS`).
@@ -355,6 +357,23 @@ fn distance_to_next_voxel(p: [f32; 3], d: [f32; 3], idir: [f32; 3], res: f32) ->
         }
     }
     (tmin / res).max(0.0)
+}
+
+/// The CPU network's log-density (the raw density output) under `indices` at ngp-space
+/// points, warped as the marcher warps them: the density an occupancy grid's rebuild
+/// ([`OccupancyGrid::rebuild_in_box`]) and refinement
+/// ([`OccupancyGrid::refine_near_occupied`]) sample.
+pub fn log_density_at<'a>(
+    net: &'a NerfNetwork,
+    params: &'a [f32],
+    indices: &'a LevelIndices,
+    aabb_scale: u32,
+) -> impl FnMut(&[[f32; 3]]) -> Vec<f32> + 'a {
+    let marcher = Marcher::new(aabb_scale);
+    move |pos| {
+        let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
+        net.density_batch(params, indices, &warped)
+    }
 }
 
 #[cfg(test)]
