@@ -3,8 +3,8 @@
 //!
 //! cargo run --release --example video_psnr -- VIDEO.mp4 FRAMES_DIR
 
-use stegongp::show::frame::Rgb8;
-use stegongp::show::video::decode_mp4;
+use stegongp::viewer::frame::Rgb8;
+use stegongp::viewer::video::decode_mp4;
 
 fn main() {
     let args: Vec<String> = std::env::args().collect();

@@ -4,8 +4,8 @@
 //! "Layout"): [`ngp`] the engine (knows nothing of keys or devices), [`gpu`] its wgpu
 //! backend, [`backend`] the device boundary (`--device`), [`synth`] generated scenes,
 //! [`stego`] keys, the training recipe, stealth and [`steganalysis`], and
-//! [`experiments`] the paper's experiments and their plans of jobs, [`show`] camera paths,
-//! video and the viewer, [`mesh`] meshes out of a model's density, [`score`] metrics, LPIPS
+//! [`experiments`] the paper's experiments and their plans of jobs, [`viewer`] camera paths,
+//! video and the web viewer, [`mesh`] meshes out of a model's density, [`score`] metrics, LPIPS
 //! and evaluation protocols.
 
 pub use attack;
@@ -17,11 +17,11 @@ pub use mesh;
 pub use ngp;
 pub use ngp::{Error, Result, error, rng, util};
 pub use score;
-pub use show;
 pub use stego;
 pub use stego::steganalysis;
 pub use synth;
 pub use training;
+pub use viewer;
 
 #[cfg(feature = "gpu")]
 pub use gpu;

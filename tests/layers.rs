@@ -1,5 +1,5 @@
 //! The workspace's crates are its layers, and their dependencies run one way: the app on the
-//! experiments, the show layer (paths, video, viewer), the meshes and the capture pipeline,
+//! experiments, the viewer layer (camera paths, video, web viewer), the meshes and the capture pipeline,
 //! the experiments on the attacks, those on the stego layer, the stego layer on the device
 //! boundary and the capture readers (dataset), those on the engine (and its wgpu backend),
 //! the experiments and the app on the scoring too (which reads the engine alone), and the
@@ -77,7 +77,7 @@ const ALLOWED: [(&str, &[&str]); 16] = [
         ],
     ),
     (
-        "stegongp-show",
+        "stegongp-viewer",
         &[
             "stegongp-ngp",
             "stegongp-dataset",
@@ -98,7 +98,7 @@ const ALLOWED: [(&str, &[&str]); 16] = [
             "stegongp-training",
             "stegongp-synth",
             "stegongp-experiments",
-            "stegongp-show",
+            "stegongp-viewer",
             "stegongp-attack",
             "stegongp-score",
         ],
@@ -127,7 +127,7 @@ const ALLOWED: [(&str, &[&str]); 16] = [
             "stegongp-training",
             "stegongp-synth",
             "stegongp-experiments",
-            "stegongp-show",
+            "stegongp-viewer",
             "stegongp-attack",
             "stegongp-mesh",
             "stegongp-score",

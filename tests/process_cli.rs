@@ -11,8 +11,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use stegongp::dataset::colmap::read_model;
-use stegongp::show::frame::Rgb8;
-use stegongp::show::video::Mp4Video;
+use stegongp::viewer::frame::Rgb8;
+use stegongp::viewer::video::Mp4Video;
 use testkit::capture::{Arc, Pose, PoseErrors, pose_errors, room_arc, write_png};
 use testkit::cli::{fails_naming, ok, stegongp};
 

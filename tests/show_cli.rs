@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::OnceLock;
 use std::time::Duration;
-use stegongp::show::frame::Rgb8;
-use stegongp::show::video::decode_mp4;
+use stegongp::viewer::frame::Rgb8;
+use stegongp::viewer::video::decode_mp4;
 use testkit::browser::{Browser, decode_base64, find_chromium};
 use testkit::cli::{bin, fails_naming, ok, stdout_ok, stegongp};
 

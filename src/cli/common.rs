@@ -182,7 +182,7 @@ pub fn check_parent_dir(path: &Path) -> Result<()> {
 
 /// `--width` and `--height`: both or neither, each 1..=`MAX_SIDE` pixels.
 pub fn frame_size(width: Option<u32>, height: Option<u32>) -> Result<Option<(u32, u32)>> {
-    use stegongp::show::path::MAX_SIDE;
+    use stegongp::viewer::path::MAX_SIDE;
     let side = |v: u32, name: &str| {
         if (1..=MAX_SIDE).contains(&v) {
             Ok(v)

@@ -13,16 +13,16 @@ use stegongp::ngp::network::ModelConfig;
 use stegongp::ngp::render::image::{RenderOptions, VIEWING_MIN_TRANSMITTANCE};
 use stegongp::score::eval::{evaluate_on, ground_truth, spread_views};
 use stegongp::score::lpips::Lpips;
-use stegongp::show::frame::Rgb8;
-use stegongp::show::frame::{GAP, render_frame};
-use stegongp::show::path::{PathCamera, SceneRig};
-use stegongp::show::video::Mp4Video;
 use stegongp::stego::{Key, generate_prf, load_key, open_scene_on, save_key};
 use stegongp::synth::{SceneKind, SynthOptions, generate};
 use stegongp::training::recipe::{
     Budget, Checked, HiddenOptions, HiddenScene, Recipe, StepOptions, StoredLoss,
 };
 use stegongp::training::run::{Event, Run, RunOptions};
+use stegongp::viewer::frame::Rgb8;
+use stegongp::viewer::frame::{GAP, render_frame};
+use stegongp::viewer::path::{PathCamera, SceneRig};
+use stegongp::viewer::video::Mp4Video;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

@@ -11,14 +11,14 @@ use stegongp::ngp::camera::Camera;
 use stegongp::ngp::data::{DatasetFormat, Split};
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions, VIEWING_MIN_TRANSMITTANCE};
-use stegongp::show::frame::{GAP, Rgb8, render_frame};
-use stegongp::show::path::{
+use stegongp::stego::options::choice;
+use stegongp::stego::{Key, open_scene_on};
+use stegongp::viewer::frame::{GAP, Rgb8, render_frame};
+use stegongp::viewer::path::{
     CameraPath, DEFAULT_FPS, MAX_FRAMES, NerfFrame, PathCamera, SceneRig, model_cameras,
     model_frame_size, read_path, write_nerfstudio,
 };
-use stegongp::show::video::{Mp4Video, VideoSummary};
-use stegongp::stego::options::choice;
-use stegongp::stego::{Key, open_scene_on};
+use stegongp::viewer::video::{Mp4Video, VideoSummary};
 
 /// Where a scene's cameras come from, shared by `video` and `view`.
 #[derive(clap::Args, Debug, Clone)]

@@ -9,8 +9,8 @@ use std::net::{IpAddr, Ipv4Addr, SocketAddr};
 use std::path::PathBuf;
 use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, VIEWING_MIN_TRANSMITTANCE};
-use stegongp::show::server::{Viewer, ViewerOptions, ViewerRig};
 use stegongp::stego::options::choice;
+use stegongp::viewer::server::{Viewer, ViewerOptions, ViewerRig};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

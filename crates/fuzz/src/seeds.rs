@@ -6,8 +6,8 @@
 use ngp::network::ModelConfig;
 use ngp::snapshot::{self, DatasetImage, Snapshot, SnapshotDataset};
 use serde_json::json;
-use show::path::{CameraPath, NerfFrame, SceneRig};
 use stego::{DenseMode, Key, KeyScheme};
+use viewer::path::{CameraPath, NerfFrame, SceneRig};
 
 /// One input: files by relative path (a dataset is several).
 pub type Case = Vec<(String, Vec<u8>)>;
@@ -371,8 +371,8 @@ pub fn camera_paths() -> Vec<Case> {
         fps: 24.0,
         size: Some((64, 48)),
     };
-    let ns = show::path::nerfstudio_json(&path, 64, 48, &NerfFrame::default());
-    let ingp = show::path::instant_ngp_json(&path);
+    let ns = viewer::path::nerfstudio_json(&path, 64, 48, &NerfFrame::default());
+    let ingp = viewer::path::instant_ngp_json(&path);
     vec![
         vec![file(
             "camera_path.json",

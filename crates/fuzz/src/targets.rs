@@ -78,9 +78,9 @@ fn pairs(dir: &Path) -> Result<(), String> {
 fn camera_path(dir: &Path) -> Result<(), String> {
     let path =
         first_existing(dir, &["camera_path.json", "base_cam.json"]).ok_or("no camera path")?;
-    let frame = show::path::NerfFrame::default();
+    let frame = viewer::path::NerfFrame::default();
     let frames = path.ends_with("base_cam.json").then_some(12);
-    let p = show::path::read_path(&path, frames, &frame).map_err(|e| e.to_string())?;
+    let p = viewer::path::read_path(&path, frames, &frame).map_err(|e| e.to_string())?;
     // What `video` does with it: a camera per frame at the path's size.
     let (w, h) = p.size.unwrap_or((64, 48));
     for c in p.cameras.iter().take(64) {

@@ -27,7 +27,7 @@ fn start() -> Result<Live, String> {
     let case = &seeds::snapshots()[0];
     std::fs::write(&model_path, &case[0].1).map_err(|e| e.to_string())?;
     let model = ngp::model::Model::load(&model_path).map_err(|e| e.to_string())?;
-    let viewer = show::server::Viewer::bind("127.0.0.1:0".parse().expect("an address"))
+    let viewer = viewer::server::Viewer::bind("127.0.0.1:0".parse().expect("an address"))
         .map_err(|e| e.to_string())?;
     let url = viewer.url();
     let token = url
@@ -40,14 +40,14 @@ fn start() -> Result<Live, String> {
     std::thread::spawn(move || {
         let model: &'static ngp::model::Model = Box::leak(Box::new(model));
         let device: &'static backend::Device = Box::leak(Box::default());
-        let cameras = show::path::model_cameras(model);
-        let rig = show::server::ViewerRig {
-            rig: show::path::SceneRig::of(&cameras, [0.5; 3])
-                .unwrap_or_else(show::path::SceneRig::default_object),
+        let cameras = viewer::path::model_cameras(model);
+        let rig = viewer::server::ViewerRig {
+            rig: viewer::path::SceneRig::of(&cameras, [0.5; 3])
+                .unwrap_or_else(viewer::path::SceneRig::default_object),
             cameras,
-            frame: show::path::NerfFrame::of_model(model),
+            frame: viewer::path::NerfFrame::of_model(model),
         };
-        let opts = show::server::ViewerOptions {
+        let opts = viewer::server::ViewerOptions {
             width: SIZE.0,
             height: SIZE.1,
             interactive_scale: 0.5,
