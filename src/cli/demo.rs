@@ -20,7 +20,7 @@ use stegongp::training::recipe::{
 };
 use stegongp::training::run::{Event, Run, RunOptions};
 use stegongp::viewer::frame::Rgb8;
-use stegongp::viewer::frame::{GAP, render_frame};
+use stegongp::viewer::frame::{render_frame, video_frame_size};
 use stegongp::viewer::path::{PathCamera, SceneRig};
 use stegongp::viewer::video::Mp4Video;
 
@@ -335,8 +335,8 @@ fn render_large(
             a.video_frames as u64,
             "{spinner} video [{elapsed_precise}] {bar:30} {pos}/{len} frames",
         );
-        let w = (3 * a.video_size + 2 * GAP).next_multiple_of(2);
-        let mut video = Mp4Video::create(&files.video, w, a.video_size, 12)?;
+        let (w, h) = video_frame_size(labels.len() as u32, a.video_size, a.video_size);
+        let mut video = Mp4Video::create(&files.video, w, h, 12)?;
         for camera in rig.orbit(a.video_frames) {
             video.push(&side_by_side(&camera, a.video_size)?)?;
             pb.inc(1);

@@ -13,7 +13,7 @@ use stegongp::ngp::model::Model;
 use stegongp::ngp::render::image::{Background, RenderOptions, VIEWING_MIN_TRANSMITTANCE};
 use stegongp::stego::options::choice;
 use stegongp::stego::{Key, open_scene_on};
-use stegongp::viewer::frame::{GAP, Rgb8, render_frame};
+use stegongp::viewer::frame::{Rgb8, render_frame, video_frame_size};
 use stegongp::viewer::path::{
     CameraPath, DEFAULT_FPS, MAX_FRAMES, NerfFrame, PathCamera, SceneRig, model_cameras,
     model_frame_size, read_path, write_nerfstudio,
@@ -306,8 +306,7 @@ fn render_path(
     mut render: impl FnMut(&Camera) -> Result<Rgb8>,
 ) -> Result<Rendered> {
     let n = cameras.len();
-    let panel_w = if a.side_by_side { 3 * w + 2 * GAP } else { w };
-    let (vw, vh) = (panel_w.next_multiple_of(2), h.next_multiple_of(2));
+    let (vw, vh) = video_frame_size(if a.side_by_side { 3 } else { 1 }, w, h);
     let mut video = match &a.out {
         Some(out) => Some(Mp4Video::create(out, vw, vh, fps)?),
         None => None,

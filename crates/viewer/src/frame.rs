@@ -288,6 +288,14 @@ fn glyph(c: char) -> [u8; 7] {
 /// Black pixels between side-by-side panels.
 pub const GAP: u32 = 4;
 
+/// The size of a video's frames of `panels` renders of `width`×`height` each: side by side,
+/// [`GAP`] apart, as [`render_frame`] lays them out, each side rounded up to even (4:2:0
+/// video needs even sides; [`Rgb8::even`] pads a single render to it).
+pub fn video_frame_size(panels: u32, width: u32, height: u32) -> (u32, u32) {
+    let w = panels * width + panels.saturating_sub(1) * GAP;
+    (w.next_multiple_of(2), height.next_multiple_of(2))
+}
+
 /// One frame at `camera`: the one renderer's image, or each renderer's side by side under
 /// its label (`labels`, one a renderer).
 pub fn render_frame(
@@ -311,6 +319,16 @@ pub fn render_frame(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn video_frame_size_is_the_side_by_side_frame_evened() {
+        for (w, h) in [(40, 30), (41, 31), (1, 1)] {
+            let p = Rgb8::new(w, h, [0, 0, 0]);
+            let s = Rgb8::side_by_side(&[(&p, "A"), (&p, "B"), (&p, "C")], GAP);
+            assert_eq!(video_frame_size(3, w, h), (s.width, s.height));
+            assert_eq!(video_frame_size(1, w, h), (p.even().width, p.even().height));
+        }
+    }
 
     #[test]
     fn side_by_side_keeps_each_panel_and_labels_it() {
