@@ -1539,71 +1539,65 @@ impl<'c> GpuTrainer<'c> {
 
     /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
     pub fn save_state_doc(&self) -> ngp::Result<state::Value> {
-        use state::{FORMAT, NgpOptimizer, VERSION, Value, bounds_value, f32s, map, sparse};
+        use state::Sparse;
+        use std::borrow::Cow::{Borrowed, Owned};
         let ctx = self.ctx;
-        let fingerprint = Value::Map(
-            self.fingerprint()
-                .into_iter()
-                .map(|(k, v)| (Value::from(k), Value::from(v)))
-                .collect(),
-        );
-        let params = self.params()?;
         let (m, v, steps) = self.optimizer.moments(ctx)?;
-        let ema = self.optimizer.raw_ema(ctx)?;
         let mut scenes = Vec::with_capacity(self.scenes.len());
         for s in &self.scenes {
-            let grid = s.occupancy.download(ctx)?;
-            let counters = (s.rays_per_batch, s.measured_samples, s.measured_marched);
-            // The GPU marches the reference's step (no coarse march).
-            scenes.push(state::scene_value(&grid, counters, 1));
+            scenes.push(state::Scene {
+                grid: Owned(s.occupancy.download(ctx)?),
+                rays_per_batch: s.rays_per_batch,
+                measured_samples: s.measured_samples,
+                measured_marched: s.measured_marched,
+                // The GPU marches the reference's step (no coarse march).
+                march_stride: 1,
+            });
         }
         // Only a policy leaves anything between steps in these (read back only then).
         let (mechanisms, gradient, policy) = match &self.policy {
-            None => (Value::Nil, Value::Nil, Value::Nil),
+            None => (None, None, None),
             Some(p) => {
                 // Per parameter, as the CPU's (the device holds the table's alone).
                 let held = match &self.hold {
                     Some(h) => {
                         let mut all = vec![0.0f32; self.field.layout().n_mlp_params()];
                         all.extend(h.pending(ctx)?);
-                        sparse(&all)
+                        Some(Sparse::of(&all))
                     }
-                    None => Value::Nil,
+                    None => None,
                 };
+                let bounds = self.bounds.as_ref().map(Borrowed);
                 (
-                    map(vec![
-                        ("held", held),
-                        ("bounds", bounds_value(self.bounds.as_ref())),
-                    ]),
-                    sparse(&self.gradient()?),
-                    p.save_state()?.map_or(Value::Nil, Value::Binary),
+                    Some(state::Mechanisms { held, bounds }),
+                    Some(Sparse::of(&self.gradient()?)),
+                    p.save_state()?.map(Owned),
                 )
             }
         };
-        // As the CPU lays it out (tiny-cuda-nn's), with the device's raw EMA for our resume.
-        let optimizer = NgpOptimizer {
-            config: &self.optimizer.config,
-            step: self.optimizer.step,
-            m: &m,
-            v: &v,
-            param_steps: &steps,
-            published: &self.inference_params()?,
-            ours: map(vec![("ema", f32s(&ema))]),
-        }
-        .value();
-        Ok(map(vec![
-            ("format", Value::from(FORMAT)),
-            ("version", Value::from(VERSION)),
-            ("fingerprint", fingerprint),
-            ("step", Value::from(self.step)),
-            ("weight_steps", Value::from(self.weight_steps)),
-            ("params", f32s(&params)),
-            ("optimizer", optimizer),
-            ("scenes", Value::Array(scenes)),
-            ("mechanisms", mechanisms),
-            ("gradient", gradient),
-            ("policy", policy),
-        ]))
+        let doc = state::TrainerState {
+            fingerprint: self.fingerprint(),
+            step: self.step,
+            weight_steps: self.weight_steps,
+            params: Owned(self.params()?),
+            // As the CPU's (tiny-cuda-nn's), with the device's raw EMA for our resume.
+            optimizer: state::OptimizerState {
+                config: self.optimizer.config,
+                step: self.optimizer.step,
+                m: Owned(m),
+                v: Owned(v),
+                param_steps: Owned(steps),
+                published: Owned(self.inference_params()?),
+                ema: Owned(self.optimizer.raw_ema(ctx)?),
+                ema_step: None,
+            },
+            occupancy_clock: None,
+            scenes,
+            mechanisms,
+            waiting: state::Waiting::Gradient(gradient),
+            policy,
+        };
+        Ok(doc.to_value())
     }
 
     /// Takes back a [`save_state`](Self::save_state) into this trainer, which must be fresh
@@ -1620,87 +1614,54 @@ impl<'c> GpuTrainer<'c> {
         doc: &state::Value,
         origin: &std::path::Path,
     ) -> ngp::Result<()> {
-        use state::{Fields, NgpOptimizer, check_header};
         if self.step != 0 {
             return Err(ngp::Error::Config(
                 "a training state goes into a trainer that has not stepped".into(),
             ));
         }
-        let f = Fields::top(origin, doc)?;
-        check_header(&f, &self.fingerprint())?;
-        let step = f.u32("step")?;
-        let weight_steps = f.u32("weight_steps")?;
-        let n = self.field.layout().n_params;
-        let mut params = vec![0.0f32; n];
-        f.f32s_into("params", &mut params)?;
-        let (mut m, mut v, mut steps, mut ema) = (
-            vec![0.0f32; n],
-            vec![0.0f32; n],
-            vec![0u32; n],
-            vec![0.0f32; n],
-        );
-        // Checked there: the device's bias-correction table holds a value a step.
-        let (opt_step, ours) =
-            NgpOptimizer::read_into(&f.map("optimizer")?, &mut m, &mut v, &mut steps)?;
-        ours.f32s_into("ema", &mut ema)?;
-        if opt_step != weight_steps || weight_steps > step {
-            return Err(f.err(
-                "weight_steps",
-                format!("{weight_steps} of {step} steps, but the optimizer took {opt_step} steps"),
-            ));
-        }
-        let scene_fields = f.maps("scenes", self.scenes.len())?;
-        let mut restored = Vec::with_capacity(self.scenes.len());
-        for (s, sf) in self.scenes.iter().zip(scene_fields) {
-            let cells = N_CELLS * s.occupancy.n_cascades as usize;
-            let (grid, (rays, samples, marched), stride) = state::scene_from(&sf, cells)?;
-            if stride != 1 {
-                return Err(sf.err(
-                    "march_stride",
-                    format!("{stride}: a GPU marches the reference's step (1)"),
-                ));
-            }
-            // The device's ray buffers hold MAX_RAYS rays.
-            if rays == 0 || rays > MAX_RAYS {
-                return Err(sf.err(
-                    "rays_per_batch",
-                    format!("{rays}: a batch has 1 to {MAX_RAYS} rays"),
-                ));
-            }
-            restored.push((grid, rays, samples, marched));
-        }
-        // A policy's mechanisms and waiting gradient (the fingerprint has checked that a
-        // policy is installed here iff one saved).
         let layout = self.field.layout();
-        let (mut held, mut gradient, mut bounds) = (None, None, None);
-        if self.policy.is_some() {
-            let mf = f.map("mechanisms")?;
-            let n_matrix = layout.n_mlp_params();
-            // The device holds the table's part alone.
-            held = state::held_from(&mf, "held", n, n_matrix)?
-                .map(|mut pending| pending.split_off(n_matrix));
-            let nf = layout.config.grid.n_features as usize;
-            bounds = state::bounds_from(&mf, "bounds", layout.grid.n_entries as usize, nf)?;
-            let mut g = vec![0.0f32; n];
-            f.sparse_into("gradient", &mut g)?;
-            gradient = Some(g);
-        }
-        let saved_policy = f.binary_opt("policy")?;
+        let (n, n_matrix) = (layout.n_params, layout.n_mlp_params());
+        let expect = state::Expect {
+            fingerprint: &self.fingerprint(),
+            // Checked there: the device's ray buffers hold MAX_RAYS rays.
+            device: state::Device::Gpu { max_rays: MAX_RAYS },
+            optimizer: self.optimizer.config,
+            n_params: n,
+            n_matrix,
+            n_entries: layout.grid.n_entries as usize,
+            n_features: layout.config.grid.n_features as usize,
+            scene_cells: (self.scenes.iter())
+                .map(|s| N_CELLS * s.occupancy.n_cascades as usize)
+                .collect(),
+            policy: self.policy.is_some(),
+        };
+        let saved = state::TrainerState::read(origin, doc, &expect)?;
         let ctx = self.ctx;
         ctx.scoped("restore parameters", || {
             ctx.queue
-                .write_buffer(&self.field.params, 0, bytemuck::cast_slice(&params))
+                .write_buffer(&self.field.params, 0, bytemuck::cast_slice(&saved.params))
         })?;
+        let o = &saved.optimizer;
         self.optimizer
-            .restore(ctx, opt_step, &m, &v, &steps, &ema)?;
-        for (s, (grid, rays, samples, marched)) in self.scenes.iter_mut().zip(restored) {
-            s.occupancy.restore(ctx, &grid)?;
+            .restore(ctx, o.step, &o.m, &o.v, &o.param_steps, &o.ema)?;
+        for (s, saved) in self.scenes.iter_mut().zip(&saved.scenes) {
+            s.occupancy.restore(ctx, &saved.grid)?;
             // The host copies the step reads: the mean switches the density pull-up.
-            s.grid_mean = grid.mean;
-            s.rays_per_batch = rays;
-            s.measured_samples = samples;
-            s.measured_marched = marched;
+            s.grid_mean = saved.grid.mean;
+            s.rays_per_batch = saved.rays_per_batch;
+            s.measured_samples = saved.measured_samples;
+            s.measured_marched = saved.measured_marched;
         }
+        // A policy's mechanisms and waiting gradient (the fingerprint has checked that a
+        // policy is installed here iff one saved; read only then).
+        let (held, bounds) = match saved.mechanisms {
+            // The device holds the table's part alone.
+            Some(m) => (
+                m.held.map(|h| h.dense(n).split_off(n_matrix)),
+                m.bounds.map(std::borrow::Cow::into_owned),
+            ),
+            None => (None, None),
+        };
         if held.is_some() || bounds.is_some() {
             let h = self.hold_back()?;
             if let Some(pending) = &held {
@@ -1711,19 +1672,20 @@ impl<'c> GpuTrainer<'c> {
             }
         }
         self.bounds = bounds;
-        if let Some(g) = &gradient {
+        if let state::Waiting::Gradient(Some(g)) = &saved.waiting {
+            let g = g.dense(n);
             ctx.scoped("restore gradient", || {
                 ctx.queue
-                    .write_buffer(&self.samples.grad, 0, bytemuck::cast_slice(g))
+                    .write_buffer(&self.samples.grad, 0, bytemuck::cast_slice(&g))
             })?;
         }
         if let Some(p) = &mut self.policy {
-            let fresh = p.restore_state(saved_policy, origin)?;
+            let fresh = p.restore_state(saved.policy.as_deref(), origin)?;
             self.upload_indices(fresh)?;
         }
         ctx.wait()?;
-        self.step = step;
-        self.weight_steps = weight_steps;
+        self.step = saved.step;
+        self.weight_steps = saved.weight_steps;
         Ok(())
     }
 

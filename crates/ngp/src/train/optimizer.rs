@@ -269,48 +269,42 @@ impl Optimizer {
         }
     }
 
-    /// Everything [`restore`](Self::restore) needs, for a training state, laid out as
-    /// tiny-cuda-nn serialises its optimizer into a snapshot saved with optimizer state
-    /// (`Ema::serialize` ∘ `ExponentialDecay::serialize` ∘ `Adam::serialize`, keys sorted as
-    /// nlohmann writes them): instant-ngp loads a checkpoint with it and goes on training.
-    /// Its EMA is the debiased weights in fp16, as the reference keeps them; `stegongp`
-    /// adds what an exact resume needs besides (our EMA accumulators in f32 and the steps
-    /// each group's was brought up to), which tiny-cuda-nn ignores. `params` are the
-    /// training weights.
-    pub(super) fn state(&self, params: &[f32]) -> rmpv::Value {
-        use super::state::{NgpOptimizer, f32s, map, u32s};
-        NgpOptimizer {
-            config: &self.config,
+    /// Everything [`restore`](Self::restore) needs, for a training state
+    /// ([`super::state::OptimizerState`], laid out as tiny-cuda-nn serialises its optimizer):
+    /// the moments and counts, the debiased EMA that instant-ngp reads, and what an exact
+    /// resume needs besides (our EMA accumulators in f32 and the steps each group's was
+    /// brought up to). `params` are the training weights.
+    pub(super) fn state(&self, params: &[f32]) -> super::state::OptimizerState<'_> {
+        use std::borrow::Cow::{Borrowed, Owned};
+        super::state::OptimizerState {
+            config: self.config,
             step: self.step,
-            m: &self.m,
-            v: &self.v,
-            param_steps: &self.steps,
-            published: &self.ema_params(params),
-            ours: map(vec![
-                ("ema", f32s(&self.ema)),
-                ("ema_step", u32s(&self.ema_step)),
-            ]),
+            m: Borrowed(&self.m),
+            v: Borrowed(&self.v),
+            param_steps: Borrowed(&self.steps),
+            published: Owned(self.ema_params(params)),
+            ema: Borrowed(&self.ema),
+            ema_step: Some(Borrowed(&self.ema_step)),
         }
-        .value()
     }
 
-    /// Takes back a [`state`](Self::state); lengths are checked against this optimizer.
-    pub(super) fn restore(&mut self, f: &super::state::Fields) -> crate::error::Result<()> {
-        let (step, ours) =
-            super::state::NgpOptimizer::read_into(f, &mut self.m, &mut self.v, &mut self.steps)?;
-        ours.f32s_into("ema", &mut self.ema)?;
-        ours.u32s_into("ema_step", &mut self.ema_step)?;
-        self.step = step;
-        if let Some(bad) = self.ema_step.iter().find(|&&s| s > step) {
-            return Err(ours.err(
-                "ema_step",
-                format!("a step count {bad} beyond the optimizer's {step}"),
-            ));
-        }
+    /// The groups whose EMA is brought up to date lazily ([`Self::state`]'s `ema_step`).
+    pub(super) fn ema_groups(&self) -> usize {
+        self.ema_step.len()
+    }
+
+    /// Takes back a [`state`](Self::state), read for this optimizer (its lengths checked).
+    pub(super) fn restore(&mut self, s: super::state::OptimizerState) {
+        self.m.copy_from_slice(&s.m);
+        self.v.copy_from_slice(&s.v);
+        self.steps.copy_from_slice(&s.param_steps);
+        self.ema.copy_from_slice(&s.ema);
+        self.ema_step
+            .copy_from_slice(s.ema_step.as_deref().expect("read for the CPU"));
+        self.step = s.step;
         self.correction.truncate(1);
         self.decay_pow.truncate(1);
         self.extend_tables();
-        Ok(())
     }
 
     /// Learning rate in force for the next step (ExponentialDecay).

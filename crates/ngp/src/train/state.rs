@@ -12,11 +12,16 @@
 //! the occupancy-update clock and every scene's grid and batch counters, arrays as
 //! little-endian binaries. Every length is checked against the trainer before anything is
 //! copied, so a damaged or forged file is an error naming the field.
+//!
+//! Both trainers write and read the document through one type, [`TrainerState`] (one
+//! writer, [`TrainerState::to_value`]; one reader, [`TrainerState::read`]); each only
+//! converts between its own storage and it. What differs by device is a field of it.
 
 use crate::error::{Error, Result};
 use crate::snapshot::msgpack;
-/// The document's values, for backends that write their own states (the GPU trainer's).
+/// The document's values (what a backend's [`super::TrainBackend::save_state`] returns).
 pub use rmpv::Value;
+use std::borrow::Cow;
 use std::path::Path;
 
 pub const FORMAT: &str = "stegongp-train-state";
@@ -65,91 +70,6 @@ pub fn put(doc: &mut Value, key: &str, value: Value) {
     }
 }
 
-/// One scene's part of a trainer's state: its occupancy grid and the batch counters
-/// (rays per batch, trained and marched samples of its last step).
-pub fn scene_value(
-    grid: &crate::occupancy::OccupancyGrid,
-    counters: (u32, u32, u32),
-    stride: u32,
-) -> Value {
-    map(vec![
-        ("density", f32s(&grid.density)),
-        ("bitfield", Value::Binary(grid.bitfield().to_vec())),
-        ("mean", Value::F32(grid.mean)),
-        ("grid_updates", Value::from(grid.ema_step)),
-        ("rays_per_batch", Value::from(counters.0)),
-        ("measured_samples", Value::from(counters.1)),
-        ("measured_marched", Value::from(counters.2)),
-        ("march_stride", Value::from(stride)),
-    ])
-}
-
-/// Takes back a [`scene_value`] for a grid of `cells` cells.
-pub fn scene_from(
-    f: &Fields,
-    cells: usize,
-) -> Result<(crate::occupancy::OccupancyGrid, (u32, u32, u32), u32)> {
-    let mut density = crate::pages::zeroed::<f32>(cells);
-    f.f32s_into("density", &mut density)?;
-    let mut bitfield = vec![0u8; cells / 8];
-    f.bytes_into("bitfield", &mut bitfield)?;
-    let grid = crate::occupancy::OccupancyGrid::from_parts(
-        density,
-        bitfield,
-        f.f32("mean")?,
-        f.u32("grid_updates")?,
-    )
-    .ok_or_else(|| f.err("density", "does not make an occupancy grid"))?;
-    let counters = (
-        f.u32("rays_per_batch")?,
-        f.u32("measured_samples")?,
-        f.u32("measured_marched")?,
-    );
-    // Absent from states saved before the coarse march: they marched the reference's step.
-    let stride = if f.has("march_stride") {
-        f.u32("march_stride")?
-    } else {
-        1
-    };
-    if !stride.is_power_of_two() || stride > 1 << crate::train::coarse::MAX_STRIDE_LOG2 {
-        return Err(f.err(
-            "march_stride",
-            format!(
-                "{stride}: not a power of two up to {}",
-                1 << crate::train::coarse::MAX_STRIDE_LOG2
-            ),
-        ));
-    }
-    Ok((grid, counters, stride))
-}
-
-/// Held-back gradients ([`sparse`], one per parameter; field `key` of `f`) for `n`
-/// parameters of which the first `n_matrix` are MLP weights, which are never held back.
-pub fn held_from(f: &Fields, key: &str, n: usize, n_matrix: usize) -> Result<Option<Vec<f32>>> {
-    if !f.has(key) {
-        return Ok(None);
-    }
-    let mut pending = vec![0.0f32; n];
-    f.sparse_into(key, &mut pending)?;
-    if pending[..n_matrix].iter().any(|&g| g != 0.0) {
-        return Err(f.err(key, "holds back an MLP gradient (never held)"));
-    }
-    Ok(Some(pending))
-}
-
-/// The values of `v` whose bits are not zero (−0.0 included), as `{index, value}`: what a
-/// mostly-empty gradient or bound array costs.
-pub fn sparse(v: &[f32]) -> Value {
-    let (mut index, mut value) = (Vec::new(), Vec::new());
-    for (i, x) in v.iter().enumerate() {
-        if x.to_bits() != 0 {
-            index.push(i as u32);
-            value.push(*x);
-        }
-    }
-    map(vec![("index", u32s(&index)), ("value", f32s(&value))])
-}
-
 pub fn map(entries: Vec<(&str, Value)>) -> Value {
     Value::Map(
         entries
@@ -165,59 +85,422 @@ pub fn encode(v: &Value) -> Vec<u8> {
     out
 }
 
-/// An optimizer's state laid out as tiny-cuda-nn serialises its NeRF optimizer into a
-/// snapshot saved with optimizer state (`Ema::serialize` ∘ `ExponentialDecay::serialize` ∘
-/// `Adam::serialize`, keys sorted as nlohmann writes them): instant-ngp loads a checkpoint
-/// with it and trains on. `published` are the debiased EMA weights (written fp16, as the
-/// reference keeps them); `ours` is what an exact resume needs besides (a backend's own EMA
-/// accumulators), under `stegongp`, which tiny-cuda-nn ignores.
-pub struct NgpOptimizer<'a> {
-    pub config: &'a super::optimizer::OptimizerConfig,
+/// A trainer's whole state between two steps, as the document holds it: what both
+/// trainers write ([`Self::to_value`]) and read back ([`Self::read`]), each converting
+/// between its own storage (host vectors; device buffers read back or uploaded) and this.
+/// Large arrays a trainer keeps on the host are borrowed to save them; read back, every
+/// field is owned, or borrowed from the document. Where the two kinds of trainer keep
+/// different things, the field says so: [`OptimizerState::ema_step`],
+/// [`Self::occupancy_clock`], [`Scene::march_stride`], [`Self::mechanisms`] and
+/// [`Waiting`] (and the fingerprint's [`DEVICE`] entry).
+pub struct TrainerState<'a> {
+    /// [`fingerprint`]: what must not change between the run that saved the state and the
+    /// one that goes on (read back: the trainer's own, which the saved one matched).
+    pub fingerprint: Vec<(String, String)>,
+    /// Steps taken, updating the weights or not.
     pub step: u32,
-    pub m: &'a [f32],
-    pub v: &'a [f32],
-    pub param_steps: &'a [u32],
-    pub published: &'a [f32],
-    pub ours: Value,
+    /// Steps that updated the weights: the optimizer's step count.
+    pub weight_steps: u32,
+    /// The training weights.
+    pub params: Cow<'a, [f32]>,
+    pub optimizer: OptimizerState<'a>,
+    /// The occupancy updates' clock ([`super::GridUpdates::clock`]): the CPU's; `None` on
+    /// the GPU, whose document has no such field (its update schedule is a function of
+    /// `weight_steps` alone).
+    pub occupancy_clock: Option<OccupancyClock<'a>>,
+    /// Every scene's occupancy grid and batch counters, in the trainer's order.
+    pub scenes: Vec<Scene<'a>>,
+    /// The policy mechanisms' state. The CPU always writes it (each part absent until a
+    /// policy first used it); the GPU only with a policy installed (`None`: nil).
+    pub mechanisms: Option<Mechanisms<'a>>,
+    /// The gradients a step that did not update the weights left waiting.
+    pub waiting: Waiting<'a>,
+    /// The training policy's own state (`None`: nil, no policy or one that keeps none).
+    pub policy: Option<Cow<'a, [u8]>>,
 }
 
-impl NgpOptimizer<'_> {
-    pub fn value(self) -> Value {
+/// Where the gradients a step left waiting are kept, by kind of trainer.
+pub enum Waiting<'a> {
+    /// The CPU's: each worker's gradient buffer and the groups it touched (`workers`).
+    Workers(Vec<Worker<'a>>),
+    /// The GPU's one gradient buffer (`gradient`), saved only with a policy installed
+    /// (`None`: nil; without a policy the buffer is zero after every step).
+    Gradient(Option<Sparse>),
+}
+
+/// One CPU worker's gradient buffer and the [`super::optimizer::GROUP`]s it touched.
+pub struct Worker<'a> {
+    pub grad: Sparse,
+    pub touched: Cow<'a, [u64]>,
+}
+
+/// The occupancy-update clock: per scene, the weight steps since its last update, and the
+/// updates made.
+pub struct OccupancyClock<'a> {
+    pub since: Cow<'a, [u64]>,
+    pub updates: u32,
+}
+
+/// One scene's part of a trainer's state: its occupancy grid and the batch counters
+/// (rays per batch, trained and marched samples of its last step).
+pub struct Scene<'a> {
+    pub grid: Cow<'a, crate::occupancy::OccupancyGrid>,
+    pub rays_per_batch: u32,
+    pub measured_samples: u32,
+    pub measured_marched: u32,
+    /// The coarse march's stride ([`super::coarse`]); always 1 on the GPU, which marches
+    /// the reference's step (and refuses any other).
+    pub march_stride: u32,
+}
+
+/// The policy mechanisms' state; each part `None` (nil) until a policy first used it.
+pub struct Mechanisms<'a> {
+    /// The held-back gradients, one per parameter (the MLP weights' never held, so zero).
+    pub held: Option<Sparse>,
+    /// The table's bounds.
+    pub bounds: Option<Cow<'a, super::hooks::TableBounds>>,
+}
+
+/// An optimizer's state, laid out in the document as tiny-cuda-nn serialises its NeRF
+/// optimizer into a snapshot saved with optimizer state (`Ema::serialize` ∘
+/// `ExponentialDecay::serialize` ∘ `Adam::serialize`, keys sorted as nlohmann writes them):
+/// instant-ngp loads a checkpoint with it and trains on. What an exact resume needs
+/// besides (a backend's own EMA accumulators) goes under `stegongp`, which tiny-cuda-nn
+/// ignores.
+pub struct OptimizerState<'a> {
+    /// Its learning rates (written; the fingerprint's options hold them for a resume).
+    pub config: super::optimizer::OptimizerConfig,
+    /// Updates taken.
+    pub step: u32,
+    /// Adam's first and second moments and each parameter's update count.
+    pub m: Cow<'a, [f32]>,
+    pub v: Cow<'a, [f32]>,
+    pub param_steps: Cow<'a, [u32]>,
+    /// The debiased EMA weights that instant-ngp reads (written fp16, as the reference
+    /// keeps them). Written, never read back: a backend goes on from its own `ema`, so a
+    /// state read back holds none here (empty).
+    pub published: Cow<'a, [f32]>,
+    /// The EMA accumulators as the backend keeps them (not debiased).
+    pub ema: Cow<'a, [f32]>,
+    /// The CPU's: per group of [`super::optimizer::GROUP`] parameters, the step its EMA
+    /// was last brought up to. `None` on the GPU, which brings every EMA up each step.
+    pub ema_step: Option<Cow<'a, [u32]>>,
+}
+
+/// The kind of trainer a state goes back into, with the sizes of what only that kind
+/// keeps ([`Waiting`], [`OptimizerState::ema_step`]).
+#[derive(Clone, Copy, Debug)]
+pub enum Device {
+    Cpu {
+        /// Gradient buffers, and the words of each one's touched-group bit set.
+        workers: usize,
+        touched_words: usize,
+        /// Groups of the optimizer's lazily updated EMA.
+        ema_groups: usize,
+    },
+    Gpu {
+        /// The most rays a batch holds (the device's ray buffers).
+        max_rays: u32,
+    },
+}
+
+/// What a trainer expects of a state it takes back: a state of another shape is refused,
+/// naming the field, before anything is copied.
+pub struct Expect<'e> {
+    pub fingerprint: &'e [(String, String)],
+    pub device: Device,
+    pub optimizer: super::optimizer::OptimizerConfig,
+    /// Parameters, of which the first `n_matrix` are MLP weights (never held back).
+    pub n_params: usize,
+    pub n_matrix: usize,
+    /// The hash table's entries and their features (the bounds' table).
+    pub n_entries: usize,
+    pub n_features: usize,
+    /// Each scene's occupancy cells.
+    pub scene_cells: Vec<usize>,
+    /// Whether a training policy is installed.
+    pub policy: bool,
+}
+
+impl TrainerState<'_> {
+    /// The document.
+    pub fn to_value(&self) -> Value {
+        let fingerprint = Value::Map(
+            self.fingerprint
+                .iter()
+                .map(|(k, v)| (Value::from(k.as_str()), Value::from(v.as_str())))
+                .collect(),
+        );
+        let mut doc = vec![
+            ("format", Value::from(FORMAT)),
+            ("version", Value::from(VERSION)),
+            ("fingerprint", fingerprint),
+            ("step", Value::from(self.step)),
+            ("weight_steps", Value::from(self.weight_steps)),
+            ("params", f32s(&self.params)),
+            ("optimizer", self.optimizer.to_value()),
+        ];
+        if let Some(c) = &self.occupancy_clock {
+            let clock = map(vec![
+                ("since", u64s(&c.since)),
+                ("updates", Value::from(c.updates)),
+            ]);
+            doc.push(("occupancy_clock", clock));
+        }
+        let scenes = self.scenes.iter().map(Scene::to_value).collect();
+        doc.push(("scenes", Value::Array(scenes)));
+        let mechanisms = self.mechanisms.as_ref().map_or(Value::Nil, |m| {
+            map(vec![
+                ("held", m.held.as_ref().map_or(Value::Nil, Sparse::to_value)),
+                ("bounds", bounds_value(m.bounds.as_deref())),
+            ])
+        });
+        doc.push(("mechanisms", mechanisms));
+        doc.push(match &self.waiting {
+            Waiting::Workers(workers) => {
+                let workers = workers
+                    .iter()
+                    .map(|w| {
+                        map(vec![
+                            ("grad", w.grad.to_value()),
+                            ("touched", u64s(&w.touched)),
+                        ])
+                    })
+                    .collect();
+                ("workers", Value::Array(workers))
+            }
+            Waiting::Gradient(g) => ("gradient", g.as_ref().map_or(Value::Nil, Sparse::to_value)),
+        });
+        let policy = self
+            .policy
+            .as_ref()
+            .map_or(Value::Nil, |p| Value::Binary(p.to_vec()));
+        doc.push(("policy", policy));
+        map(doc)
+    }
+}
+
+impl<'a> TrainerState<'a> {
+    /// Reads back a [`Self::to_value`] (`doc`, named `origin` in errors) for a trainer
+    /// that expects `e`: the header and fingerprint first ([`check_header`]), then every
+    /// field, its length checked against the trainer's, before the trainer takes any.
+    pub fn read(origin: &'a Path, doc: &'a Value, e: &Expect) -> Result<Self> {
+        let f = Fields::top(origin, doc)?;
+        check_header(&f, e.fingerprint)?;
+        let step = f.u32("step")?;
+        let weight_steps = f.u32("weight_steps")?;
+        let mut params = crate::pages::zeroed(e.n_params);
+        f.f32s_into("params", &mut params)?;
+        let optimizer = OptimizerState::read(&f.map("optimizer")?, e)?;
+        if optimizer.step != weight_steps || weight_steps > step {
+            return Err(f.err(
+                "weight_steps",
+                format!(
+                    "{weight_steps} of {step} steps, but the optimizer took {} steps",
+                    optimizer.step
+                ),
+            ));
+        }
+        let occupancy_clock = match e.device {
+            Device::Cpu { .. } => Some(OccupancyClock::read(
+                &f.map("occupancy_clock")?,
+                e.scene_cells.len(),
+            )?),
+            Device::Gpu { .. } => None,
+        };
+        let scenes = f
+            .maps("scenes", e.scene_cells.len())?
+            .iter()
+            .zip(&e.scene_cells)
+            .map(|(sf, &cells)| Scene::read(sf, cells, e.device))
+            .collect::<Result<_>>()?;
+        let mechanisms = match e.device {
+            Device::Gpu { .. } if !e.policy => None,
+            _ => Some(Mechanisms::read(&f.map("mechanisms")?, e)?),
+        };
+        let waiting = match e.device {
+            Device::Cpu {
+                workers,
+                touched_words,
+                ..
+            } => Waiting::Workers(
+                f.maps("workers", workers)?
+                    .iter()
+                    .map(|wf| {
+                        let grad = wf.sparse("grad", e.n_params)?;
+                        let mut touched = vec![0; touched_words];
+                        wf.u64s_into("touched", &mut touched)?;
+                        Ok(Worker {
+                            grad,
+                            touched: touched.into(),
+                        })
+                    })
+                    .collect::<Result<_>>()?,
+            ),
+            Device::Gpu { .. } if e.policy => {
+                Waiting::Gradient(Some(f.sparse("gradient", e.n_params)?))
+            }
+            Device::Gpu { .. } => Waiting::Gradient(None),
+        };
+        let policy = f.binary_opt("policy")?.map(Cow::Borrowed);
+        Ok(TrainerState {
+            fingerprint: e.fingerprint.to_vec(),
+            step,
+            weight_steps,
+            params: params.into(),
+            optimizer,
+            occupancy_clock,
+            scenes,
+            mechanisms,
+            waiting,
+            policy,
+        })
+    }
+}
+
+impl OccupancyClock<'_> {
+    fn read(f: &Fields, n_scenes: usize) -> Result<Self> {
+        // A single count: a state saved before each scene kept its own.
+        let since = match f.u64("since") {
+            Ok(one) => vec![one],
+            Err(_) => {
+                let mut v = vec![0; n_scenes];
+                f.u64s_into("since", &mut v)?;
+                v
+            }
+        };
+        Ok(OccupancyClock {
+            since: since.into(),
+            updates: f.u32("updates")?,
+        })
+    }
+}
+
+impl Scene<'_> {
+    fn to_value(&self) -> Value {
+        let grid = &self.grid;
+        map(vec![
+            ("density", f32s(&grid.density)),
+            ("bitfield", Value::Binary(grid.bitfield().to_vec())),
+            ("mean", Value::F32(grid.mean)),
+            ("grid_updates", Value::from(grid.ema_step)),
+            ("rays_per_batch", Value::from(self.rays_per_batch)),
+            ("measured_samples", Value::from(self.measured_samples)),
+            ("measured_marched", Value::from(self.measured_marched)),
+            ("march_stride", Value::from(self.march_stride)),
+        ])
+    }
+
+    /// A scene's part for a grid of `cells` cells.
+    fn read(f: &Fields, cells: usize, device: Device) -> Result<Self> {
+        let mut density = crate::pages::zeroed::<f32>(cells);
+        f.f32s_into("density", &mut density)?;
+        let mut bitfield = vec![0u8; cells / 8];
+        f.bytes_into("bitfield", &mut bitfield)?;
+        let grid = crate::occupancy::OccupancyGrid::from_parts(
+            density,
+            bitfield,
+            f.f32("mean")?,
+            f.u32("grid_updates")?,
+        )
+        .ok_or_else(|| f.err("density", "does not make an occupancy grid"))?;
+        let rays = f.u32("rays_per_batch")?;
+        let (samples, marched) = (f.u32("measured_samples")?, f.u32("measured_marched")?);
+        // Absent from states saved before the coarse march: they marched the reference's step.
+        let stride = if f.has("march_stride") {
+            f.u32("march_stride")?
+        } else {
+            1
+        };
+        let max_stride = 1 << super::coarse::MAX_STRIDE_LOG2;
+        if !stride.is_power_of_two() || stride > max_stride {
+            return Err(f.err(
+                "march_stride",
+                format!("{stride}: not a power of two up to {max_stride}"),
+            ));
+        }
+        if let Device::Gpu { max_rays } = device {
+            if stride != 1 {
+                return Err(f.err(
+                    "march_stride",
+                    format!("{stride}: a GPU marches the reference's step (1)"),
+                ));
+            }
+            // The device's ray buffers hold `max_rays` rays.
+            if rays == 0 || rays > max_rays {
+                return Err(f.err(
+                    "rays_per_batch",
+                    format!("{rays}: a batch has 1 to {max_rays} rays"),
+                ));
+            }
+        }
+        Ok(Scene {
+            grid: Cow::Owned(grid),
+            rays_per_batch: rays,
+            measured_samples: samples,
+            measured_marched: marched,
+            march_stride: stride,
+        })
+    }
+}
+
+impl Mechanisms<'_> {
+    fn read(f: &Fields, e: &Expect) -> Result<Self> {
+        let held = if f.has("held") {
+            let held = f.sparse("held", e.n_params)?;
+            if held.nonzero_below(e.n_matrix) {
+                return Err(f.err("held", "holds back an MLP gradient (never held)"));
+            }
+            Some(held)
+        } else {
+            None
+        };
+        let bounds = bounds_from(f, "bounds", e.n_entries, e.n_features)?;
+        Ok(Mechanisms {
+            held,
+            bounds: bounds.map(Cow::Owned),
+        })
+    }
+}
+
+impl OptimizerState<'_> {
+    fn to_value(&self) -> Value {
         let c = self.config;
         let lr = c.learning_rate(self.step);
-        let ema16 = crate::snapshot::write::fp16_bytes(self.published);
+        let ema16 = crate::snapshot::write::fp16_bytes(&self.published);
         let adam = map(vec![
             ("base_learning_rate", Value::F32(lr)),
             ("current_step", Value::from(self.step)),
-            ("first_moments_binary", f32s(self.m)),
-            ("param_steps_binary", u32s(self.param_steps)),
-            ("second_moments_binary", f32s(self.v)),
+            ("first_moments_binary", f32s(&self.m)),
+            ("param_steps_binary", u32s(&self.param_steps)),
+            ("second_moments_binary", f32s(&self.v)),
         ]);
         let decay = map(vec![
             ("learning_rate", Value::F32(c.lr)),
             ("learning_rate_factor", Value::F32(lr / c.lr)),
             ("nested", adam),
         ]);
+        let mut ours = vec![("ema", f32s(&self.ema))];
+        if let Some(s) = &self.ema_step {
+            ours.push(("ema_step", u32s(s)));
+        }
         map(vec![
             ("nested", decay),
-            ("stegongp", self.ours),
+            ("stegongp", map(ours)),
             ("weights_ema_binary", Value::Binary(ema16)),
         ])
     }
 
-    /// Takes back Adam's part of a [`Self::value`] (`o`) into `m`, `v` and `param_steps`,
-    /// checked: a step count bounded before any table is grown to it, no parameter counting
-    /// more updates than the optimizer. Returns the step count and `stegongp`.
-    pub fn read_into<'a>(
-        o: &Fields<'a>,
-        m: &mut [f32],
-        v: &mut [f32],
-        param_steps: &mut [u32],
-    ) -> Result<(u32, Fields<'a>)> {
+    /// Checked: a step count bounded before any table is grown to it, no parameter (nor
+    /// EMA group) counting more updates than the optimizer.
+    fn read(o: &Fields, e: &Expect) -> Result<Self> {
+        let n = e.n_params;
+        let (mut m, mut v) = (crate::pages::zeroed(n), crate::pages::zeroed(n));
+        let mut param_steps = crate::pages::zeroed(n);
         let adam = o.map("nested")?.map("nested")?;
-        adam.f32s_into("first_moments_binary", m)?;
-        adam.f32s_into("second_moments_binary", v)?;
-        adam.u32s_into("param_steps_binary", param_steps)?;
+        adam.f32s_into("first_moments_binary", &mut m)?;
+        adam.f32s_into("second_moments_binary", &mut v)?;
+        adam.u32s_into("param_steps_binary", &mut param_steps)?;
         let step = adam.u32("current_step")?;
         // The bias-correction tables hold a value a step: a forged count must not make
         // them gigabytes (the fuzzer's first run of training states found 2^30).
@@ -236,13 +519,90 @@ impl NgpOptimizer<'_> {
                 format!("a step count {bad} beyond the optimizer's {step}"),
             ));
         }
-        Ok((step, o.map("stegongp")?))
+        let ours = o.map("stegongp")?;
+        let mut ema = crate::pages::zeroed(n);
+        ours.f32s_into("ema", &mut ema)?;
+        let ema_step = match e.device {
+            Device::Cpu { ema_groups, .. } => {
+                let mut s = vec![0; ema_groups];
+                ours.u32s_into("ema_step", &mut s)?;
+                if let Some(bad) = s.iter().find(|&&s| s > step) {
+                    return Err(ours.err(
+                        "ema_step",
+                        format!("a step count {bad} beyond the optimizer's {step}"),
+                    ));
+                }
+                Some(s.into())
+            }
+            Device::Gpu { .. } => None,
+        };
+        Ok(OptimizerState {
+            config: e.optimizer,
+            step,
+            m: m.into(),
+            v: v.into(),
+            param_steps: param_steps.into(),
+            published: Cow::Borrowed(&[]),
+            ema: ema.into(),
+            ema_step,
+        })
+    }
+}
+
+/// An array of which most values are zero, as the document holds it: the values whose
+/// bits are not zero (−0.0 included), with their indices, strictly increasing.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Sparse {
+    pub index: Vec<u32>,
+    pub value: Vec<f32>,
+}
+
+impl Sparse {
+    pub fn of(v: &[f32]) -> Self {
+        let mut s = Sparse::default();
+        for (i, x) in v.iter().enumerate() {
+            if x.to_bits() != 0 {
+                s.index.push(i as u32);
+                s.value.push(*x);
+            }
+        }
+        s
+    }
+
+    pub fn to_value(&self) -> Value {
+        map(vec![
+            ("index", u32s(&self.index)),
+            ("value", f32s(&self.value)),
+        ])
+    }
+
+    /// Into `out` (zeroed first), which is as long as the array read ([`Fields::sparse`]).
+    pub fn scatter_into(&self, out: &mut [f32]) {
+        out.fill(0.0);
+        for (&i, &v) in self.index.iter().zip(&self.value) {
+            out[i as usize] = v;
+        }
+    }
+
+    /// The dense array of `n` values.
+    pub fn dense(&self, n: usize) -> Vec<f32> {
+        let mut out = vec![0.0; n];
+        self.scatter_into(&mut out);
+        out
+    }
+
+    /// Whether a value below index `n` is not zero (−0.0 counting as zero).
+    fn nonzero_below(&self, n: usize) -> bool {
+        self.index
+            .iter()
+            .zip(&self.value)
+            .any(|(&i, &v)| (i as usize) < n && v != 0.0)
     }
 }
 
 /// A policy's table bounds ([`super::hooks::TableBounds`]) as `{entries, bounds}`, the
 /// bounded entries alone; nil before a policy set any.
-pub fn bounds_value(b: Option<&super::hooks::TableBounds>) -> Value {
+fn bounds_value(b: Option<&super::hooks::TableBounds>) -> Value {
     let Some(b) = b else {
         return Value::Nil;
     };
@@ -255,7 +615,7 @@ pub fn bounds_value(b: Option<&super::hooks::TableBounds>) -> Value {
 
 /// Takes back a [`bounds_value`] (field `key` of `f`) for a table of `n_entries` entries of
 /// `n_features`: entries in order and within the table, bounds finite and ≥ 0.
-pub fn bounds_from(
+fn bounds_from(
     f: &Fields,
     key: &str,
     n_entries: usize,
@@ -407,36 +767,33 @@ impl<'a> Fields<'a> {
         Ok(())
     }
 
-    /// A [`sparse`] array into `out` (zeroed first): indices strictly increasing and within
-    /// `out`, one value each.
-    pub fn sparse_into(&self, key: &str, out: &mut [f32]) -> Result<()> {
+    /// A [`Sparse`] array of `n` values: indices strictly increasing and below `n`, one
+    /// value each.
+    pub fn sparse(&self, key: &str, n: usize) -> Result<Sparse> {
         let f = self.map(key)?;
         let (index, value) = (f.binary("index")?, f.binary("value")?);
-        if index.len() % 4 != 0 || index.len() != value.len() || index.len() / 4 > out.len() {
+        if index.len() % 4 != 0 || index.len() != value.len() || index.len() / 4 > n {
             return Err(self.err(
                 key,
                 format!(
-                    "{} index and {} value bytes for at most {} values",
+                    "{} index and {} value bytes for at most {n} values",
                     index.len(),
                     value.len(),
-                    out.len()
                 ),
             ));
         }
-        out.fill(0.0);
+        let mut out = Sparse::default();
         let mut next = 0usize;
         for (i, v) in index.chunks_exact(4).zip(value.chunks_exact(4)) {
-            let i = u32::from_le_bytes([i[0], i[1], i[2], i[3]]) as usize;
-            if i < next || i >= out.len() {
-                return Err(self.err(
-                    key,
-                    format!("index {i} out of order or past {} values", out.len()),
-                ));
+            let i = u32::from_le_bytes([i[0], i[1], i[2], i[3]]);
+            if (i as usize) < next || i as usize >= n {
+                return Err(self.err(key, format!("index {i} out of order or past {n} values")));
             }
-            out[i] = f32::from_le_bytes([v[0], v[1], v[2], v[3]]);
-            next = i + 1;
+            out.index.push(i);
+            out.value.push(f32::from_le_bytes([v[0], v[1], v[2], v[3]]));
+            next = i as usize + 1;
         }
-        Ok(())
+        Ok(out)
     }
 
     /// u32 values of any count up to `max`.

@@ -427,148 +427,111 @@ impl Trainer {
 
     /// [`save_state`](Self::save_state) as a document, for a caller that nests it.
     pub fn save_state_doc(&self) -> Result<rmpv::Value> {
-        use super::state::{FORMAT, VERSION, bounds_value, f32s, map, scene_value, sparse, u64s};
-        use rmpv::Value;
-        let fingerprint = Value::Map(
-            self.fingerprint()
-                .into_iter()
-                .map(|(k, v)| (Value::from(k), Value::from(v)))
-                .collect(),
-        );
-        let scenes = self
-            .scenes
-            .iter()
-            .map(|s| {
-                let counters = (s.rays_per_batch, s.measured_samples, s.measured_marched);
-                scene_value(&s.grid, counters, s.stride)
-            })
-            .collect();
+        use super::state::{self, Sparse};
+        use std::borrow::Cow::Borrowed;
         let (since, updates) = self.grid_updates.clock();
-        let mechanisms = map(vec![
-            (
-                "held",
-                self.mech
-                    .hold
-                    .as_ref()
-                    .map_or(Value::Nil, |h| sparse(h.pending())),
-            ),
-            ("bounds", bounds_value(self.mech.bounds.as_ref())),
-        ]);
-        let workers = self
-            .workers
-            .iter()
-            .map(|w| {
-                map(vec![
-                    ("grad", sparse(&w.grad)),
-                    ("touched", u64s(w.touched.words())),
-                ])
-            })
-            .collect();
-        Ok(map(vec![
-            ("format", Value::from(FORMAT)),
-            ("version", Value::from(VERSION)),
-            ("fingerprint", fingerprint),
-            ("step", Value::from(self.step)),
-            ("weight_steps", Value::from(self.weight_steps)),
-            ("params", f32s(&self.params)),
-            ("optimizer", self.optimizer.state(&self.params)),
-            (
-                "occupancy_clock",
-                map(vec![
-                    ("since", u64s(since)),
-                    ("updates", Value::from(updates)),
-                ]),
-            ),
-            ("scenes", Value::Array(scenes)),
-            ("mechanisms", mechanisms),
-            ("workers", Value::Array(workers)),
-            (
-                "policy",
-                match &self.policy {
-                    Some(p) => p.save_state()?.map_or(Value::Nil, Value::Binary),
-                    None => Value::Nil,
-                },
-            ),
-        ]))
+        let scenes = self.scenes.iter().map(|s| state::Scene {
+            grid: Borrowed(&s.grid),
+            rays_per_batch: s.rays_per_batch,
+            measured_samples: s.measured_samples,
+            measured_marched: s.measured_marched,
+            march_stride: s.stride,
+        });
+        let workers = self.workers.iter().map(|w| state::Worker {
+            grad: Sparse::of(&w.grad),
+            touched: Borrowed(w.touched.words()),
+        });
+        let policy = match &self.policy {
+            Some(p) => p.save_state()?.map(Into::into),
+            None => None,
+        };
+        let doc = state::TrainerState {
+            fingerprint: self.fingerprint(),
+            step: self.step,
+            weight_steps: self.weight_steps,
+            params: Borrowed(&self.params),
+            optimizer: self.optimizer.state(&self.params),
+            occupancy_clock: Some(state::OccupancyClock {
+                since: Borrowed(since),
+                updates,
+            }),
+            scenes: scenes.collect(),
+            mechanisms: Some(state::Mechanisms {
+                held: self.mech.hold.as_ref().map(|h| Sparse::of(h.pending())),
+                bounds: self.mech.bounds.as_ref().map(Borrowed),
+            }),
+            waiting: state::Waiting::Workers(workers.collect()),
+            policy,
+        };
+        Ok(doc.to_value())
     }
 
     /// Takes back a [`save_state`](Self::save_state) into this trainer, which must be fresh
     /// (no step taken) and built from the same scenes, layout, options and worker count;
-    /// `origin` names the state in errors. After an error, drop the trainer.
+    /// `origin` names the state in errors. Every field is read and checked before any is
+    /// taken; after an error, drop the trainer.
     pub fn restore_state(&mut self, bytes: &[u8], origin: &std::path::Path) -> Result<()> {
         self.restore_state_doc(&super::state::open(origin, bytes)?, origin)
     }
 
     /// [`restore_state`](Self::restore_state) from the document.
     pub fn restore_state_doc(&mut self, doc: &rmpv::Value, origin: &std::path::Path) -> Result<()> {
-        use super::state::{Fields, check_header};
+        use super::state::{self, TrainerState, Waiting};
         if self.step != 0 {
             return Err(Error::Config(
                 "a training state goes into a trainer that has not stepped".into(),
             ));
         }
-        let f = Fields::top(origin, doc)?;
-        check_header(&f, &self.fingerprint())?;
-        let step = f.u32("step")?;
-        let weight_steps = f.u32("weight_steps")?;
-        f.f32s_into("params", &mut self.params)?;
-        self.optimizer.restore(&f.map("optimizer")?)?;
-        if self.optimizer.step != weight_steps {
-            return Err(f.err(
-                "weight_steps",
-                format!(
-                    "{weight_steps}, but the optimizer took {} steps",
-                    self.optimizer.step
-                ),
-            ));
-        }
-        let clock = f.map("occupancy_clock")?;
-        // A single count: a state saved before each scene kept its own.
-        let since = match clock.u64("since") {
-            Ok(one) => vec![one],
-            Err(_) => {
-                let mut v = vec![0; self.scenes.len()];
-                clock.u64s_into("since", &mut v)?;
-                v
-            }
+        let (n, n_matrix) = (self.params.len(), self.net.layout.n_mlp_params());
+        let n_features = self.net.layout.config.grid.n_features as usize;
+        let expect = state::Expect {
+            fingerprint: &self.fingerprint(),
+            device: state::Device::Cpu {
+                workers: self.workers.len(),
+                touched_words: self.workers.first().map_or(0, |w| w.touched.words().len()),
+                ema_groups: self.optimizer.ema_groups(),
+            },
+            optimizer: self.optimizer.config,
+            n_params: n,
+            n_matrix,
+            n_entries: (n - self.net.layout.grid_offset) / n_features,
+            n_features,
+            scene_cells: self.scenes.iter().map(|s| s.grid.density.len()).collect(),
+            policy: self.policy.is_some(),
         };
-        self.grid_updates.set_clock(&since, clock.u32("updates")?);
-        let scene_fields = f.maps("scenes", self.scenes.len())?;
-        for (s, sf) in self.scenes.iter_mut().zip(scene_fields) {
-            let (grid, counters, stride) = super::state::scene_from(&sf, s.grid.density.len())?;
-            s.grid = grid;
-            (s.rays_per_batch, s.measured_samples, s.measured_marched) = counters;
-            s.stride = stride;
+        let saved = TrainerState::read(origin, doc, &expect)?;
+        self.params.copy_from_slice(&saved.params);
+        self.optimizer.restore(saved.optimizer);
+        let clock = saved.occupancy_clock.expect("read for the CPU");
+        self.grid_updates.set_clock(&clock.since, clock.updates);
+        for (s, saved) in self.scenes.iter_mut().zip(saved.scenes) {
+            s.grid = saved.grid.into_owned();
+            s.rays_per_batch = saved.rays_per_batch;
+            s.measured_samples = saved.measured_samples;
+            s.measured_marched = saved.measured_marched;
+            s.stride = saved.march_stride;
         }
-        self.restore_mechanisms(&f.map("mechanisms")?)?;
-        let worker_fields = f.maps("workers", self.workers.len())?;
-        for (w, wf) in self.workers.iter_mut().zip(worker_fields) {
-            wf.sparse_into("grad", &mut w.grad)?;
-            wf.u64s_into("touched", w.touched.words_mut())?;
+        let mech = saved.mechanisms.expect("read for the CPU");
+        self.mech.hold = mech.held.map(|held| {
+            let mut hold = HoldBack::new(n, n_matrix);
+            held.scatter_into(hold.pending_mut());
+            hold
+        });
+        self.mech.bounds = mech.bounds.map(std::borrow::Cow::into_owned);
+        let Waiting::Workers(workers) = saved.waiting else {
+            unreachable!("read for the CPU")
+        };
+        for (w, saved) in self.workers.iter_mut().zip(workers) {
+            saved.grad.scatter_into(&mut w.grad);
+            w.touched.words_mut().copy_from_slice(&saved.touched);
         }
         // The fingerprint has checked that a policy is installed here iff one saved.
         if let Some(p) = &mut self.policy {
-            let fresh = p.restore_state(f.binary_opt("policy")?, origin)?;
+            let fresh = p.restore_state(saved.policy.as_deref(), origin)?;
             self.set_indices(fresh)?;
         }
-        self.step = step;
-        self.weight_steps = weight_steps;
-        Ok(())
-    }
-
-    /// The policy mechanisms' state ([`Self::save_state`]): the held-back sums and the
-    /// table's bounds, each absent until a policy first used it.
-    fn restore_mechanisms(&mut self, f: &super::state::Fields) -> Result<()> {
-        let n = self.params.len();
-        let n_matrix = self.net.layout.n_mlp_params();
-        self.mech.hold = super::state::held_from(f, "held", n, n_matrix)?.map(|pending| {
-            let mut hold = HoldBack::new(n, n_matrix);
-            hold.pending_mut().copy_from_slice(&pending);
-            hold
-        });
-        let n_features = self.net.layout.config.grid.n_features as usize;
-        let n_entries = (n - self.net.layout.grid_offset) / n_features;
-        self.mech.bounds = super::state::bounds_from(f, "bounds", n_entries, n_features)?;
+        self.step = saved.step;
+        self.weight_steps = saved.weight_steps;
         Ok(())
     }
 
