@@ -165,19 +165,9 @@ pub fn progress(len: u64, template: &str) -> ProgressBar {
     pb
 }
 
-/// An output file's folder must exist: we write a temporary file beside it, then rename.
+/// An output file's folder must exist ([`stegongp::util::check_parent_dir`]).
 pub fn check_parent_dir(path: &Path) -> Result<()> {
-    if let Some(dir) = path.parent()
-        && !dir.as_os_str().is_empty()
-        && !dir.is_dir()
-    {
-        bail!(
-            "{}: directory {} does not exist",
-            path.display(),
-            dir.display()
-        );
-    }
-    Ok(())
+    Ok(stegongp::util::check_parent_dir(path)?)
 }
 
 /// `--width` and `--height`: both or neither, each 1..=`MAX_SIDE` pixels.

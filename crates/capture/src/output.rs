@@ -47,20 +47,9 @@ pub fn check(out: &Path, input: &Path, force: bool) -> Result<()> {
     Ok(())
 }
 
-/// The output's parent folder must exist (the program's `check_parent_dir`, with its
-/// message).
+/// The output's parent folder must exist.
 fn check_parent_dir(path: &Path) -> Result<()> {
-    if let Some(dir) = path.parent()
-        && !dir.as_os_str().is_empty()
-        && !dir.is_dir()
-    {
-        bail!(
-            "{}: directory {} does not exist",
-            path.display(),
-            dir.display()
-        );
-    }
-    Ok(())
+    Ok(ngp::util::check_parent_dir(path)?)
 }
 
 /// `p` with its parent resolved (the path itself need not exist).
