@@ -60,6 +60,7 @@ const ALLOWED: [(&str, &[&str]); 16] = [
             "stegongp-backend",
             "stegongp-stego",
             "stegongp-training",
+            "stegongp-score",
         ],
     ),
     (
@@ -112,6 +113,7 @@ const ALLOWED: [(&str, &[&str]); 16] = [
             "stegongp-backend",
             "stegongp-stego",
             "stegongp-training",
+            "stegongp-score",
             "stegongp-synth",
         ],
     ),
