@@ -415,38 +415,90 @@ fn gen_main(@builtin(global_invocation_id) gid: vec3<u32>) {
     gen[i] = g;
 }
 
-// One pass of Marcher::march from t: counts the samples (write = false), or writes them
-// from slot `base` on. Returns the number of samples.
-fn march(o: vec3<f32>, d: vec3<f32>, t0: f32, write: bool, base: u32) -> u32 {
-    let idir = 1.0 / d;
-    var t = t0;
-    var n = 0u;
-    for (var it = 0u; it < MAX_ITERATIONS; it++) {
+// Where a march stands between two samples: the distance along the ray, and the
+// iterations the pass has spent (it stops at MAX_ITERATIONS).
+struct MarchCursor {
+    t: f32,
+    it: u32,
+}
+
+// A sample a march takes: its point, step and distance along the ray.
+struct MarchSample {
+    q: vec3<f32>,
+    dt: f32,
+    t: f32,
+}
+
+// What `march_step` found.
+const MARCH_SAMPLE: u32 = 0u;
+// The ray is out of the box at the cursor.
+const MARCH_LEFT: u32 = 1u;
+// The caller takes no more samples (`room` false); the ray is still in the box.
+const MARCH_FULL: u32 = 2u;
+// The pass has spent its iterations.
+const MARCH_BOUND: u32 = 3u;
+
+// Marcher::march's loop, the one both training (`march`) and rendering (`march_wave`, in
+// renderer.wgsl) run: from the cursor, skips the empty cells to the next occupied sample,
+// returns MARCH_SAMPLE with it in `*s` and the cursor past it. Each iteration checks, in
+// this order, the iteration bound, the box, and whether the caller has room for a sample
+// (`room`); a march that stops leaves the cursor where it stood.
+fn march_step(
+    o: vec3<f32>,
+    d: vec3<f32>,
+    idir: vec3<f32>,
+    c: ptr<function, MarchCursor>,
+    room: bool,
+    s: ptr<function, MarchSample>,
+) -> u32 {
+    while ((*c).it < MAX_ITERATIONS) {
+        let t = (*c).t;
         let q = o + t * d;
-        if (!inside_box(q) || n >= p.max_per_ray) {
-            break;
+        if (!inside_box(q)) {
+            return MARCH_LEFT;
         }
+        if (!room) {
+            return MARCH_FULL;
+        }
+        (*c).it += 1u;
         let dt = calc_dt(t);
         let mip = mip_from_dt(dt, q);
         var next: f32;
-        if (is_occupied(q, mip)) {
-            if (write) {
-                let k = base + n;
-                let w = (q - p.aabb_min) * p.inv_extent;
-                pos[3u * k] = w.x;
-                pos[3u * k + 1u] = w.y;
-                pos[3u * k + 2u] = w.z;
-                dts[k] = dt;
-                dists[k] = t;
-            }
-            n += 1u;
+        let occupied = is_occupied(q, mip);
+        if (occupied) {
+            *s = MarchSample(q, dt, t);
             next = t + dt;
         } else {
             next = advance_to_next_voxel(t, q, d, idir, mip);
         }
         // Far from the camera a step can fall below the float spacing at t: the next float
         // (t ≥ 0 here, so one more in the bit pattern).
-        t = select(bitcast<f32>(bitcast<u32>(t) + 1u), next, next > t);
+        (*c).t = select(bitcast<f32>(bitcast<u32>(t) + 1u), next, next > t);
+        if (occupied) {
+            return MARCH_SAMPLE;
+        }
+    }
+    return MARCH_BOUND;
+}
+
+// One pass of Marcher::march from t: counts the samples (write = false), or writes them
+// from slot `base` on. Returns the number of samples.
+fn march(o: vec3<f32>, d: vec3<f32>, t0: f32, write: bool, base: u32) -> u32 {
+    let idir = 1.0 / d;
+    var c = MarchCursor(t0, 0u);
+    var s: MarchSample;
+    var n = 0u;
+    while (march_step(o, d, idir, &c, n < p.max_per_ray, &s) == MARCH_SAMPLE) {
+        if (write) {
+            let k = base + n;
+            let w = (s.q - p.aabb_min) * p.inv_extent;
+            pos[3u * k] = w.x;
+            pos[3u * k + 1u] = w.y;
+            pos[3u * k + 2u] = w.z;
+            dts[k] = s.dt;
+            dists[k] = s.t;
+        }
+        n += 1u;
     }
     return n;
 }

@@ -88,49 +88,33 @@ struct WaveEnd {
     left: u32,
 }
 
-// One wave of Marcher::march from t0: at most max_n samples; counts them, or (write) writes
-// them from sample slot `base` on.
+// One wave of Marcher::march from t0 (rays.wgsl's `march_step`, the loop training runs
+// too): at most max_n samples; counts them, or (write) writes them from sample slot `base`
+// on. A wave that reaches the iteration bound (an invocation must end) stops where it is;
+// the next wave resumes from there, so the bound changes no result.
 fn march_wave(o: vec3<f32>, d: vec3<f32>, t0: f32, max_n: u32, write: bool, base: u32) -> WaveEnd {
     let idir = 1.0 / d;
-    var t = t0;
+    var c = MarchCursor(t0, 0u);
+    var s: MarchSample;
     var n = 0u;
-    var left = 0u;
-    // A wave that reaches the iteration bound (an invocation must end) stops where it is;
-    // the next wave resumes from there, so the bound changes no result.
-    for (var it = 0u; it < MAX_ITERATIONS; it++) {
-        let q = o + t * d;
-        if (!inside_box(q)) {
-            left = 1u;
-            break;
+    var found = march_step(o, d, idir, &c, n < max_n, &s);
+    while (found == MARCH_SAMPLE) {
+        if (write) {
+            let k = base + n;
+            let w = (s.q - p.aabb_min) * p.inv_extent;
+            s_pos[3u * k] = w.x;
+            s_pos[3u * k + 1u] = w.y;
+            s_pos[3u * k + 2u] = w.z;
+            s_dir[3u * k] = d.x;
+            s_dir[3u * k + 1u] = d.y;
+            s_dir[3u * k + 2u] = d.z;
+            s_dt[k] = s.dt;
+            s_dist[k] = s.t;
         }
-        if (n >= max_n) {
-            break;
-        }
-        let dt = calc_dt(t);
-        let mip = mip_from_dt(dt, q);
-        var next: f32;
-        if (is_occupied(q, mip)) {
-            if (write) {
-                let k = base + n;
-                let w = (q - p.aabb_min) * p.inv_extent;
-                s_pos[3u * k] = w.x;
-                s_pos[3u * k + 1u] = w.y;
-                s_pos[3u * k + 2u] = w.z;
-                s_dir[3u * k] = d.x;
-                s_dir[3u * k + 1u] = d.y;
-                s_dir[3u * k + 2u] = d.z;
-                s_dt[k] = dt;
-                s_dist[k] = t;
-            }
-            n += 1u;
-            next = t + dt;
-        } else {
-            next = advance_to_next_voxel(t, q, d, idir, mip);
-        }
-        // The next float where a step falls below the float spacing at t (t ≥ 0).
-        t = select(bitcast<f32>(bitcast<u32>(t) + 1u), next, next > t);
+        n += 1u;
+        found = march_step(o, d, idir, &c, n < max_n, &s);
     }
-    return WaveEnd(n, t, left);
+    return WaveEnd(n, c.t, select(0u, 1u, found == MARCH_LEFT));
 }
 
 // One wave of every live ray (the list's length is the device's counter).
