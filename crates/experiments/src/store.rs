@@ -7,8 +7,8 @@ use ngp::error::{Error, Result};
 use ngp::model::Model;
 use ngp::util::write_atomic;
 use serde_json::{Map, Value};
-use std::path::{Path, PathBuf};
-use training::state::{SaveEvery, StateSaver};
+use std::path::Path;
+use training::state::{SaveEvery, StateFile, StateSaver};
 
 /// The sidecar of `path` if it holds `config` and the model file is there, else trains with
 /// `train` (the model and the fields to record beside the config), saves the model and then
@@ -60,7 +60,7 @@ fn reuse_or_train_with(
         if verbose {
             eprintln!("  reusing {}", path.display());
         }
-        remove(&state_path(path))?;
+        StateFile::beside_model(path, config.to_string()).remove()?;
         return Ok((v, true));
     }
     let state = save_every.map(|every| model_state(path, config, every));
@@ -72,7 +72,7 @@ fn reuse_or_train_with(
     let v = Value::Object(v);
     let text = serde_json::to_string_pretty(&v).map_err(|e| Error::Other(e.to_string()))?;
     write_atomic(&side, text.as_bytes())?;
-    remove(&state_path(path))?;
+    StateFile::beside_model(path, config.to_string()).remove()?;
     Ok((v, false))
 }
 
@@ -82,18 +82,5 @@ fn reuse_or_train_with(
 /// state left by another configuration is never taken for this one). It is removed once
 /// the model and its sidecar are written.
 fn model_state(model: &Path, config: &Value, every: SaveEvery) -> StateSaver {
-    StateSaver::for_experiment(every, state_path(model), config.to_string())
-}
-
-fn state_path(model: &Path) -> PathBuf {
-    let mut p = model.as_os_str().to_owned();
-    p.push(".state");
-    PathBuf::from(p)
-}
-
-fn remove(path: &Path) -> Result<()> {
-    match std::fs::remove_file(path) {
-        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(Error::io(path, e)),
-        _ => Ok(()),
-    }
+    StateSaver::for_experiment(every, StateFile::beside_model(model, config.to_string()))
 }

@@ -271,6 +271,18 @@ pub enum Tagged {
 }
 
 impl StateFile {
+    /// An experiment model's state while it trains: `MODEL.ingp.state` beside the model
+    /// file, tagged with the model's configuration (JSON text) so that a state left by
+    /// another configuration is never taken for this one.
+    pub fn beside_model(model: &Path, config: String) -> Self {
+        let mut path = model.as_os_str().to_owned();
+        path.push(".state");
+        StateFile {
+            path: PathBuf::from(path),
+            form: StateForm::Tagged { config },
+        }
+    }
+
     /// Writes `training`'s state in this file's form, atomically.
     pub fn write(&self, training: &Training) -> Result<()> {
         match &self.form {
@@ -383,11 +395,7 @@ impl StateSaver {
 
     /// An experiment model's: no state at the end (the model replaces it), and a device
     /// that cannot save one trains on without.
-    pub fn for_experiment(every: SaveEvery, path: PathBuf, config: String) -> Self {
-        let file = StateFile {
-            path,
-            form: StateForm::Tagged { config },
-        };
+    pub fn for_experiment(every: SaveEvery, file: StateFile) -> Self {
         Self::new(every, file, false, Unsaveable::GoOn)
     }
 
@@ -468,12 +476,8 @@ mod tests {
         let d = tempfile::tempdir().unwrap();
         let path = d.path().join("m.ingp.state");
         let config = r#"{"seed":1,"steps":30}"#;
-        let file = StateFile {
-            path: path.clone(),
-            form: StateForm::Tagged {
-                config: config.into(),
-            },
-        };
+        let file = StateFile::beside_model(&d.path().join("m.ingp"), config.into());
+        assert_eq!(file.path, path);
         assert!(matches!(file.read_tagged().unwrap(), Tagged::None));
         let doc = |config: &str| {
             encode(&map(vec![
