@@ -301,11 +301,9 @@ impl Device {
     ) -> Result<DensityFn<'a>> {
         match self {
             Device::Cpu { .. } => {
-                let marcher = model.marcher();
-                Ok(Box::new(move |pos: &[[f32; 3]]| {
-                    let warped: Vec<[f32; 3]> = pos.iter().map(|&p| marcher.warp(p)).collect();
-                    Ok(model.net.density_batch(model.params(), indices, &warped))
-                }))
+                let mut density =
+                    log_density_at(&model.net, model.params(), indices, model.config.aabb_scale);
+                Ok(Box::new(move |pos: &[[f32; 3]]| Ok(density(pos))))
             }
             #[cfg(feature = "gpu")]
             Device::Gpu(ctx) => {

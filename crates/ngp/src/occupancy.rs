@@ -361,10 +361,10 @@ impl OccupancyGrid {
     }
 
     /// Culls for good (−1) every cell whose centre lies outside the box of `aabb_scale`
-    /// (centred on the same point as the model's): the key holder's grid of a hidden scene
-    /// whose content fills a smaller box than the model's, e.g. an object in a capture's
-    /// large box. Rays then skip the rest of the model's box, where a keyed index meets the
-    /// cover's entries at random.
+    /// (centred on the same point as the model's): the grid of a scene whose content fills a
+    /// smaller box than the model's, e.g. an object in a capture's large box. Rays then skip
+    /// the rest of the model's box, where another index function's features are
+    /// meaningless.
     pub fn confine_to_box(&mut self, aabb_scale: u32) {
         let h = 0.5 * aabb_scale as f32;
         for c in 0..self.n_cascades {
@@ -466,8 +466,8 @@ impl OccupancyGrid {
         (nu as f64 * uniform / nc + nn as f64 * nonuniform / nc).round() as u64
     }
 
-    /// A grid rebuilt from a field alone (how a key holder recovers a hidden scene's grid,
-    /// which is never stored): `samples_per_cell` stratified random points in every cell of
+    /// A grid rebuilt from a field alone (for index functions whose grid is never
+    /// stored): `samples_per_cell` stratified random points in every cell of
     /// every cascade, max-splatted, then thresholded as usual. `log_density` answers as for
     /// [`Self::update`].
     pub fn rebuild(

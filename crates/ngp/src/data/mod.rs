@@ -181,8 +181,8 @@ impl Dataset {
     /// cover). Every box is centred on the same point, so a scene whose own box is no larger
     /// already lies inside it: it keeps its poses and takes the larger box (where it trains
     /// as empty everything outside its own). A larger scene would be cut off: an error. So
-    /// is a scene larger than `scene_box`, the box its key holder's grid will be cut to
-    /// ([`crate::stego::Key::scene_box`]).
+    /// is a scene larger than `scene_box`, the box its occupancy grid will be
+    /// cut to ([`crate::occupancy::OccupancyGrid::confine_to_box`]).
     pub fn fit_into_box(&mut self, aabb_scale: u32, scene_box: Option<u32>) -> Result<()> {
         check_aabb_scale(aabb_scale)?;
         if self.aabb_scale > aabb_scale {

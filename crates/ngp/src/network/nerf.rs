@@ -329,8 +329,8 @@ impl NerfNetwork {
     }
 
     /// Log-densities at any number of positions, in parallel chunks of [`CHUNK`] with one
-    /// workspace per thread: what occupancy updates and a key holder's grid rebuild ask of
-    /// the field.
+    /// workspace per thread: what occupancy updates and a grid rebuilt from the field alone
+    /// ask of it.
     pub fn density_batch(
         &self,
         params: &[f32],
