@@ -278,7 +278,7 @@ fn mutated_json(v: &Json, rng: &mut Rng) -> Json {
             if rng.chance(0.5) {
                 let x = *rng.pick(INTERESTING);
                 if rng.chance(0.3) {
-                    serde_json::json!(-(x as i64))
+                    serde_json::json!((x as i64).wrapping_neg())
                 } else {
                     serde_json::json!(x)
                 }
