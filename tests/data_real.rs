@@ -313,6 +313,8 @@ fn fox_colmap_binary_and_text_agree_with_fox_transforms() {
     assert_eq!(bin.len(), 50);
     // The text model prints the binary's doubles with 17 digits: the same cameras.
     assert_same_cameras(&bin, &txt, 1e-6);
+    // The folder COLMAP's mapper was given (model 0 in its `0/`) names the same model.
+    assert_same_cameras(&txt, &all_cameras(&dir.join("sparse_txt"), &o), 0.0);
     let (test, meta) = stegongp::dataset::load_cameras(&dir, Split::Test, &o).unwrap();
     assert_eq!(meta.format, DatasetFormat::Colmap);
     assert_eq!(meta.images_dir.as_deref(), Some("images"));

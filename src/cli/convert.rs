@@ -14,8 +14,8 @@ use stegongp::util::write_atomic;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Capture folder: COLMAP (a sparse model in sparse/0, sparse or the folder itself,
-    /// .bin or .txt) or LLFF (poses_bounds.npy), with images/ or images_N/.
+    /// Capture folder: COLMAP (a sparse model in sparse/0, sparse, the folder itself or
+    /// its 0/, .bin or .txt) or LLFF (poses_bounds.npy), with images/ or images_N/.
     pub dir: PathBuf,
     /// transforms.json to write.
     #[arg(long)]

@@ -192,12 +192,15 @@ pub fn model_format(dir: &Path) -> Option<ModelFormat> {
         })
 }
 
-/// The model folder of a dataset folder: `sparse/0`, `sparse`, or the folder itself.
+/// The model folder of a dataset folder: `sparse/0`, `sparse`, the folder itself, or its
+/// `0` (COLMAP's mapper writes model 0 into `0/` of the folder it is given, so a user may
+/// well name `sparse` or a copy such as `sparse_txt`).
 pub fn find_model_dir(dir: &Path) -> Option<PathBuf> {
     [
         dir.join("sparse").join("0"),
         dir.join("sparse"),
         dir.to_path_buf(),
+        dir.join("0"),
     ]
     .into_iter()
     .find(|d| model_format(d).is_some())

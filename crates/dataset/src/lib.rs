@@ -11,8 +11,8 @@
 //! 2. instant-ngp: `transforms.json` (every 8th frame held out, after the reference's
 //!    natural sort) — it wins over a COLMAP or LLFF model in the same folder;
 //! 3. LLFF: `poses_bounds.npy` with `images/` or `images_N/` ([`llff`]);
-//! 4. COLMAP: a sparse model in `sparse/0/`, `sparse/` or the folder itself (`cameras` and
-//!    `images`, `.bin` or `.txt`), images in `images/` or `images_N/` beside it ([`colmap`]).
+//! 4. COLMAP: a sparse model in `sparse/0/`, `sparse/`, the folder itself or its `0/`
+//!    (`cameras` and `images`, `.bin` or `.txt`), images in `images/` or `images_N/` beside it ([`colmap`]).
 //!
 //! LLFF is tried before COLMAP because LLFF releases ship renamed `images_N/` copies that
 //! their COLMAP model's image names do not match. COLMAP and LLFF captures are converted in
@@ -103,7 +103,7 @@ pub fn import_capture(dir: &Path, images: Option<&str>) -> Result<ImportedScene>
 
 /// What [`find_capture`] looks for, for messages.
 const CAPTURES_LOOKED_FOR: &str = "poses_bounds.npy (LLFF), and cameras + images (.bin or .txt) \
-     in sparse/0/, sparse/ or the folder itself (COLMAP)";
+     in sparse/0/, sparse/, the folder itself or its 0/ (COLMAP)";
 
 fn locate(dir: &Path, split: Split) -> Result<Source> {
     // A path to a single JSON file is read as an instant-ngp transforms file.
