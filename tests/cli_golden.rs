@@ -7,9 +7,10 @@
 //! cli_golden`, then review the diff as part of the change.
 
 use serde_json::Value;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 use testkit::cli::{bin, ok, stdout_ok, stegongp};
+use testkit::golden::{self, check};
 
 /// Every subcommand, and `experiment`'s plans and jobs under it.
 const COMMANDS: &[&str] = &[
@@ -31,38 +32,6 @@ const COMMANDS: &[&str] = &[
     "mesh",
     "attack",
 ];
-
-fn golden(kind: &str, name: &str) -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("tests/golden")
-        .join(kind)
-        .join(format!("{name}.txt"))
-}
-
-/// Compares `text` with its golden file, or rewrites the file under `STEGONGP_BLESS`.
-/// Returns the mismatch, if any, so that one run names them all.
-fn check(kind: &str, name: &str, text: &str) -> Option<String> {
-    let path = golden(kind, name);
-    if std::env::var_os("STEGONGP_BLESS").is_some() {
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        std::fs::write(&path, text).unwrap();
-        return None;
-    }
-    let want = std::fs::read_to_string(&path).unwrap_or_default();
-    (want != text).then(|| {
-        let line = want
-            .lines()
-            .zip(text.lines())
-            .position(|(a, b)| a != b)
-            .unwrap_or(want.lines().count().min(text.lines().count()));
-        format!(
-            "{}: differs from line {} (now: {:?})",
-            path.display(),
-            line + 1,
-            text.lines().nth(line).unwrap_or("<end>")
-        )
-    })
-}
 
 /// `--help` is as wide on every machine: clap reads no terminal here, and COLUMNS is set.
 fn help(command: &str) -> String {
@@ -88,48 +57,6 @@ fn every_commands_help_is_as_it_was() {
     assert!(differ.is_empty(), "{}", differ.join("\n"));
 }
 
-/// A document's shape: its keys in order, each value's kind, an array's first element.
-fn shape(v: &Value, indent: usize, out: &mut String) {
-    let pad = "  ".repeat(indent);
-    match v {
-        Value::Object(m) => {
-            for (k, v) in m {
-                match v {
-                    Value::Object(_) => {
-                        out.push_str(&format!("{pad}{k}: object\n"));
-                        shape(v, indent + 1, out);
-                    }
-                    Value::Array(a) => {
-                        out.push_str(&format!("{pad}{k}: array\n"));
-                        if let Some(first) = a.first() {
-                            shape(first, indent + 1, out);
-                        }
-                    }
-                    _ => out.push_str(&format!("{pad}{k}: {}\n", kind(v))),
-                }
-            }
-        }
-        Value::Array(a) => {
-            out.push_str(&format!("{pad}[array]\n"));
-            if let Some(first) = a.first() {
-                shape(first, indent + 1, out);
-            }
-        }
-        _ => out.push_str(&format!("{pad}{}\n", kind(v))),
-    }
-}
-
-fn kind(v: &Value) -> &'static str {
-    match v {
-        Value::Null => "null",
-        Value::Bool(_) => "bool",
-        Value::Number(_) => "number",
-        Value::String(_) => "string",
-        Value::Array(_) => "array",
-        Value::Object(_) => "object",
-    }
-}
-
 fn p(d: &Path, n: &str) -> String {
     d.join(n).to_str().unwrap().to_string()
 }
@@ -140,14 +67,29 @@ fn json_shape(args: &[&str]) -> String {
     let text = stdout_ok(&out);
     let v: Value = serde_json::from_str(&text)
         .unwrap_or_else(|e| panic!("stegongp {args:?}: not JSON ({e}): {text}"));
-    let mut s = String::new();
-    shape(&v, 0, &mut s);
-    s
+    golden::json_shape(&v)
+}
+
+/// `devices --json` where a GPU adapter opens (CI's is Mesa's llvmpipe): the adapters and
+/// the opened device's features and limits.
+#[test]
+fn devices_json_is_shaped_as_it_was() {
+    let text = stdout_ok(&stegongp(&["devices", "--json"]));
+    let v: Value = serde_json::from_str(&text).expect("devices --json prints JSON");
+    if v["opened"].is_null() {
+        return testkit::missing(
+            "GPU adapter",
+            "apt-get install mesa-vulkan-drivers libvulkan1",
+        );
+    }
+    golden::assert_json_shape("devices", &v);
 }
 
 /// Every command a few seconds can run, on a 32 px object and text trained for 6 steps on
-/// the CPU: the shapes of their `--json`. (`demo`, `experiment`, `process`, `view`, `convert`
-/// and `devices` have their own tests of their documents.)
+/// the CPU: the shapes of their `--json`. `convert`'s and `process`'s are checked against
+/// their golden files where their own tests run them (`tests/data_import.rs`,
+/// `tests/process_cli.rs`), `devices`' above; `demo`, `render`, `view` and `experiment`
+/// print no JSON document.
 #[test]
 fn every_small_runs_json_is_shaped_as_it_was() {
     let d = tempfile::tempdir().unwrap();

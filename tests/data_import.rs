@@ -611,6 +611,7 @@ fn convert_writes_a_transforms_json_that_loads_back() {
         .unwrap();
     assert!(r.status.success(), "{}", String::from_utf8_lossy(&r.stderr));
     let s: Value = serde_json::from_slice(&r.stdout).unwrap();
+    testkit::golden::assert_json_shape("convert", &s);
     assert_eq!(
         (s["aabb_scale"].as_u64(), s["frames"].as_u64()),
         (Some(4), Some(N as u64))

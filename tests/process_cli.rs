@@ -80,6 +80,7 @@ fn photos_of_a_generated_room_are_posed_and_train() {
         "--json",
     ]);
     let sum = summary(&out);
+    testkit::golden::assert_json_shape("process", &sum);
     eprintln!(
         "photos: process {:.1} s ({})",
         t0.elapsed().as_secs_f64(),

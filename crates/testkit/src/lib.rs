@@ -4,7 +4,8 @@
 //! recipe ([`models`]), comparisons of two backends' weights ([`compare`]), and the geometry
 //! that writing a COLMAP capture and comparing poses need ([`geometry`]), a capture
 //! photographed from known cameras for `process` ([`capture`]), a headless Chromium driven over
-//! the DevTools protocol ([`browser`]), and a real one-node Slurm cluster ([`slurm`]).
+//! the DevTools protocol ([`browser`]), a real one-node Slurm cluster ([`slurm`]), and the golden files of what a user sees
+//! ([`golden`]).
 //!
 //! A dev-dependency of the workspace's root package (its integration tests); it sits above
 //! every library crate, so their own unit tests cannot use it.
@@ -14,6 +15,7 @@ pub mod capture;
 pub mod cli;
 pub mod compare;
 pub mod geometry;
+pub mod golden;
 pub mod keys;
 pub mod models;
 pub mod scenes;
