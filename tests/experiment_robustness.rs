@@ -1,6 +1,7 @@
 //! `experiment robustness`: models of each mode attacked at each strength, as one run and as
 //! a plan of jobs (every attacked file a job waiting for its model), the two reports the
-//! same; `purify` leaves a robust hidden scene and every cover pixel as they were.
+//! same; `purify` leaves every cover pixel as it was. (That it leaves a robust hidden scene
+//! as it was too is `tests/attack_cli.rs`'s, on the command a user runs.)
 
 use serde_json::Value;
 use std::path::Path;
@@ -8,9 +9,10 @@ use std::process::Command;
 use stegongp::experiments::report::comparable;
 use testkit::cli::{bin, report_table, run_ok, stdout_ok, stegongp};
 
-// One attack (purify: the one the robust mode exists for), two modes: each measured scene
-// with a key rebuilds its occupancy grid (seconds on two cores), so every attack costs more
-// than its own time; the attacks themselves have their own tests (attack_cli, the crate's).
+// One attack (purify: the one the robust mode exists for), one mode: each measured scene
+// with a key rebuilds its occupancy grid (seconds on two cores), so every model and attack
+// costs more than its own time (a second mode cost this test 65 s); the attacks and the
+// modes themselves have their own tests (attack_cli, the crate's).
 const ARGS: [&str; 16] = [
     "robustness",
     "--res",
@@ -25,7 +27,7 @@ const ARGS: [&str; 16] = [
     "--log2-t",
     "14",
     "--modes",
-    "default,robust",
+    "default",
     "--attack",
     "purify",
 ];
@@ -56,8 +58,8 @@ fn robustness_as_jobs_writes_the_single_machine_report() {
         serde_json::from_slice(&std::fs::read(plan.join("plan.json")).unwrap()).unwrap();
     let jobs = doc["jobs"].as_array().unwrap();
     let ids: Vec<&str> = jobs.iter().map(|j| j["id"].as_str().unwrap()).collect();
-    // Two models, an attack on each, the report.
-    assert_eq!(ids.len(), 2 + 2 + 1, "{ids:?}");
+    // The model, its attack, the report.
+    assert_eq!(ids.len(), 1 + 1 + 1, "{ids:?}");
     let attack_job = jobs
         .iter()
         .find(|j| j["id"].as_str().unwrap().contains("attack"))
@@ -98,18 +100,11 @@ fn robustness_as_jobs_writes_the_single_machine_report() {
             .find(|x| x["mode"] == mode && x["attack"] == attack)
             .unwrap_or_else(|| panic!("no row {mode} {attack}"))
     };
-    for mode in ["default", "robust"] {
-        let (none, purified) = (find(mode, "none"), find(mode, "purify"));
-        assert_eq!(
-            none["cover_psnr"], purified["cover_psnr"],
-            "{mode}: purify moved the cover"
-        );
-    }
-    let (none, purified) = (find("robust", "none"), find("robust", "purify"));
+    let (none, purified) = (find("default", "none"), find("default", "purify"));
     assert_eq!(
-        none["hidden_psnr"], purified["hidden_psnr"],
-        "purify moved a robust hidden scene"
+        none["cover_psnr"], purified["cover_psnr"],
+        "purify moved the cover"
     );
-    assert!(find("default", "purify")["wrong_key_psnr"].is_number());
-    assert_eq!(report_table(&r, "Headline").len(), 2);
+    assert!(purified["wrong_key_psnr"].is_number() && purified["empty_psnr"].is_number());
+    assert_eq!(report_table(&r, "Headline").len(), 1);
 }
