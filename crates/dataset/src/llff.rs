@@ -24,7 +24,7 @@ use std::path::{Path, PathBuf};
 use rayon::prelude::*;
 
 use crate::colmap2nerf::{ImportCamera, ImportFrame, ImportedScene, find_image_root, image_dims};
-use crate::transforms::ORTHONORMAL_TOL;
+use crate::transforms::not_rigid;
 use ngp::data::DatasetFormat;
 use ngp::error::{Error, Result};
 
@@ -160,22 +160,10 @@ fn row_pose(path: &Path, i: usize, row: &[f64; 17]) -> Result<[[f64; 4]; 3]> {
     for (r, gr) in g.iter_mut().enumerate() {
         *gr = [m(r, 1), m(r, 0), -m(r, 2), m(r, 3)];
     }
-    let mut worst = 0.0f64;
-    for a in 0..3 {
-        for b in 0..3 {
-            let d: f64 = (0..3).map(|k| g[k][a] * g[k][b]).sum();
-            worst = worst.max((d - if a == b { 1.0 } else { 0.0 }).abs());
-        }
-    }
-    let det = g[0][0] * (g[1][1] * g[2][2] - g[1][2] * g[2][1])
-        - g[0][1] * (g[1][0] * g[2][2] - g[1][2] * g[2][0])
-        + g[0][2] * (g[1][0] * g[2][1] - g[1][1] * g[2][0]);
-    if worst > ORTHONORMAL_TOL || det <= 0.0 {
+    if let Some(why) = not_rigid(&g) {
         return Err(Error::format(
             path,
-            format!(
-                "row {i}: rotation [down, right, back] is not rigid (max |RᵀR−I| = {worst:.3e}, det = {det:.4})"
-            ),
+            format!("row {i}: rotation [down, right, back] is not rigid ({why})"),
         ));
     }
     Ok(g)

@@ -315,23 +315,28 @@ impl Ctx<'_> {
 
     /// `m`'s rotation checked to be rigid, as `f32`. `field` names the matrix in messages.
     fn rigid(&self, field: &str, m: &[[f64; 4]; 3]) -> Result<[[f32; 4]; 3]> {
-        let mut worst = 0.0f64;
-        for a in 0..3 {
-            for b in 0..3 {
-                let d: f64 = (0..3).map(|k| m[k][a] * m[k][b]).sum();
-                worst = worst.max((d - if a == b { 1.0 } else { 0.0 }).abs());
-            }
-        }
-        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-        if worst > ORTHONORMAL_TOL || det <= 0.0 {
-            return Err(self.err(format!(
-                "{field}: rotation is not rigid (max |RᵀR−I| = {worst:.3e}, det = {det:.4})"
-            )));
+        if let Some(why) = not_rigid(m) {
+            return Err(self.err(format!("{field}: rotation is not rigid ({why})")));
         }
         Ok(m.map(|row| row.map(|v| v as f32)))
     }
+}
+
+/// Why the rotation of a camera-to-world matrix is not rigid (a reflection, or columns
+/// further than [`ORTHONORMAL_TOL`] from orthonormal), or `None` where it is.
+pub(crate) fn not_rigid(m: &[[f64; 4]; 3]) -> Option<String> {
+    let mut worst = 0.0f64;
+    for a in 0..3 {
+        for b in 0..3 {
+            let d: f64 = (0..3).map(|k| m[k][a] * m[k][b]).sum();
+            worst = worst.max((d - if a == b { 1.0 } else { 0.0 }).abs());
+        }
+    }
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    (worst > ORTHONORMAL_TOL || det <= 0.0)
+        .then(|| format!("max |RᵀR−I| = {worst:.3e}, det = {det:.4}"))
 }
 
 /// Reads and validates one transforms JSON file (image paths relative to its folder).
