@@ -124,16 +124,8 @@ impl Training<'_> {
     pub fn restore_state_doc(&mut self, doc: &rmpv::Value, origin: &Path) -> Result<()> {
         use ngp::train::state::Fields;
         let f = Fields::top(origin, doc)?;
-        if f.str("format")? != RUN_STATE_FORMAT {
-            return Err(f.err("format", format!("not a run state ({RUN_STATE_FORMAT})")));
-        }
-        let v = f.u64("version")?;
-        if v != RUN_STATE_VERSION {
-            return Err(f.err(
-                "version",
-                format!("{v}: this program reads version {RUN_STATE_VERSION}"),
-            ));
-        }
+        f.expect_format(RUN_STATE_FORMAT, "a run state")?;
+        f.expect_version(RUN_STATE_VERSION)?;
         let tf = f.map("totals")?;
         let totals = Totals {
             steps: tf.u32("steps")?,

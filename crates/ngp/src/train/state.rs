@@ -688,6 +688,26 @@ impl<'a> Fields<'a> {
             .ok_or_else(|| self.err(key, "expected a whole number"))
     }
 
+    /// The document's `format` is `format`, else an error calling it not `what`.
+    pub fn expect_format(&self, format: &str, what: &str) -> Result<()> {
+        if self.str("format")? != format {
+            return Err(self.err("format", format!("not {what} ({format})")));
+        }
+        Ok(())
+    }
+
+    /// The document's `version` is `version`, the only one this program reads.
+    pub fn expect_version(&self, version: u64) -> Result<()> {
+        let v = self.u64("version")?;
+        if v != version {
+            return Err(self.err(
+                "version",
+                format!("{v}: this program reads version {version}"),
+            ));
+        }
+        Ok(())
+    }
+
     pub fn u32(&self, key: &str) -> Result<u32> {
         u32::try_from(self.u64(key)?).map_err(|_| self.err(key, "larger than 2^32 − 1"))
     }
@@ -916,16 +936,8 @@ pub fn open(origin: &Path, bytes: &[u8]) -> Result<Value> {
 /// Checks a state's format, version and fingerprint; a difference is named, not shown
 /// (a hidden scene's description stays out of messages).
 pub fn check_header(f: &Fields, fingerprint: &[(String, String)]) -> Result<()> {
-    if f.str("format")? != FORMAT {
-        return Err(f.err("format", format!("not a training state ({FORMAT})")));
-    }
-    let v = f.u64("version")?;
-    if v != VERSION {
-        return Err(f.err(
-            "version",
-            format!("{v}: this program reads version {VERSION}"),
-        ));
-    }
+    f.expect_format(FORMAT, "a training state")?;
+    f.expect_version(VERSION)?;
     let saved = f.map("fingerprint")?;
     // A state holds what its own kind of trainer keeps between steps: the CPU's and the
     // GPU's are not interchangeable, and saying so beats naming the options that differ.

@@ -371,9 +371,7 @@ impl TrainPolicy for Stealth {
         };
         let doc = open(origin, bytes)?;
         let f = Fields::top(origin, &doc)?;
-        if f.str("format")? != STATE_FORMAT {
-            return Err(f.err("format", format!("not a stealth state ({STATE_FORMAT})")));
-        }
+        f.expect_format(STATE_FORMAT, "a stealth state")?;
         if f.str("parts")? != format!("{:?}", self.parts) {
             return Err(f.err(
                 "parts",
