@@ -581,6 +581,75 @@ pub fn backward(
     }
 }
 
+/// ADDS dL/d(pos) of every sample of the last [`forward`] on `cache` into `d_pos`, from
+/// `d_enc` = dL/d(enc) as [`backward`] takes it: at each level the slope of the trilinear
+/// weights along each axis (scaled by the level's resolution) against the corners' values
+/// weighted by the features' gradients. The table is read at the cached corners, so it must
+/// be the table `forward` read. What camera refinement needs: a ray's origin and direction
+/// move every sample on it.
+pub fn position_gradient(
+    layout: &GridLayout,
+    table: &[f32],
+    cache: &GridCache,
+    pos: &[[f32; 3]],
+    d_enc: &[f32],
+    ld: usize,
+    d_pos: &mut [[f32; 3]],
+) {
+    let n = cache.n;
+    let nf = layout.config.n_features as usize;
+    assert_eq!(table.len(), layout.n_params(), "grid table length");
+    assert!(
+        pos.len() == n && d_pos.len() >= n,
+        "one position per cached sample"
+    );
+    assert!(n <= ld && d_enc.len() >= layout.levels.len() * nf * ld);
+    assert!(
+        cache.keeps_every_level,
+        "the position gradient needs a cache that keeps every level's corners"
+    );
+    let cap = cache.capacity;
+    let tp = table.as_ptr();
+    for (l, level) in layout.levels.iter().enumerate() {
+        let offs = &cache.offs[l * cap * CORNERS..(l * cap + n) * CORNERS];
+        let g = &d_enc[l * nf * ld..(l + 1) * nf * ld];
+        for s in 0..n {
+            // The forward's lines are long gone from L1 by now: fetch ahead, as it did.
+            if s + PREFETCH_AHEAD < n {
+                let at = (s + PREFETCH_AHEAD) * CORNERS;
+                for &o in &offs[at..at + CORNERS] {
+                    prefetch(tp.wrapping_add(o as usize));
+                }
+            }
+            let (_, frac) = cell_of(level, pos[s]);
+            // Each corner's value against the features' gradients.
+            let mut v = [0f32; CORNERS];
+            for (c, vc) in v.iter_mut().enumerate() {
+                let base = offs[s * CORNERS + c] as usize;
+                for f in 0..nf {
+                    *vc += g[f * ld + s] * table[base + f];
+                }
+            }
+            // Corner c = x + 2y + 4z. Along x the weight's slope is ±1 times the other two
+            // axes' weights, so the slope is the y-z-weighted sum of the x differences.
+            let wx = [1.0 - frac[0], frac[0]];
+            let wy = [1.0 - frac[1], frac[1]];
+            let wz = [1.0 - frac[2], frac[2]];
+            let mut slope = [0f32; 3];
+            for a in 0..2 {
+                for b in 0..2 {
+                    slope[0] += wy[a] * wz[b] * (v[1 + 2 * a + 4 * b] - v[2 * a + 4 * b]);
+                    slope[1] += wx[a] * wz[b] * (v[a + 2 + 4 * b] - v[a + 4 * b]);
+                    slope[2] += wx[a] * wy[b] * (v[a + 2 * b + 4] - v[a + 2 * b]);
+                }
+            }
+            for d in 0..3 {
+                d_pos[s][d] += level.scale * slope[d];
+            }
+        }
+    }
+}
+
 /// Straightforward per-sample encoding through `LevelIndex::index` (not a kernel), the
 /// reference the fast path is tested against.
 #[cfg(test)]
