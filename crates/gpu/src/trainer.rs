@@ -1596,6 +1596,7 @@ impl<'c> GpuTrainer<'c> {
             mechanisms,
             waiting: state::Waiting::Gradient(gradient),
             policy,
+            cameras: None,
         };
         Ok(doc.to_value())
     }
@@ -1634,6 +1635,7 @@ impl<'c> GpuTrainer<'c> {
                 .map(|s| N_CELLS * s.occupancy.n_cascades as usize)
                 .collect(),
             policy: self.policy.is_some(),
+            refined_images: None,
         };
         let saved = state::TrainerState::read(origin, doc, &expect)?;
         let ctx = self.ctx;

@@ -124,6 +124,20 @@ pub fn quat_to_rotation<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
     ]
 }
 
+/// `v` turned by the rotation vector `w` (axis `w/|w|`, angle `|w|` radians), by
+/// Rodrigues' formula; `v` itself, to the bit, when `w` is zero.
+pub fn rotate_by_vector(w: [f32; 3], v: [f32; 3]) -> [f32; 3] {
+    let angle = norm(w);
+    if angle == 0.0 {
+        return v;
+    }
+    let k = scale(w, 1.0 / angle);
+    let (sin, cos) = angle.sin_cos();
+    let kv = cross(k, v);
+    let along = dot(k, v) * (1.0 - cos);
+    [0, 1, 2].map(|i| v[i] * cos + kv[i] * sin + k[i] * along)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -148,6 +162,36 @@ mod tests {
         assert_eq!(
             quat_to_rotation([1.0f32, 0.0, 0.0, 0.0]),
             [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+        );
+    }
+
+    /// A quarter turn about z takes x to y, as the quaternion does; no turn is no change.
+    #[test]
+    fn rotation_vectors_by_hand() {
+        let q = std::f32::consts::FRAC_PI_2;
+        assert!(
+            dist(
+                rotate_by_vector([0.0, 0.0, q], [1.0, 0.0, 0.0]),
+                [0.0, 1.0, 0.0]
+            ) < 1e-6
+        );
+        assert!(
+            dist(
+                rotate_by_vector([q, 0.0, 0.0], [0.0, 1.0, 0.0]),
+                [0.0, 0.0, 1.0]
+            ) < 1e-6
+        );
+        let v = [0.3f32, -0.7, 0.2];
+        assert_eq!(rotate_by_vector([0.0; 3], v), v);
+        let w = [0.1f32, -0.2, 0.3];
+        let turned = rotate_by_vector(w, v);
+        assert!(
+            (norm(turned) - norm(v)).abs() < 1e-6,
+            "a turn keeps the length"
+        );
+        assert!(
+            dist(rotate_by_vector(scale(w, -1.0), turned), v) < 1e-6,
+            "and undoes"
         );
     }
 }

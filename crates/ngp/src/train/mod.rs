@@ -2,6 +2,7 @@
 //! training policy acts through, and the trainer that ties rays, marching, the network and
 //! compositing together for one or more scenes sharing one set of weights.
 
+pub mod cameras;
 pub mod coarse;
 pub mod grid_updates;
 mod held;
@@ -72,6 +73,17 @@ pub trait TrainBackend {
     fn device_profile(&self) -> Vec<(String, f64)> {
         Vec::new()
     }
+    /// Refines scene 0's training cameras as it trains ([`cameras`]), from the first step;
+    /// an error where this backend cannot.
+    fn refine_cameras(&mut self, _config: cameras::CameraRefinement) -> Result<()> {
+        Err(crate::error::Error::Config(
+            "camera refinement runs on the CPU trainer only (the GPU's is not written yet)".into(),
+        ))
+    }
+    /// Scene 0's refined cameras, where they are refined.
+    fn cameras(&self) -> Option<&cameras::CameraRefiner> {
+        None
+    }
 }
 
 impl TrainBackend for Trainer {
@@ -101,5 +113,11 @@ impl TrainBackend for Trainer {
     }
     fn restore_state(&mut self, doc: &state::Value, origin: &std::path::Path) -> Result<()> {
         Trainer::restore_state_doc(self, doc, origin)
+    }
+    fn refine_cameras(&mut self, config: cameras::CameraRefinement) -> Result<()> {
+        Trainer::refine_cameras(self, config)
+    }
+    fn cameras(&self) -> Option<&cameras::CameraRefiner> {
+        Trainer::cameras(self)
     }
 }

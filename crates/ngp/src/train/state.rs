@@ -17,6 +17,7 @@
 //! writer, [`TrainerState::to_value`]; one reader, [`TrainerState::read`]); each only
 //! converts between its own storage and it. What differs by device is a field of it.
 
+use super::cameras::RefinerState;
 use crate::error::{Error, Result};
 use crate::snapshot::msgpack;
 /// The document's values (what a backend's [`super::TrainBackend::save_state`] returns).
@@ -31,6 +32,8 @@ pub const VERSION: u64 = 2;
 /// The fingerprint entry naming the kind of trainer that saved a state; a state without it
 /// is the CPU trainer's.
 pub const DEVICE: &str = "device";
+/// The fingerprint's key of camera refinement's settings, present only where a run refines.
+pub const CAMERAS: &str = "cameras";
 
 pub fn f32s(v: &[f32]) -> Value {
     u32s(bytemuck::cast_slice(v))
@@ -117,6 +120,9 @@ pub struct TrainerState<'a> {
     pub waiting: Waiting<'a>,
     /// The training policy's own state (`None`: nil, no policy or one that keeps none).
     pub policy: Option<Cow<'a, [u8]>>,
+    /// Scene 0's camera refinement ([`super::cameras`]), where it refines; a state without
+    /// refinement has no such field.
+    pub cameras: Option<RefinerState>,
 }
 
 /// Where the gradients a step left waiting are kept, by kind of trainer.
@@ -220,6 +226,8 @@ pub struct Expect<'e> {
     pub scene_cells: Vec<usize>,
     /// Whether a training policy is installed.
     pub policy: bool,
+    /// Scene 0's training images where its cameras are refined.
+    pub refined_images: Option<usize>,
 }
 
 impl TrainerState<'_> {
@@ -276,6 +284,17 @@ impl TrainerState<'_> {
             .as_ref()
             .map_or(Value::Nil, |p| Value::Binary(p.to_vec()));
         doc.push(("policy", policy));
+        if let Some(c) = &self.cameras {
+            let cameras = map(vec![
+                ("offsets", f32s(&c.offsets)),
+                ("m", f32s(&c.m)),
+                ("v", f32s(&c.v)),
+                ("updates", Value::from(c.updates)),
+                ("pending", u64s(&c.pending)),
+                ("pending_steps", Value::from(c.pending_steps)),
+            ]);
+            doc.push(("cameras", cameras));
+        }
         map(doc)
     }
 }
@@ -343,6 +362,10 @@ impl<'a> TrainerState<'a> {
             Device::Gpu { .. } => Waiting::Gradient(None),
         };
         let policy = f.binary_opt("policy")?.map(Cow::Borrowed);
+        let cameras = match e.refined_images {
+            Some(n) => Some(read_cameras(&f.map("cameras")?, n)?),
+            None => None,
+        };
         Ok(TrainerState {
             fingerprint: e.fingerprint.to_vec(),
             step,
@@ -354,8 +377,28 @@ impl<'a> TrainerState<'a> {
             mechanisms,
             waiting,
             policy,
+            cameras,
         })
     }
+}
+
+/// A [`RefinerState`] of `n_images` images.
+fn read_cameras(f: &Fields, n_images: usize) -> Result<RefinerState> {
+    let n = n_images * 6;
+    let (mut offsets, mut m, mut v, mut pending) =
+        (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0; n]);
+    f.f32s_into("offsets", &mut offsets)?;
+    f.f32s_into("m", &mut m)?;
+    f.f32s_into("v", &mut v)?;
+    f.u64s_into("pending", &mut pending)?;
+    Ok(RefinerState {
+        offsets,
+        m,
+        v,
+        updates: f.u32("updates")?,
+        pending,
+        pending_steps: f.u32("pending_steps")?,
+    })
 }
 
 impl OccupancyClock<'_> {
@@ -962,11 +1005,16 @@ pub fn check_header(f: &Fields, fingerprint: &[(String, String)]) -> Result<()> 
             ),
         ));
     }
-    let differ: Vec<&str> = fingerprint
+    let mut differ: Vec<&str> = fingerprint
         .iter()
         .filter(|(k, v)| saved.str(k).map_or(true, |s| s != v))
         .map(|(k, _)| k.as_str())
         .collect();
+    // Camera refinement is in a fingerprint only where it refines: a state that has it
+    // must not go into a run without it (its offsets would be dropped).
+    if saved.has(CAMERAS) && !fingerprint.iter().any(|(k, _)| k == CAMERAS) {
+        differ.push(CAMERAS);
+    }
     if !differ.is_empty() {
         return Err(f.err(
             "fingerprint",

@@ -9,6 +9,7 @@
 //! split into one fixed range per worker, each with its own gradient buffer, summed in a
 //! fixed order: the result is deterministic for a seed and worker count.
 
+use super::cameras::{self, CameraRefinement, CameraRefiner};
 use super::coarse;
 use super::grid_updates::GridUpdates;
 use super::held::{HoldBack, KeptMlp};
@@ -117,6 +118,22 @@ pub(super) struct SceneState {
     measured_marched: u32,
     /// The reference's steps a training sample stands for ([`super::coarse`]).
     stride: u32,
+    /// The training cameras' offsets, where they are refined ([`super::cameras`]).
+    cameras: Option<CameraRefiner>,
+}
+
+impl SceneState {
+    /// Training image `img`'s ray through pixel (x, y)'s centre, from its refined camera
+    /// where the cameras are refined.
+    fn ray(&self, img: usize, x: u32, y: u32) -> crate::camera::Ray {
+        let ray = self.data.frames[img]
+            .camera
+            .ray(x as f32 + 0.5, y as f32 + 0.5);
+        match &self.cameras {
+            Some(c) => c.ray(img, ray),
+            None => ray,
+        }
+    }
 }
 
 /// What one step did.
@@ -242,6 +259,7 @@ impl Trainer {
                 measured_samples: 0,
                 measured_marched: 0,
                 stride: 1,
+                cameras: None,
             });
         }
         let n_workers = if config.workers == 0 {
@@ -327,6 +345,25 @@ impl Trainer {
     /// The table's bounds, once a policy has set them ([`PolicyOps::update_bounds`]).
     /// The reference's steps a training sample of scene `i` stands for at the next step
     /// ([`super::coarse`]).
+    /// Refines scene 0's training cameras as it trains ([`super::cameras`]), from the first
+    /// step; the other scenes' cameras (generated, exact) stay as given.
+    pub fn refine_cameras(&mut self, config: CameraRefinement) -> Result<()> {
+        if self.step != 0 {
+            return Err(Error::Config(
+                "camera refinement starts before the first step".into(),
+            ));
+        }
+        let scene = &mut self.scenes[0];
+        let side = scene.marcher.aabb_max[0] - scene.marcher.aabb_min[0];
+        scene.cameras = Some(CameraRefiner::new(scene.data.frames.len(), side, config)?);
+        Ok(())
+    }
+
+    /// Scene 0's refined cameras, where they are refined.
+    pub fn cameras(&self) -> Option<&CameraRefiner> {
+        self.scenes[0].cameras.as_ref()
+    }
+
     pub fn march_stride(&self, i: usize) -> u32 {
         self.scenes[i].stride
     }
@@ -407,13 +444,18 @@ impl Trainer {
     fn fingerprint(&self) -> Vec<(String, String)> {
         let mut options = self.config.clone();
         options.workers = self.workers.len();
-        super::state::fingerprint(
+        let mut out = super::state::fingerprint(
             None,
             &self.net.layout.config,
             &options,
             self.policy.is_some(),
             self.scenes.iter().map(|s| s.data.as_ref()),
-        )
+        );
+        // Only where refined, so that the states of runs without it keep their fingerprint.
+        if let Some(c) = self.cameras() {
+            out.push((super::state::CAMERAS.to_string(), format!("{:?}", c.config)));
+        }
+        out
     }
 
     /// The whole training state between two steps ([`super::state`]): restored into a
@@ -462,6 +504,7 @@ impl Trainer {
             }),
             waiting: state::Waiting::Workers(workers.collect()),
             policy,
+            cameras: self.cameras().map(CameraRefiner::save),
         };
         Ok(doc.to_value())
     }
@@ -498,6 +541,7 @@ impl Trainer {
             n_features,
             scene_cells: self.scenes.iter().map(|s| s.grid.density.len()).collect(),
             policy: self.policy.is_some(),
+            refined_images: self.cameras().map(|c| c.offsets().len()),
         };
         let saved = TrainerState::read(origin, doc, &expect)?;
         self.params.copy_from_slice(&saved.params);
@@ -529,6 +573,11 @@ impl Trainer {
         if let Some(p) = &mut self.policy {
             let fresh = p.restore_state(saved.policy.as_deref(), origin)?;
             self.set_indices(fresh)?;
+        }
+        if let (Some(c), Some(saved)) = (&mut self.scenes[0].cameras, &saved.cameras) {
+            c.restore(saved).ok_or_else(|| {
+                Error::format(origin, "the camera offsets are not one per training image")
+            })?;
         }
         self.step = saved.step;
         self.weight_steps = saved.weight_steps;
@@ -693,8 +742,15 @@ impl Trainer {
                     worker.n_samples = 0;
                     worker.n_marched = 0;
                     worker.n_rays = 0;
+                    if let Some(c) = &scene.cameras {
+                        worker.cam_grad.clear();
+                        worker.cam_grad.resize(c.offsets().len(), [0.0; 6]);
+                    }
                     train_rays(net, params, scene, seed, r0..r1, n_rays, worker);
                 });
+            if let Some(c) = &mut self.scenes[si].cameras {
+                c.add_step(self.workers.iter().map(|w| w.cam_grad.as_slice()));
+            }
             let mut loss = 0.0;
             let (mut used, mut marched, mut rays) = (0, 0, 0);
             for w in &self.workers {
@@ -1063,7 +1119,7 @@ fn train_rays(
             // is the target of nothing, which teaches rays to end (T → 0) where the photo
             // shows something, instead of leaning on a fixed colour behind the scene.
             let bg = [rng.next_f32(), rng.next_f32(), rng.next_f32()];
-            let ray = frame.camera.ray(x as f32 + 0.5, y as f32 + 0.5);
+            let ray = scene.ray(img, x, y);
             let Some((tmin, _)) = scene.marcher.intersect(ray.o, ray.d) else {
                 continue;
             };
@@ -1093,6 +1149,9 @@ fn train_rays(
                 n,
                 bg,
                 target,
+                image: img,
+                o: ray.o,
+                d: ray.d,
             });
         }
         if w.pos.is_empty() {
@@ -1148,6 +1207,44 @@ fn train_rays(
                 &mut w.grad,
             );
             mark_corners(&w.ws[k], n_levels, grid_offset, &mut w.touched);
+        }
+        if scene.cameras.is_some() {
+            camera_gradients(net, params, scene, n_chunks, w);
+        }
+    }
+}
+
+/// Adds the camera offsets' gradient of every ray of the worker's group (whose backward
+/// has just run) into its image's row of `w.cam_grad`.
+fn camera_gradients(
+    net: &NerfNetwork,
+    params: &[f32],
+    scene: &SceneState,
+    n_chunks: usize,
+    w: &mut Worker,
+) {
+    let total = w.pos.len();
+    w.d_pos.clear();
+    w.d_pos.resize(total, [0.0; 3]);
+    for k in 0..n_chunks {
+        let r = k * CHUNK..((k + 1) * CHUNK).min(total);
+        net.position_gradient(params, &w.pos[r.clone()], &w.ws[k], &mut w.d_pos[r]);
+    }
+    let m = &scene.marcher;
+    let size = [0, 1, 2].map(|k| m.aabb_max[k] - m.aabb_min[k]);
+    for ray in &w.rays {
+        let r = ray.start..ray.start + ray.n;
+        let g = cameras::ray_gradient(
+            ray.o,
+            ray.d,
+            m.aabb_min,
+            size,
+            &w.pos[r.clone()],
+            &w.d_pos[r],
+        );
+        let row = &mut w.cam_grad[ray.image];
+        for k in 0..6 {
+            row[k] += g[k];
         }
     }
 }
@@ -1466,6 +1563,77 @@ mod tests {
             fresh.train_step().unwrap();
         }
         assert!(bits(&fresh.params) != bits(&whole.params));
+    }
+
+    /// Camera refinement's offsets and optimiser travel in the state: a resumed refining run
+    /// goes on bit for bit, cameras included; a state with refinement and one without do
+    /// not go into each other's trainers.
+    #[test]
+    fn refined_cameras_resume_bit_for_bit_and_plain_states_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let refine = CameraRefinement {
+            steps_per_update: 3,
+            ..CameraRefinement::default()
+        };
+        let refining = |seed| {
+            let mut t = two_scene_trainer(dir.path(), seed);
+            t.refine_cameras(refine).unwrap();
+            t
+        };
+        let mut whole = refining(5);
+        for _ in 0..20 {
+            whole.train_step().unwrap();
+        }
+        let mut first = refining(5);
+        for _ in 0..10 {
+            first.train_step().unwrap();
+        }
+        let saved = first.save_state().unwrap();
+        let mut resumed = refining(5);
+        resumed
+            .restore_state(&saved, std::path::Path::new("state"))
+            .unwrap();
+        for _ in 10..20 {
+            resumed.train_step().unwrap();
+        }
+        let cams = |t: &Trainer| -> Vec<u32> {
+            let c = t.cameras().unwrap();
+            c.offsets().iter().flatten().map(|v| v.to_bits()).collect()
+        };
+        assert!(
+            bits(&resumed.params) == bits(&whole.params),
+            "weights differ"
+        );
+        assert_eq!(cams(&resumed), cams(&whole), "camera offsets differ");
+        assert_eq!(whole.cameras().unwrap().updates(), 6);
+        assert!(
+            whole
+                .cameras()
+                .unwrap()
+                .offsets()
+                .iter()
+                .flatten()
+                .any(|&v| v != 0.0),
+            "the cameras never moved"
+        );
+        // The hidden scene's cameras are not refined: the state has one image set only.
+        assert_eq!(
+            whole.cameras().unwrap().offsets().len(),
+            whole.dataset(0).frames.len()
+        );
+        let plain_state = two_scene_trainer(dir.path(), 5).save_state().unwrap();
+        let e = refining(5)
+            .restore_state(&plain_state, std::path::Path::new("plain"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("plain") && e.contains("cameras"), "{e}");
+        let e = two_scene_trainer(dir.path(), 5)
+            .restore_state(&saved, std::path::Path::new("refined"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("refined") && e.contains("cameras"), "{e}");
+        // Refinement starts with the run or not at all.
+        assert!(first.refine_cameras(refine).is_err());
     }
 
     #[test]

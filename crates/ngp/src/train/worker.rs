@@ -21,6 +21,10 @@ pub(super) struct Worker {
     pub(super) wave_owner: Vec<(usize, usize)>,
     pub(super) wave_dens: Vec<f32>,
     pub(super) ray_state: Vec<(f32, usize, bool)>,
+    /// With camera refinement: the samples' position gradients and, per training image,
+    /// the gradient of its camera's offsets summed over this worker's rays.
+    pub(super) d_pos: Vec<[f32; 3]>,
+    pub(super) cam_grad: Vec<[f64; 6]>,
     pub(super) loss: f64,
     pub(super) n_samples: u64,
     pub(super) n_marched: u64,
@@ -44,6 +48,8 @@ impl Worker {
             wave_owner: Vec::new(),
             wave_dens: Vec::new(),
             ray_state: Vec::new(),
+            d_pos: Vec::new(),
+            cam_grad: Vec::new(),
             loss: 0.0,
             n_samples: 0,
             n_marched: 0,
@@ -58,4 +64,8 @@ pub(super) struct RayRec {
     pub(super) n: usize,
     pub(super) bg: [f32; 3],
     pub(super) target: [f32; 3],
+    /// The training image and the ray as marched (camera refinement's gradient needs them).
+    pub(super) image: usize,
+    pub(super) o: [f32; 3],
+    pub(super) d: [f32; 3],
 }
