@@ -77,7 +77,7 @@ fn trained(res: u32) -> (Model, Camera) {
         occupancy_fraction: 1.0 / 16.0,
         occupancy_budget: None,
         coarse_march: None,
-        workers: 0,
+        ..StepOptions::default()
     };
     let mut recipe = Recipe::plain(cfg, Arc::new(train), steps, Budget::Steps(100));
     recipe.stored_loss = StoredLoss::Last;

@@ -158,3 +158,31 @@ fn a_batch_larger_than_the_device_holds_is_refused_with_its_limit() {
         assert!(!model.exists());
     }
 }
+
+/// Camera refinement is the CPU trainer's (so far): on the GPU it is refused by name, with
+/// nothing written.
+#[test]
+fn camera_refinement_on_the_gpu_is_refused_naming_it() {
+    if test_context().is_none() {
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("obj");
+    testkit::cli::synth(&scene, "object", 16, 2);
+    let model = d.path().join("m.ingp");
+    let out = stegongp(&[
+        "train",
+        scene.to_str().unwrap(),
+        "--steps",
+        "1",
+        "--device",
+        "gpu",
+        "--refine-cameras",
+        "--batch",
+        "4096",
+        "--out",
+        model.to_str().unwrap(),
+    ]);
+    testkit::cli::fails_naming(&out, &["camera refinement", "CPU"]);
+    assert!(!model.exists());
+}

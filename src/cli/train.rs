@@ -194,6 +194,43 @@ struct Summary {
     /// With --profile-every: milliseconds per profiled step in each device phase.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     device_phases_ms: Vec<Phase>,
+    /// With --refine-cameras: how far the cover's cameras moved.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    cameras: Option<CameraMoves>,
+}
+
+/// How far refinement moved the training cameras from their given poses.
+#[derive(Serialize)]
+struct CameraMoves {
+    images: usize,
+    updates: u32,
+    /// The turn of each camera, in degrees: mean and largest.
+    mean_rotation_degrees: f64,
+    max_rotation_degrees: f64,
+    /// The shift of each camera's centre, in scene units: mean and largest.
+    mean_translation: f64,
+    max_translation: f64,
+}
+
+impl CameraMoves {
+    fn of(c: &ngp::train::cameras::CameraRefiner) -> Self {
+        let norm = |v: &[f32]| v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+        let rot: Vec<f64> = c
+            .offsets()
+            .iter()
+            .map(|o| norm(&o[..3]).to_degrees())
+            .collect();
+        let pos: Vec<f64> = c.offsets().iter().map(|o| norm(&o[3..])).collect();
+        let n = rot.len().max(1) as f64;
+        CameraMoves {
+            images: rot.len(),
+            updates: c.updates(),
+            mean_rotation_degrees: rot.iter().sum::<f64>() / n,
+            max_rotation_degrees: rot.iter().copied().fold(0.0, f64::max),
+            mean_translation: pos.iter().sum::<f64>() / n,
+            max_translation: pos.iter().copied().fold(0.0, f64::max),
+        }
+    }
 }
 
 #[derive(Serialize)]
@@ -421,6 +458,14 @@ fn describe(a: &Args, recipe: &Recipe, training: &Training, device: &Device) {
             d.height
         );
     }
+    eprintln!(
+        "cameras: {}",
+        if trainer.cameras().is_some() {
+            "the cover's refined as it trains (a rotation and a translation an image)"
+        } else {
+            "as given (--refine-cameras to refine them)"
+        }
+    );
     if a.training.stealth.enabled {
         eprintln!("{}", a.training.stealth.describe());
     }
@@ -489,6 +534,7 @@ pub fn run(a: Args) -> Result<()> {
     {
         say_state(file);
     }
+    let cameras = run.training().trainer().cameras().map(CameraMoves::of);
     let device_phases_ms: Vec<Phase> = run
         .device_profile()
         .into_iter()
@@ -527,6 +573,7 @@ pub fn run(a: Args) -> Result<()> {
         half_grid: a.half_grid,
         checkpoints: done.checkpoints,
         device_phases_ms,
+        cameras,
     };
     report(&summary, &t, &a)
 }
@@ -553,6 +600,17 @@ fn report(summary: &Summary, t: &Totals, a: &Args) -> Result<()> {
     }
     for p in &summary.device_phases_ms {
         eprintln!("device {:>8.3} ms a step  {}", p.ms, p.phase);
+    }
+    if let Some(c) = &summary.cameras {
+        eprintln!(
+            "cameras: {} refined in {} updates; turned {:.3}° on average ({:.3}° at most), moved {:.4} ({:.4} at most)",
+            c.images,
+            c.updates,
+            c.mean_rotation_degrees,
+            c.max_rotation_degrees,
+            c.mean_translation,
+            c.max_translation
+        );
     }
     eprintln!(
         "trained {} steps on the {} in {:.1} s ({:.2} steps/s, {:.0} k samples/s; {}), loss {:.5}; wrote {}",

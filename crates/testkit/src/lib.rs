@@ -2,7 +2,8 @@
 //! generated scenes loaded as datasets ([`scenes`]), keys drawn from a seed ([`keys`]), the
 //! `stegongp` program run as a user runs it ([`cli`]), small models trained through the
 //! recipe ([`models`]), comparisons of two backends' weights ([`compare`]), and the geometry
-//! that writing a COLMAP capture and comparing poses need ([`geometry`]), a capture
+//! that writing a COLMAP capture and comparing poses need ([`geometry`]), cameras made wrong on
+//! purpose for camera refinement ([`cameras`]), a capture
 //! photographed from known cameras for `process` ([`capture`]), a headless Chromium driven over
 //! the DevTools protocol ([`browser`]), a real one-node Slurm cluster ([`slurm`]), and the golden files of what a user sees
 //! ([`golden`]).
@@ -11,6 +12,7 @@
 //! every library crate, so their own unit tests cannot use it.
 
 pub mod browser;
+pub mod cameras;
 pub mod capture;
 pub mod cli;
 pub mod compare;

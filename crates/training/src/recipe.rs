@@ -16,6 +16,7 @@ use ngp::data::{Dataset, Split};
 use ngp::encoding::{GridConfig, reference_indices};
 use ngp::error::{Error, Result};
 use ngp::network::{ModelConfig, NerfLayout};
+use ngp::train::cameras::CameraRefinement;
 use ngp::train::{SceneSpec, Schedule, TrainConfig};
 use std::path::Path;
 use std::sync::Arc;
@@ -93,6 +94,12 @@ pub struct StepOptions {
     /// at most 256, and no more than the memory available holds.
     #[cfg_attr(feature = "clap", arg(long, default_value_t = 0))]
     pub workers: usize,
+    /// Refine the training cameras while training: per image, a rotation and a translation
+    /// learned from the photometric loss with their own Adam (instant-ngp's
+    /// `optimize_extrinsics`), for captures whose poses are a little wrong. The cover's
+    /// cameras only; nothing of them is written to the model. CPU only, off by default.
+    #[cfg_attr(feature = "clap", arg(long))]
+    pub refine_cameras: bool,
 }
 
 impl Default for StepOptions {
@@ -104,6 +111,7 @@ impl Default for StepOptions {
             occupancy_budget: None,
             coarse_march: None,
             workers: 0,
+            refine_cameras: false,
         }
     }
 }
@@ -120,6 +128,7 @@ impl StepOptions {
             occupancy_budget: Some(0.0),
             coarse_march: Some(0),
             workers: 0,
+            refine_cameras: false,
         }
     }
 }
@@ -495,6 +504,9 @@ impl Checked {
             }
             (false, true) => trainer.set_policy(Box::new(Stealth::robust(layout, &keys)?))?,
             (false, false) => {}
+        }
+        if self.steps.refine_cameras {
+            trainer.refine_cameras(CameraRefinement::default())?;
         }
         Ok(Training {
             trainer,
