@@ -12,7 +12,10 @@
 //! The optimiser follows instant-ngp's `optimize_extrinsics` (read for its facts): each
 //! image's gradient scaled as if it had the whole batch, an L2 pull of the offsets towards
 //! zero, and a step size that falls by a third every 128 updates down to a floor; it sums
-//! the gradients of several steps into an update, which is an option here.
+//! the gradients of several steps into an update, which is an option here. Ours besides:
+//! the offsets' mean is taken off after every update (the scene's frame stays the given
+//! cameras'), and the translation's step is the rotation's times the box's side
+//! (benchmarks/engine.md, "Camera refinement").
 
 use crate::camera::Ray;
 use crate::error::{Error, Result};
@@ -21,13 +24,12 @@ use crate::geometry::{add, cross, dot, rotate_by_vector, sub};
 /// How the cameras learn.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CameraRefinement {
-    /// Adam's step size at the start (radians for the rotation, scene units for the
-    /// translation).
+    /// Adam's step size at the start (radians for the rotation; for the translation, times
+    /// the box's side in scene units).
     pub learning_rate: f32,
     /// The lowest the step size falls to.
     pub min_learning_rate: f32,
-    /// The L2 weight pulling every offset back to zero (nothing else pins the scene's
-    /// frame: every camera turning together is as good as the scene turning).
+    /// The L2 weight pulling every offset back to zero.
     pub l2: f32,
     /// Steps whose gradients are summed into one update.
     pub steps_per_update: u32,

@@ -342,9 +342,6 @@ impl Trainer {
         (s.rays_per_batch, s.measured_samples, s.measured_marched)
     }
 
-    /// The table's bounds, once a policy has set them ([`PolicyOps::update_bounds`]).
-    /// The reference's steps a training sample of scene `i` stands for at the next step
-    /// ([`super::coarse`]).
     /// Refines scene 0's training cameras as it trains ([`super::cameras`]), from the first
     /// step; the other scenes' cameras (generated, exact) stay as given.
     pub fn refine_cameras(&mut self, config: CameraRefinement) -> Result<()> {
@@ -364,10 +361,13 @@ impl Trainer {
         self.scenes[0].cameras.as_ref()
     }
 
+    /// The reference's steps a training sample of scene `i` stands for at the next step
+    /// ([`super::coarse`]).
     pub fn march_stride(&self, i: usize) -> u32 {
         self.scenes[i].stride
     }
 
+    /// The table's bounds, once a policy has set them ([`PolicyOps::update_bounds`]).
     pub fn table_bounds(&self) -> Option<&TableBounds> {
         self.mech.bounds.as_ref()
     }
