@@ -1010,11 +1010,15 @@ pub fn check_header(f: &Fields, fingerprint: &[(String, String)]) -> Result<()> 
         .filter(|(k, v)| saved.str(k).map_or(true, |s| s != v))
         .map(|(k, _)| k.as_str())
         .collect();
-    // Camera refinement is in a fingerprint only where it refines: a state that has it
-    // must not go into a run without it (its offsets would be dropped).
-    if saved.has(CAMERAS) && !fingerprint.iter().any(|(k, _)| k == CAMERAS) {
-        differ.push(CAMERAS);
-    }
+    // A key only the saved fingerprint has differs too (camera refinement's is there only
+    // where a run refines): that part of the state would be dropped. Named escaped, as
+    // the file wrote it.
+    let only_saved: Vec<String> = (saved.entries.iter())
+        .filter_map(|(k, _)| k.as_str())
+        .filter(|k| *k != DEVICE && !fingerprint.iter().any(|(ours, _)| ours == k))
+        .map(|k| k.escape_debug().to_string())
+        .collect();
+    differ.extend(only_saved.iter().map(String::as_str));
     if !differ.is_empty() {
         return Err(f.err(
             "fingerprint",
