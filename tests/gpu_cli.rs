@@ -128,6 +128,24 @@ fn auto_and_cpu_say_which_device_ran() {
     assert!(err.contains("cuda") && err.contains("gpu"), "{err}");
 }
 
+/// `train` of a 16 px generated object for one step on the GPU with `options`, which must
+/// fail naming each of `says` and write nothing; its standard error.
+fn refused_on_the_gpu(options: &[&str], says: &[&str]) -> String {
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("obj");
+    testkit::cli::synth(&scene, "object", 16, 2);
+    let model = d.path().join("m.ingp");
+    let (scene, out) = (scene.to_str().unwrap(), model.to_str().unwrap());
+    let mut args = vec![
+        "train", scene, "--steps", "1", "--device", "gpu", "--out", out,
+    ];
+    args.extend_from_slice(options);
+    let run = stegongp(&args);
+    testkit::cli::fails_naming(&run, says);
+    assert!(!model.exists());
+    String::from_utf8_lossy(&run.stderr).into_owned()
+}
+
 /// A batch the device cannot hold is refused before training, with the most it holds. A
 /// batch near 2^32 used to wrap in the capacity's rounding and report "hold 0".
 #[test]
@@ -135,27 +153,10 @@ fn a_batch_larger_than_the_device_holds_is_refused_with_its_limit() {
     if test_context().is_none() {
         return;
     }
-    let d = tempfile::tempdir().unwrap();
-    let scene = d.path().join("obj");
-    testkit::cli::synth(&scene, "object", 16, 2);
-    let model = d.path().join("m.ingp");
     for batch in ["4000000000", "4294967295"] {
-        let out = stegongp(&[
-            "train",
-            scene.to_str().unwrap(),
-            "--batch",
-            batch,
-            "--steps",
-            "1",
-            "--device",
-            "gpu",
-            "--out",
-            model.to_str().unwrap(),
-        ]);
-        testkit::cli::fails_naming(&out, &[batch, "samples per batch", "at most"]);
-        let err = String::from_utf8_lossy(&out.stderr);
+        let says = [batch, "samples per batch", "at most"];
+        let err = refused_on_the_gpu(&["--batch", batch], &says);
         assert!(!err.contains("at most 0 "), "{err}");
-        assert!(!model.exists());
     }
 }
 
@@ -166,23 +167,6 @@ fn camera_refinement_on_the_gpu_is_refused_naming_it() {
     if test_context().is_none() {
         return;
     }
-    let d = tempfile::tempdir().unwrap();
-    let scene = d.path().join("obj");
-    testkit::cli::synth(&scene, "object", 16, 2);
-    let model = d.path().join("m.ingp");
-    let out = stegongp(&[
-        "train",
-        scene.to_str().unwrap(),
-        "--steps",
-        "1",
-        "--device",
-        "gpu",
-        "--refine-cameras",
-        "--batch",
-        "4096",
-        "--out",
-        model.to_str().unwrap(),
-    ]);
-    testkit::cli::fails_naming(&out, &["camera refinement", "CPU"]);
-    assert!(!model.exists());
+    let options = ["--refine-cameras", "--batch", "4096"];
+    refused_on_the_gpu(&options, &["camera refinement", "CPU"]);
 }

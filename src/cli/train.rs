@@ -214,13 +214,14 @@ struct CameraMoves {
 
 impl CameraMoves {
     fn of(c: &ngp::train::cameras::CameraRefiner) -> Self {
-        let norm = |v: &[f32]| v.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
-        let rot: Vec<f64> = c
-            .offsets()
-            .iter()
-            .map(|o| norm(&o[..3]).to_degrees())
+        use ngp::geometry::norm;
+        let offsets = c.offsets();
+        let rot: Vec<f64> = (offsets.iter())
+            .map(|o| (norm([o[0], o[1], o[2]]) as f64).to_degrees())
             .collect();
-        let pos: Vec<f64> = c.offsets().iter().map(|o| norm(&o[3..])).collect();
+        let pos: Vec<f64> = (offsets.iter())
+            .map(|o| norm([o[3], o[4], o[5]]) as f64)
+            .collect();
         let n = rot.len().max(1) as f64;
         CameraMoves {
             images: rot.len(),

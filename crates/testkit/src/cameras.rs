@@ -1,6 +1,7 @@
 //! Cameras made a little wrong on purpose, as an ordinary calibration leaves them, and how far
 //! a refinement brought them back: camera refinement's test and benchmark share these.
 
+use crate::geometry::rotation_angle_deg;
 use ngp::camera::Camera;
 use ngp::data::Dataset;
 use ngp::geometry::{add, dist, dot, normalize, rotate_by_vector, scale};
@@ -64,8 +65,12 @@ pub fn perturb(data: &mut Dataset, p: &Perturbation) -> Vec<Camera> {
 
 /// The angle between two cameras' orientations, in degrees.
 fn angle_between(a: &Camera, b: &Camera) -> f32 {
-    let trace: f32 = (0..3).map(|k| dot(a.axis(k), b.axis(k))).sum();
-    ((trace - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+    // Columns: the cameras' unit axes.
+    let rotation = |c: &Camera| {
+        let axes = [0, 1, 2].map(|k| c.axis(k));
+        [0, 1, 2].map(|r| [0, 1, 2].map(|k| axes[k][r] as f64))
+    };
+    rotation_angle_deg(&rotation(a), &rotation(b)) as f32
 }
 
 /// How far cameras are from the truth: mean turn (degrees) and mean shift (scene units).
